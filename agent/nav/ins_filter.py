@@ -1,0 +1,186 @@
+"""Closed-loop GNSS/INS error-state EKF: nominal-state mechanisation plus 15-state covariance.
+
+The nominal state is integrated at the IMU rate; the covariance may be propagated at a lower
+rate (``cov_interval``), using the mean specific force over the accumulated interval, and is
+always brought to the current time before an update. After each update the estimated error is
+fed back into the nominal state and reset to zero (closed loop).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .error_model import ImuNoise, discretize, noise_input_matrix, system_matrix
+from .kalman import Measurement, UpdateResult, kalman_update, stack
+from .mechanization import mechanize
+from .rotation import euler_to_quat, quat_to_euler, wrap_angle
+from .state import ATT, N_STATES, POS, NavState, remove_error
+
+
+@dataclass
+class FilterStats:
+    """Counters a filter keeps for diagnostics."""
+
+    imu_samples: int = 0
+    cov_steps: int = 0
+    updates: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def count(self, result: UpdateResult) -> None:
+        table = self.updates if result.accepted else self.rejected
+        table[result.name] = table.get(result.name, 0) + 1
+
+
+class InsFilter:
+    """Error-state EKF of one vehicle.
+
+    Parameters
+    ----------
+    state : NavState
+        Initial nominal state.
+    P : ndarray, shape (15, 15)
+        Initial error covariance.
+    noise : ImuNoise
+        IMU stochastic model (SI units).
+    t : float
+        Time of ``state`` [s] (sensor time).
+    cov_interval : float
+        Covariance propagation interval [s]; 0 propagates at every IMU sample.
+    discretization : {"series", "van_loan"}
+    """
+
+    def __init__(
+        self,
+        state: NavState,
+        P: np.ndarray,
+        noise: ImuNoise,
+        t: float = 0.0,
+        cov_interval: float = 0.0,
+        discretization: str = "series",
+    ) -> None:
+        P = np.array(P, float)
+        if P.shape != (N_STATES, N_STATES):
+            raise ValueError(f"P must be {N_STATES}x{N_STATES}, got {P.shape}")
+        self.state = state
+        self.P = 0.5 * (P + P.T)
+        self.noise = noise
+        self.t = float(t)
+        self.cov_interval = float(cov_interval)
+        self.discretization = discretization
+        self.stats = FilterStats()
+        self._qc = noise.psd()
+        self._prev_dtheta: np.ndarray | None = None
+        self._prev_dvel: np.ndarray | None = None
+        self._acc_dt = 0.0
+        self._acc_dv_b = np.zeros(3)
+        self._cov_state: NavState | None = None
+
+    # ------------------------------------------------------------------ propagation
+    def propagate(self, dtheta: np.ndarray, dvel: np.ndarray, dt: float) -> None:
+        """Integrate one IMU interval of raw increments (body FRD; rad, m/s) lasting ``dt`` s."""
+        if not dt > 0.0:
+            raise ValueError(f"IMU interval must be positive, got {dt}")
+        st = self.state
+        if self._acc_dt == 0.0:
+            self._cov_state = st
+        new = mechanize(st, dtheta, dvel, dt, self._prev_dtheta, self._prev_dvel)
+        self._prev_dtheta = dtheta - st.bg * dt
+        self._prev_dvel = dvel - st.ba * dt
+        # body-frame sum, resolved with the linearisation attitude at the covariance step
+        self._acc_dv_b += self._prev_dvel
+        self._acc_dt += dt
+        self.state = new
+        self.t += dt
+        self.stats.imu_samples += 1
+        if self._acc_dt >= self.cov_interval:
+            self.flush_covariance()
+
+    def flush_covariance(self) -> None:
+        """Propagate P over the IMU samples integrated since the last covariance step."""
+        dt = self._acc_dt
+        if dt <= 0.0:
+            return
+        lin = self._cov_state if self._cov_state is not None else self.state
+        f_n = lin.dcm @ (self._acc_dv_b / dt)
+        F = system_matrix(lin, f_n, self.noise)
+        G = noise_input_matrix(lin)
+        phi, qd = discretize(F, G, self._qc, dt, self.discretization)
+        P = phi @ self.P @ phi.T + qd
+        self.P = 0.5 * (P + P.T)
+        self._acc_dt = 0.0
+        self._acc_dv_b = np.zeros(3)
+        self._cov_state = None
+        self.stats.cov_steps += 1
+
+    def reset_increment_history(self) -> None:
+        """Forget the previous increments (after a data gap) so coning terms restart."""
+        self._prev_dtheta = None
+        self._prev_dvel = None
+
+    # ------------------------------------------------------------------ updates
+    def update(self, meas: Measurement, gate_probability: float | None = None) -> UpdateResult:
+        """Kalman update with one measurement, closed-loop feedback, and reset."""
+        self.flush_covariance()
+        dx, P, result = kalman_update(self.P, meas, gate_probability)
+        if result.accepted:
+            self.state = remove_error(self.state, dx)
+            self.P = P
+        self.stats.count(result)
+        return result
+
+    def update_stacked(
+        self, measurements: list[Measurement], gate_probability: float | None = None
+    ) -> UpdateResult:
+        """One update with several independent measurements stacked (paper eq. 29)."""
+        if not measurements:
+            raise ValueError("no measurements to stack")
+        name = "+".join(m.name for m in measurements)
+        return self.update(stack(measurements, name), gate_probability)
+
+    # ------------------------------------------------------------------ helpers
+    def reset_yaw(self, yaw: float, sigma: float) -> None:
+        """Replace the heading by ``yaw`` [rad] (e.g. from the GNSS course) with std ``sigma``.
+
+        Roll and pitch are kept; the yaw row/column of P is decorrelated from the rest.
+        """
+        roll, pitch, _ = quat_to_euler(self.state.q)
+        self.state.q = euler_to_quat(roll, pitch, float(wrap_angle(yaw)))
+        self.flush_covariance()
+        self.P[2, :] = 0.0
+        self.P[:, 2] = 0.0
+        self.P[2, 2] = sigma**2
+
+    @property
+    def position_cov(self) -> np.ndarray:
+        """NED position error covariance, shape (3, 3) [m²]."""
+        self.flush_covariance()
+        return self.P[POS, POS].copy()
+
+    @property
+    def attitude_sigma(self) -> np.ndarray:
+        """Attitude error standard deviations, shape (3,) [rad]."""
+        return np.sqrt(np.diag(self.P[ATT, ATT]))
+
+
+def level_from_accel(f_b_mean: np.ndarray) -> tuple[float, float]:
+    """Coarse levelling: roll and pitch [rad] from the mean specific force at rest (FRD)."""
+    fx, fy, fz = f_b_mean
+    roll = math.atan2(-fy, -fz)
+    pitch = math.atan2(fx, math.hypot(fy, fz))
+    return roll, pitch
+
+
+def split_increment(
+    dtheta: np.ndarray, dvel: np.ndarray, t0: float, t1: float, t_split: float
+) -> tuple[tuple[np.ndarray, np.ndarray, float], tuple[np.ndarray, np.ndarray, float]]:
+    """Split an IMU interval [t0, t1] at ``t_split`` (e.g. a GNSS epoch) by linear interpolation.
+
+    Returns two ``(dtheta, dvel, dt)`` parts; increments are shared in proportion to time.
+    """
+    if not t0 < t_split < t1:
+        raise ValueError(f"split time {t_split} outside ({t0}, {t1})")
+    a = (t_split - t0) / (t1 - t0)
+    return (a * dtheta, a * dvel, t_split - t0), ((1 - a) * dtheta, (1 - a) * dvel, t1 - t_split)

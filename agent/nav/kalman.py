@@ -1,0 +1,113 @@
+"""Linear Kalman update on the error state (Joseph form), NIS, gating and stacking.
+
+Measurement convention used by every model in :mod:`agent.nav.measurements`: the innovation
+``z`` is *predicted minus measured*, so that ``z ≈ H dx + v`` with ``dx`` the estimate-minus-truth
+error state (the paper's eq. 9); the estimated error ``K z`` is then removed from the nominal
+state (closed loop).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy.linalg import block_diag, cho_factor, cho_solve
+from scipy.stats import chi2
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One linearised measurement.
+
+    Attributes
+    ----------
+    z : ndarray, shape (m,)
+        Innovation, predicted minus measured, in the measurement's units.
+    H : ndarray, shape (m, n)
+        Jacobian of the prediction w.r.t. the error state.
+    R : ndarray, shape (m, m)
+        Measurement noise covariance.
+    name : str
+        Model name for diagnostics (``"gnss_pos"``, ``"stop_line"``, ...).
+    """
+
+    z: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    name: str = ""
+
+    @property
+    def dim(self) -> int:
+        return int(self.z.shape[0])
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """Outcome of one update: estimated error, NIS and whether it was applied."""
+
+    dx: np.ndarray
+    nis: float
+    dof: int
+    accepted: bool
+    name: str = ""
+
+
+@lru_cache(maxsize=256)
+def chi2_gate(dof: int, probability: float) -> float:
+    """Chi-square quantile ``P(chi2_dof <= gate) = probability``."""
+    return float(chi2.ppf(probability, dof))
+
+
+def stack(measurements: list[Measurement], name: str = "stacked") -> Measurement:
+    """Stack independent measurements into one (the paper's eq. 29): block-diagonal R."""
+    return Measurement(
+        z=np.concatenate([m.z for m in measurements]),
+        H=np.vstack([m.H for m in measurements]),
+        R=block_diag(*[m.R for m in measurements]),
+        name=name,
+    )
+
+
+def kalman_update(
+    P: np.ndarray, meas: Measurement, gate_probability: float | None = None
+) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
+    """Joseph-form Kalman update of the error covariance.
+
+    Parameters
+    ----------
+    P : ndarray, shape (n, n)
+        Prior error covariance ``P(k|k-1)``.
+    meas : Measurement
+        Linearised measurement; prior error mean is zero (closed loop).
+    gate_probability : float, optional
+        If given, reject the update when NIS exceeds the chi-square quantile of this
+        probability (e.g. 0.999).
+
+    Returns
+    -------
+    dx : ndarray, shape (n,)
+        Estimated error (zeros if rejected).
+    P_post : ndarray, shape (n, n)
+        Posterior covariance (the prior if rejected).
+    result : UpdateResult
+    """
+    H, R, z = meas.H, meas.R, meas.z
+    PHt = P @ H.T
+    S = H @ PHt + R
+    try:
+        cf = cho_factor(S, lower=True, check_finite=True)
+    except (np.linalg.LinAlgError, ValueError):
+        n = P.shape[0]
+        return np.zeros(n), P, UpdateResult(np.zeros(n), float("inf"), meas.dim, False, meas.name)
+    Sinv_z = cho_solve(cf, z)
+    nis = float(z @ Sinv_z)
+    n = P.shape[0]
+    if gate_probability is not None and nis > chi2_gate(meas.dim, gate_probability):
+        return np.zeros(n), P, UpdateResult(np.zeros(n), nis, meas.dim, False, meas.name)
+    K = cho_solve(cf, PHt.T).T
+    dx = K @ z
+    IKH = np.eye(n) - K @ H
+    P_post = IKH @ P @ IKH.T + K @ R @ K.T
+    P_post = 0.5 * (P_post + P_post.T)
+    return dx, P_post, UpdateResult(dx, nis, meas.dim, True, meas.name)

@@ -1,0 +1,74 @@
+"""V2V (UWB) range between this vehicle and a neighbour whose beacon gives its position and
+covariance (paper eq. 26-28), with an optional second-order correction.
+
+``z = ||p_i - p_j|| - r_ij``, ``H = u^T`` on i's position error (plus the lever-arm attitude
+term), ``R = σ_uwb² + u^T P_j u``. When the position uncertainty is comparable to the range, the
+first-order model is overconfident and biased: the second-order term adds
+``½ tr((M P)²)`` to R and ``½ tr(M P)`` to the predicted range, with ``M = (I - u u^T)/ρ`` the
+Hessian of the range and ``P = P_i + P_j`` (Bar-Shalom et al. §10.3, second-order EKF).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import earth
+from ..kalman import Measurement
+from ..state import NavState
+from .common import point_llh, point_position_jacobian
+
+
+def relative_position(state: NavState, lever_arm_b: np.ndarray, neighbour_llh: np.ndarray) -> np.ndarray:
+    """NED vector [m] from the neighbour's antenna to this vehicle's antenna, shape (3,)."""
+    lat, lon, h = point_llh(state, lever_arm_b)
+    return earth.ned_offset(lat, lon, h, neighbour_llh[0], neighbour_llh[1], neighbour_llh[2])
+
+
+def range_measurement(
+    state: NavState,
+    measured_range: float,
+    sigma_range: float,
+    neighbour_llh: np.ndarray,
+    neighbour_cov_ned: np.ndarray,
+    lever_arm_b: np.ndarray = np.zeros(3),
+    own_cov_ned: np.ndarray | None = None,
+    second_order: bool = False,
+) -> Measurement:
+    """Range to a neighbour (1 row).
+
+    Parameters
+    ----------
+    state : NavState
+        Predicted state of this vehicle (i).
+    measured_range : float
+        UWB range between the antennas [m].
+    sigma_range : float
+        UWB range noise standard deviation [m].
+    neighbour_llh : ndarray, shape (3,)
+        Neighbour's antenna position (lat, lon rad; h m), extrapolated to the range time.
+    neighbour_cov_ned : ndarray, shape (3, 3)
+        Neighbour's position covariance from its beacon [m²].
+    lever_arm_b : ndarray, shape (3,)
+        This vehicle's UWB antenna relative to its IMU (FRD) [m].
+    own_cov_ned : ndarray, shape (3, 3), optional
+        This vehicle's position covariance; required for ``second_order``.
+    second_order : bool
+        Add the second-order noise and bias terms.
+    """
+    d = relative_position(state, lever_arm_b, neighbour_llh)
+    rho = float(np.linalg.norm(d))
+    if rho < 1e-3:
+        raise ValueError("vehicles coincide: range direction undefined")
+    u = d / rho
+    Pj = np.asarray(neighbour_cov_ned, float)
+    r = sigma_range**2 + float(u @ Pj @ u)
+    predicted = rho
+    if second_order:
+        if own_cov_ned is None:
+            raise ValueError("second_order range model needs own_cov_ned")
+        M = (np.eye(3) - np.outer(u, u)) / rho
+        MP = M @ (Pj + np.asarray(own_cov_ned, float))
+        predicted += 0.5 * float(np.trace(MP))
+        r += 0.5 * float(np.trace(MP @ MP))
+    H = u @ point_position_jacobian(state, lever_arm_b)
+    return Measurement(np.array([predicted - measured_range]), H[None, :], np.array([[r]]), "v2v_range")
