@@ -1,0 +1,52 @@
+"""Shared fixtures and helpers for the slcp test-suite."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.nav.error_model import ImuNoise
+from agent.nav.rotation import euler_to_quat
+from agent.nav.state import NavState
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DRIVE = REPO.parent / "shared" / "data" / "rtklibexplorer_drive_0708"
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(20261122)
+
+
+def moving_state(yaw: float = 0.6, lat_deg: float = 39.95) -> NavState:
+    """A representative moving, tilted vehicle state with non-zero biases."""
+    return NavState(
+        math.radians(lat_deg), math.radians(116.32), 55.0,
+        np.array([8.0, -5.0, 0.3]), euler_to_quat(0.05, -0.03, yaw),
+        np.array([1e-4, -2e-4, 3e-4]), np.array([0.02, -0.01, 0.03]),
+    )
+
+
+MEMS_NOISE = ImuNoise(
+    arw=math.radians(0.1) / 60, vrw=0.05 / 60,
+    gyro_bias_sigma=math.radians(10) / 3600, gyro_bias_tau=3600.0,
+    accel_bias_sigma=5e-3, accel_bias_tau=3600.0,
+)
+
+
+def numerical_jacobian(fun, n: int, eps: np.ndarray | float) -> np.ndarray:
+    """Central-difference Jacobian of ``fun(dx)`` at ``dx = 0`` with per-state step ``eps``."""
+    eps = np.broadcast_to(np.asarray(eps, float), (n,))
+    cols = []
+    for k in range(n):
+        e = np.zeros(n)
+        e[k] = eps[k]
+        cols.append((np.asarray(fun(e)) - np.asarray(fun(-e))) / (2 * eps[k]))
+    return np.stack(cols, axis=-1)
+
+
+#: perturbation sizes per error state: attitude, velocity, position, gyro bias, accel bias
+EPS = np.repeat([1e-4, 1e-3, 1e-2, 1e-6, 1e-4], 3)

@@ -1,0 +1,137 @@
+"""The 15-state error model against numerical perturbation of the full nonlinear dynamics."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.nav import earth
+from agent.nav.error_model import ImuNoise, discretize, noise_input_matrix, system_matrix
+from agent.nav.mechanization import continuous_dynamics
+from agent.nav.rotation import dcm_to_quat
+from agent.nav.state import N_STATES, NavState, apply_error, state_error
+
+from conftest import EPS, MEMS_NOISE, moving_state, numerical_jacobian
+
+
+class _Offset:
+    """Nav state with latitude/longitude held as offsets from the start point, so that the
+    finite differences below keep full precision (absolute latitude has a 0.6 nm ulp)."""
+
+    def __init__(self, base: NavState, dlat: float, dlon: float, s: NavState) -> None:
+        self.base, self.dlat, self.dlon, self.s = base, dlat, dlon, s
+
+    def nav(self) -> NavState:
+        out = self.s.copy()
+        out.lat, out.lon = self.base.lat + self.dlat, self.base.lon + self.dlon
+        return out
+
+
+def _rk4(x: _Offset, w_ib: np.ndarray, f_b: np.ndarray, h: float, tau: float) -> _Offset:
+    """RK4 step of the continuous navigation equations with constant body inputs; the biases
+    are subtracted from the inputs and decay as Gauss-Markov processes."""
+
+    def deriv(y: _Offset):
+        s = y.nav()
+        return continuous_dynamics(s, w_ib - s.bg, f_b - s.ba)
+
+    def add(y: _Offset, k, a: float) -> _Offset:
+        llh_d, v_d, c_d = k
+        s = y.s
+        u, _, vt = np.linalg.svd(s.dcm + a * c_d)
+        new = NavState(s.lat, s.lon, s.h + a * llh_d[2], s.v + a * v_d, dcm_to_quat(u @ vt),
+                       s.bg * (1 - a / tau), s.ba * (1 - a / tau))
+        return _Offset(y.base, y.dlat + a * llh_d[0], y.dlon + a * llh_d[1], new)
+
+    k1 = deriv(x)
+    k2 = deriv(add(x, k1, h / 2))
+    k3 = deriv(add(x, k2, h / 2))
+    k4 = deriv(add(x, k3, h))
+    k = tuple((a + 2 * b + 2 * c + d) / 6 for a, b, c, d in zip(k1, k2, k3, k4))
+    return add(x, k, h)
+
+
+def _error(est: _Offset, truth: _Offset) -> np.ndarray:
+    dx = state_error(est.nav(), truth.nav())
+    t = truth.nav()
+    rm, rn = earth.radii(t.lat)
+    dx[6] = (est.dlat - truth.dlat) * (rm + t.h)
+    dx[7] = (est.dlon - truth.dlon) * (rn + t.h) * math.cos(t.lat)
+    return dx
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.6, -2.4])
+def test_F_matches_numerical_error_dynamics(yaw: float) -> None:
+    base = moving_state(yaw)
+    base.bg = np.zeros(3)
+    base.ba = np.zeros(3)
+    truth = _Offset(base, 0.0, 0.0, base)
+    w_ib = np.array([0.01, -0.02, 0.15])
+    f_b = np.array([0.8, -1.5, -9.6])
+    tau = MEMS_NOISE.gyro_bias_tau
+    noise = ImuNoise(MEMS_NOISE.arw, MEMS_NOISE.vrw, MEMS_NOISE.gyro_bias_sigma, tau,
+                     MEMS_NOISE.accel_bias_sigma, tau)
+
+    def central(est: _Offset, h: float) -> np.ndarray:
+        ep = _error(_rk4(est, w_ib, f_b, h, tau), _rk4(truth, w_ib, f_b, h, tau))
+        em = _error(_rk4(est, w_ib, f_b, -h, tau), _rk4(truth, w_ib, f_b, -h, tau))
+        return (ep - em) / (2 * h)
+
+    def error_rate(dx: np.ndarray) -> np.ndarray:
+        # Richardson extrapolation of the central time difference removes the O(h²) term
+        e = apply_error(base, dx)
+        est = _Offset(base, e.lat - base.lat, e.lon - base.lon, e)
+        h = 0.02
+        return (4.0 * central(est, h / 2) - central(est, h)) / 3.0
+
+    F_num = numerical_jacobian(error_rate, N_STATES, EPS * 10)
+    f_n = base.dcm @ f_b
+    F = system_matrix(base, f_n, noise)
+    # every entry within 5e-8 absolute (the smallest F terms, ~1e-12, are below the
+    # resolution of height in double precision)
+    # or 1e-4 relative
+    err = np.abs(F - F_num)
+    tol = 5e-8 + 1e-4 * np.abs(F)
+    bad = np.argwhere(err > tol)
+    assert bad.size == 0, f"F mismatch at {bad.tolist()}: {F[tuple(bad.T)]} vs {F_num[tuple(bad.T)]}"
+
+
+def test_series_and_van_loan_discretisations_agree() -> None:
+    st = moving_state()
+    F = system_matrix(st, st.dcm @ np.array([0.5, 0.2, -9.8]), MEMS_NOISE)
+    G = noise_input_matrix(st)
+    qc = MEMS_NOISE.psd()
+    for dt in (0.01, 0.05, 0.1):
+        phi_s, q_s = discretize(F, G, qc, dt, "series")
+        phi_v, q_v = discretize(F, G, qc, dt, "van_loan")
+        # third-order series: the first neglected term is (FΔt)^4/24
+        assert np.abs(phi_s - phi_v).max() < 1e-3 * dt
+        scale = np.sqrt(np.outer(np.diag(q_v), np.diag(q_v)))
+        assert np.all(np.abs(q_s - q_v) <= 0.02 * scale + 1e-30)
+
+
+def test_bad_discretisation_method_is_a_clear_error() -> None:
+    with pytest.raises(ValueError, match="van_loan"):
+        discretize(np.eye(2), np.eye(2), np.ones(2), 0.1, "euler")
+
+
+def test_apply_and_remove_error_round_trip(rng: np.random.Generator) -> None:
+    truth = moving_state()
+    for _ in range(20):
+        dx = rng.normal(size=N_STATES) * EPS * 100
+        est = apply_error(truth, dx)
+        assert np.allclose(state_error(est, truth), dx, rtol=1e-4, atol=1e-9)
+
+
+def test_gravity_and_radii_closed_form() -> None:
+    # Somigliana at the equator and the pole; radii at the equator
+    assert math.isclose(earth.gravity(0.0, 0.0), earth.GAMMA_E, rel_tol=1e-12)
+    assert math.isclose(earth.gravity(math.pi / 2, 0.0), earth.GAMMA_P, rel_tol=1e-9)
+    rm, rn = earth.radii(0.0)
+    assert math.isclose(rn, earth.A) and math.isclose(rm, earth.A * (1 - earth.E2))
+    # free-air gradient ~ -3.086e-6 /s^2 and matches a finite difference
+    g1, g2 = earth.gravity(0.7, 100.0), earth.gravity(0.7, 101.0)
+    assert math.isclose(g2 - g1, earth.gravity_height_gradient(0.7, 100.5), rel_tol=1e-6)
+    assert -3.1e-6 < earth.gravity_height_gradient(0.7, 0.0) < -3.07e-6
