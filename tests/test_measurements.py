@@ -1,0 +1,186 @@
+"""Every measurement Jacobian against numerical perturbation; stop-line geometry; range model;
+stacked vs sequential updates."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.linalg import block_diag
+
+from agent.nav import earth
+from agent.nav.kalman import Measurement, kalman_update, stack
+from agent.nav.measurements.common import point_llh
+from agent.nav.measurements.gnss import gnss_position, gnss_velocity
+from agent.nav.measurements.stop_line import (
+    Line2D, StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement, stop_line_position,
+)
+from agent.nav.measurements.v2v_range import range_measurement
+from agent.nav.measurements.vehicle import non_holonomic, zero_angular_rate, zero_velocity
+from agent.nav.state import N_STATES, apply_error
+
+from conftest import EPS, moving_state, numerical_jacobian
+
+LEVER = np.array([0.4, -0.3, -1.2])
+
+
+def _check_jacobian(model, truth=None, tol=1e-6) -> None:
+    truth = truth or moving_state()
+    H = model(truth).H
+    H_num = numerical_jacobian(lambda dx: model(apply_error(truth, dx)).z, N_STATES, EPS)
+    scale = np.maximum(1.0, np.abs(H))
+    assert np.all(np.abs(H - H_num) <= tol * scale), np.abs(H - H_num).max()
+
+
+def test_gnss_position_jacobian() -> None:
+    meas = np.array([math.radians(39.95001), math.radians(116.32002), 57.0])
+    # first-order geodetic-to-NED conversion: ~1e-6 relative model error
+    _check_jacobian(lambda s: gnss_position(s, meas, np.eye(3), LEVER), tol=2e-5)
+
+
+def test_gnss_velocity_jacobian() -> None:
+    _check_jacobian(lambda s: gnss_velocity(s, np.array([8.1, -5.2, 0.2]), np.eye(3),
+                                            np.array([0.05, -0.1, 0.4]), LEVER))
+
+
+def test_vehicle_constraint_jacobians() -> None:
+    _check_jacobian(lambda s: zero_velocity(s, 0.01))
+    _check_jacobian(lambda s: non_holonomic(s, 0.1, 0.1))
+    # ZARU neglects the ~7e-5 attitude dependence of the earth-rate term
+    _check_jacobian(lambda s: zero_angular_rate(s, np.array([1e-3, 2e-3, -1e-3]), 1e-3), tol=1e-4)
+
+
+def test_range_jacobian_first_and_second_order() -> None:
+    nb = np.array(point_llh(moving_state(), np.zeros(3))) + np.array([3e-5, -2e-5, 0.5])
+    P = np.diag([0.5, 0.8, 1.0])
+    _check_jacobian(lambda s: range_measurement(s, 4.0, 0.1, nb, P, LEVER, P, False), tol=3e-5)
+    # the second-order bias term tr(MP)/2 varies with the geometry (~tr(P)/rho^2 = 1e-4 here);
+    # H deliberately keeps the first-order direction
+    _check_jacobian(lambda s: range_measurement(s, 4.0, 0.1, nb, P, LEVER, P, True), tol=1e-4)
+
+
+@pytest.mark.parametrize("heading_deg", [0.0, 90.0, 37.0, 180.0, -123.0])
+def test_stop_line_jacobian_for_every_heading(heading_deg: float) -> None:
+    approach, origin = _approach(math.radians(heading_deg))
+    gap = StopGapModel(2.0, 0.3, 1.75, 0.2, 3.5)
+    _check_jacobian(lambda s: stop_line_measurement(s, approach, gap, origin, LEVER), tol=1e-4)
+
+
+def _approach(heading: float, lane_width: float = 3.5):
+    """Approach heading ``heading``: stop line through (40, 10), left lane line through the
+    stop-line point shifted half a lane to the left."""
+    u = np.array([math.cos(heading), math.sin(heading)])
+    right = np.array([-u[1], u[0]])
+    stop_pt = np.array([40.0, 10.0])
+    left_pt = stop_pt - right * lane_width / 2
+    approach = StopLineApproach(Line2D(tuple(stop_pt), tuple(right)), Line2D(tuple(left_pt), tuple(u)))
+    origin = (math.radians(39.95), math.radians(116.32), 50.0)
+    return approach, origin
+
+
+@pytest.mark.parametrize("heading_deg", [0.0, 90.0, 37.0])
+def test_stop_line_fix_is_behind_the_line_and_inside_the_lane(heading_deg: float) -> None:
+    heading = math.radians(heading_deg)
+    approach, _ = _approach(heading)
+    u = np.array([math.cos(heading), math.sin(heading)])
+    p, J = stop_line_fix(approach, d_e=5.0, d_l=1.2)
+    # closed form: from the stop-line point go 5 m back and 1.75 - 1.2 = 0.55 m left
+    right = np.array([-u[1], u[0]])
+    expected = np.array([40.0, 10.0]) - 5.0 * u - 0.55 * right
+    assert np.allclose(p, expected, atol=1e-9)
+    # the same point satisfies the paper's distance equations with signs
+    assert approach.left_lane_line.signed_distance(p) == pytest.approx(1.2)
+    assert float(approach.stop_line_normal() @ (p - np.array([40.0, 10.0]))) == pytest.approx(-5.0)
+    # covariance equals the paper's T Σ Tᵀ for a perpendicular stop line
+    gap = StopGapModel(2.0, 0.3, 1.2, 0.2, 3.0)
+    _, cov = stop_line_position(approach, gap)
+    T = np.array([[math.cos(heading), -math.sin(heading)], [math.sin(heading), math.cos(heading)]])
+    assert np.allclose(cov, T @ np.diag([0.3**2, 0.2**2]) @ T.T, atol=1e-12)
+
+
+def test_due_north_stop_line_cannot_be_written_as_slope_intercept() -> None:
+    # a stop line across a north-south road is x = const: y = kx + b has no such line,
+    # but point + direction does and gives a regular fix
+    approach, _ = _approach(0.0)
+    assert abs(approach.stop_line.direction[0]) < 1e-12  # runs due east: x = 40 constant
+    p, _ = stop_line_fix(approach, 4.0, 1.0)
+    assert p[0] == pytest.approx(36.0)
+    paper = Line2D.from_slope_intercept(0.5, 2.0)
+    assert paper.signed_distance(np.array([0.0, 2.0])) == pytest.approx(0.0)
+
+
+def test_oblique_stop_line_and_parallel_lines() -> None:
+    u = (1.0, 0.0)
+    oblique = StopLineApproach(Line2D((0.0, 0.0), (math.sin(0.3), math.cos(0.3))), Line2D((0.0, -2.0), u))
+    p, _ = stop_line_fix(oblique, 3.0, 1.0)
+    assert oblique.left_lane_line.signed_distance(p) == pytest.approx(1.0)
+    assert float(oblique.stop_line_normal() @ p) == pytest.approx(-3.0)
+    with pytest.raises(ValueError, match="parallel"):
+        StopLineApproach(Line2D((0, 0), (1, 0.01)), Line2D((0, -2), u))
+    with pytest.raises(ValueError, match="non-zero"):
+        Line2D((0, 0), (0, 0))
+
+
+def test_stop_line_measurement_matches_truth_geometry() -> None:
+    """A vehicle placed exactly at the fix gets a zero innovation (east scaling included)."""
+    heading = math.radians(37.0)
+    approach, origin = _approach(heading)
+    gap = StopGapModel(2.0, 0.3, 1.2, 0.2, 3.0)
+    p, _ = stop_line_position(approach, gap)
+    import pymap3d
+    lat, lon, h = pymap3d.ned2geodetic(p[0], p[1], 0.0, *origin, deg=False)
+    s = moving_state(yaw=heading)
+    s.lat, s.lon, s.h = lat, lon, h
+    m = stop_line_measurement(s, approach, gap, origin)
+    assert np.allclose(m.z, 0.0, atol=1e-6)
+
+
+def test_range_r_includes_neighbour_covariance_and_second_order_terms() -> None:
+    s = moving_state()
+    nb = np.array(point_llh(s, np.zeros(3)))
+    nb[0] += 7.0 / (earth.radii(nb[0])[0] + nb[2])  # neighbour 7 m north
+    P = np.diag([4.0, 9.0, 1.0])
+    m1 = range_measurement(s, 7.0, 0.1, nb, P)
+    # u points from j to i: south; u^T P u = P_NN
+    assert m1.R[0, 0] == pytest.approx(0.01 + 4.0, rel=1e-6)
+    assert m1.z[0] == pytest.approx(0.0, abs=1e-6)
+    m2 = range_measurement(s, 7.0, 0.1, nb, P, own_cov_ned=P, second_order=True)
+    # cross-range variance 2*(9+9)=18 and 2*(1+1)=2 m² curve the range: bias (18+2)/(2*7)
+    assert m2.z[0] == pytest.approx((18.0 + 2.0) / 14.0, rel=1e-4)
+    assert m2.R[0, 0] == pytest.approx(m1.R[0, 0] + 0.5 * (18.0**2 + 2.0**2) / 49.0, rel=1e-4)
+
+
+def test_stacked_and_sequential_updates_agree(rng: np.random.Generator) -> None:
+    """Paper's cases 1-3: stacking independent rows equals applying them one after another."""
+    A = rng.normal(size=(N_STATES, N_STATES))
+    P0 = A @ A.T / N_STATES + np.eye(N_STATES) * 0.1
+    gnss = Measurement(rng.normal(size=3), rng.normal(size=(3, N_STATES)), np.diag([1.0, 2.0, 3.0]), "gnss")
+    rng_rows = [Measurement(rng.normal(size=1), rng.normal(size=(1, N_STATES)), np.array([[0.3]]), "r")
+                for _ in range(3)]
+    beacons = stack(rng_rows, "ranges")
+    for case in ([gnss], rng_rows, [gnss] + rng_rows):
+        dx_s, P_s, _ = kalman_update(P0, stack(case))
+        P, dx = P0.copy(), np.zeros(N_STATES)
+        for m in case:
+            # sequential: later rows see the earlier correction in their innovation
+            shifted = Measurement(m.z - m.H @ dx, m.H, m.R, m.name)
+            d, P, _ = kalman_update(P, shifted)
+            dx = dx + d
+        assert np.allclose(P, P_s, atol=1e-10)
+        assert np.allclose(dx, dx_s, atol=1e-10)
+    assert beacons.R.shape == (3, 3) and np.allclose(beacons.R, block_diag(*[r.R for r in rng_rows]))
+
+
+def test_nis_and_gating(rng: np.random.Generator) -> None:
+    P = np.eye(N_STATES)
+    H = np.zeros((2, N_STATES))
+    H[0, 6] = H[1, 7] = 1.0
+    m = Measurement(np.array([3.0, 4.0]), H, np.eye(2), "x")
+    _, _, res = kalman_update(P, m)
+    assert res.nis == pytest.approx(25.0 / 2.0)
+    dx, P2, res = kalman_update(P, m, gate_probability=0.99)
+    assert not res.accepted and np.all(dx == 0) and P2 is P
+    bad = Measurement(np.array([1.0, 1.0]), H, np.full((2, 2), np.nan), "nan")
+    _, _, res = kalman_update(P, bad)
+    assert not res.accepted
