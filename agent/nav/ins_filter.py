@@ -50,6 +50,11 @@ class InsFilter:
     cov_interval : float
         Covariance propagation interval [s]; 0 propagates at every IMU sample.
     discretization : {"series", "van_loan"}
+    extra_states : sequence of (initial value, initial sigma, random-walk PSD), optional
+        Additional random-walk states appended after the 15 navigation errors (e.g. the
+        IMU-GNSS time offset). Their nominal values live in :attr:`extra`; measurements give
+        their Jacobian columns after the 15th. ``P`` may be 15x15 (the extra variances are then
+        appended) or full size.
     """
 
     def __init__(
@@ -60,10 +65,19 @@ class InsFilter:
         t: float = 0.0,
         cov_interval: float = 0.0,
         discretization: str = "series",
+        extra_states: tuple[tuple[float, float, float], ...] = (),
     ) -> None:
         P = np.array(P, float)
-        if P.shape != (N_STATES, N_STATES):
-            raise ValueError(f"P must be {N_STATES}x{N_STATES}, got {P.shape}")
+        n = N_STATES + len(extra_states)
+        if P.shape == (N_STATES, N_STATES) and extra_states:
+            P = np.pad(P, (0, len(extra_states)))
+            for i, (_, sigma, _) in enumerate(extra_states):
+                P[N_STATES + i, N_STATES + i] = sigma**2
+        if P.shape != (n, n):
+            raise ValueError(f"P must be {n}x{n}, got {P.shape}")
+        self.n = n
+        self.extra = np.array([e[0] for e in extra_states], float)
+        self._extra_psd = np.array([e[2] for e in extra_states], float)
         self.state = state
         self.P = 0.5 * (P + P.T)
         self.noise = noise
@@ -108,7 +122,14 @@ class InsFilter:
         F = system_matrix(lin, f_n, self.noise)
         G = noise_input_matrix(lin)
         phi, qd = discretize(F, G, self._qc, dt, self.discretization)
-        P = phi @ self.P @ phi.T + qd
+        if self.n > N_STATES:
+            P = self.P.copy()
+            P[:N_STATES, :N_STATES] = phi @ P[:N_STATES, :N_STATES] @ phi.T + qd
+            P[:N_STATES, N_STATES:] = phi @ P[:N_STATES, N_STATES:]
+            P[N_STATES:, :N_STATES] = P[:N_STATES, N_STATES:].T
+            P[N_STATES:, N_STATES:] += np.diag(self._extra_psd * dt)
+        else:
+            P = phi @ self.P @ phi.T + qd
         self.P = 0.5 * (P + P.T)
         self._acc_dt = 0.0
         self._acc_dv_b = np.zeros(3)
@@ -124,9 +145,14 @@ class InsFilter:
     def update(self, meas: Measurement, gate_probability: float | None = None) -> UpdateResult:
         """Kalman update with one measurement, closed-loop feedback, and reset."""
         self.flush_covariance()
+        if meas.H.shape[1] < self.n:
+            meas = Measurement(meas.z, np.pad(meas.H, ((0, 0), (0, self.n - meas.H.shape[1]))),
+                               meas.R, meas.name)
         dx, P, result = kalman_update(self.P, meas, gate_probability)
         if result.accepted:
-            self.state = remove_error(self.state, dx)
+            self.state = remove_error(self.state, dx[:N_STATES])
+            if self.n > N_STATES:
+                self.extra = self.extra - dx[N_STATES:]
             self.P = P
         self.stats.count(result)
         return result
@@ -151,7 +177,7 @@ class InsFilter:
         self.flush_covariance()
         self.P[2, :] = 0.0
         self.P[:, 2] = 0.0
-        self.P[2, 2] = sigma**2
+        self.P[2, 2] = sigma**2  # (works for augmented P too)
 
     @property
     def position_cov(self) -> np.ndarray:

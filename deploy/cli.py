@@ -1,0 +1,112 @@
+"""``slcp`` command line: the thin shell over the packages (the only place that prints)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import sys
+from pathlib import Path
+
+from .datasets import DatasetError
+
+
+def _outage_arg(text: str) -> tuple[float, float]:
+    try:
+        length, gap = (float(x) for x in text.split(":"))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected LENGTH:GNSS_ON seconds, e.g. 15:30, got {text!r}") from exc
+    if length <= 0 or gap <= 0:
+        raise argparse.ArgumentTypeError("outage length and GNSS-on time must be positive")
+    return length, gap
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="slcp", description="Stop-line-aided cooperative positioning")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    rp = sub.add_parser("replay", help="replay a recorded drive through the SP (GNSS/INS) filter")
+    rp.add_argument("format", choices=["rtklib"], help="dataset format")
+    rp.add_argument("path", type=Path, help="dataset folder (imu_*.csv + .tag, *.pos)")
+    g = rp.add_mutually_exclusive_group()
+    g.add_argument("--outage", type=_outage_arg, default=(15.0, 30.0), metavar="LEN:ON",
+                   help="outage length and GNSS-on time between outages [s] (default 15:30)")
+    g.add_argument("--no-outage", action="store_true", help="keep every GNSS fix")
+    rp.add_argument("--first-outage", type=float, default=40.0, help="first outage start after t0 [s]")
+    rp.add_argument("--end-margin", type=float, default=30.0, help="no outage starts later than tN minus this [s]")
+    rp.add_argument("--no-nhc", action="store_true", help="disable the non-holonomic constraint")
+    rp.add_argument("--no-zupt", action="store_true", help="disable zero-velocity/zero-rate updates")
+    rp.add_argument("--no-time-offset-estimation", action="store_true",
+                    help="keep the IMU time offset fixed at --imu-time-offset")
+    rp.add_argument("--imu-time-offset", type=float, default=-0.125, help="initial IMU time offset [s]")
+    rp.add_argument("--out", type=Path, default=Path("runs/replay"), help="output directory")
+    rp.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
+    return p
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from .datasets.rtklib import load_drive
+    from .replay import TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, run_replay
+
+    drive = load_drive(args.path)
+    length, gap = (0.0, 1.0) if args.no_outage else args.outage
+    cfg = ReplayConfig(
+        outage=OutageProtocol(first=args.first_outage, period=length + gap, length=length,
+                              end_margin=args.end_margin),
+        nhc=not args.no_nhc, zupt=not args.no_zupt,
+        imu_time_offset=args.imu_time_offset,
+        estimate_time_offset=not args.no_time_offset_estimation,
+    )
+    res = run_replay(drive, cfg)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "trajectory.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(TRAJECTORY_COLUMNS)
+        for row in res.trajectory:
+            w.writerow([f"{row[0]:.3f}", f"{row[1]:.9f}", f"{row[2]:.9f}"] + [f"{x:.4f}" for x in row[3:]])
+    metrics = dict(res.metrics)
+    metrics["config"] = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    try:
+        from .plots import plot_replay_error
+
+        plot_replay_error(res, out / "error.png")
+    except ImportError:  # matplotlib is a dependency; this only guards stripped installs
+        logging.getLogger(__name__).warning("matplotlib not available: no error.png")
+    m = res.metrics
+    if args.json:
+        print(json.dumps({k: v for k, v in m.items()}))
+    else:
+        print(f"SP replay of {args.path} ({m['imu_span_s']:.1f} s of IMU, {m['n_outages']} outages, "
+              f"{m['n_withheld_fixes']} withheld fixes)")
+        print(f"  outage horizontal RMS      {m['outage_h_rms_m']:.2f} m")
+        print(f"  end-of-outage mean / max   {m['outage_h_end_mean_m']:.2f} / {m['outage_h_end_max_m']:.2f} m")
+        print(f"  outage max                 {m['outage_h_max_m']:.2f} m")
+        print(f"  GNSS-on prior RMS          {m['gnss_on_h_rms_m']:.2f} m")
+        print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
+        print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
+        print(f"  wrote {out}/trajectory.csv, metrics.json, error.png")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        if args.command == "replay":
+            return _cmd_replay(args)
+    except (DatasetError, ValueError) as exc:
+        print(f"slcp: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
