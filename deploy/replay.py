@@ -92,7 +92,7 @@ class ReplayConfig:
     yaw_align_speed: float = 1.0
     float_gain: float = 2.0
     single_gain: float = 5.0
-    cov_interval: float = 0.05
+    cov_interval: float = 0.1
     init_att_sigma: tuple[float, float, float] = tuple(np.radians([2.0, 2.0, 60.0]).tolist())
     init_vel_sigma: float = 0.1
     init_gyro_bias_sigma: float = math.radians(0.1)
@@ -137,7 +137,9 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
     imu, gnss = drive.imu, drive.gnss
     c_sb = euler_to_dcm(*cfg.mount_rpy).T  # Groves' Euler_to_CTM = transpose of body-to-nav
     t_imu = imu.t + cfg.imu_time_offset
-    dtheta, dvel, dt = imu_increments(t_imu, imu.accel, imu.gyro, c_sb)
+    dtheta_a, dvel_a, dt_a = imu_increments(t_imu, imu.accel, imu.gyro, c_sb)
+    # plain lists: indexing them in the hot loop is far cheaper than numpy rows
+    dtheta, dvel, dt = dtheta_a.tolist(), dvel_a.tolist(), dt_a.tolist()
     w_b = imu.gyro @ c_sb.T
     f_b = imu.accel @ c_sb.T
     stationary = cfg.detector.detect(f_b, w_b) if cfg.zupt else np.zeros(len(t_imu), bool)
@@ -184,7 +186,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
     n_ep = len(gnss.t)
     err_t, err_h, err_w = [], [], []
     traj = []
-    step = max(1, int(round(1.0 / (cfg.constraint_rate * np.median(dt)))))
+    step = max(1, int(round(1.0 / (cfg.constraint_rate * np.median(dt_a)))))
     # IMU interval j spans [t_imu[j], t_imu[j+1]]; the filter sits at gnss.t[gi] inside interval k
     j = k
     t_cur = float(gnss.t[gi])
@@ -228,19 +230,22 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
 
     handle_epoch(gi)
     gi += 1
+    # filter time of the next epoch; changes only when an update moves the offset estimate
+    t_ep = epoch_time(gi) if gi < n_ep else math.inf
     n_int = len(dt)
     while j < n_int:
         t_next = float(t_imu[j + 1])
         dth, dv, dtt = pending if pending is not None else (dtheta[j], dvel[j], dt[j])
-        while gi < n_ep and epoch_time(gi) <= t_next:
-            tg = epoch_time(gi)
+        while t_ep <= t_next:
+            tg = t_ep
             if tg > t_cur:
                 a = (tg - t_cur) / dtt
-                flt.propagate(a * dth, a * dv, tg - t_cur)
-                dth, dv, dtt = (1 - a) * dth, (1 - a) * dv, dtt * (1 - a)
+                flt.propagate([a * x for x in dth], [a * x for x in dv], tg - t_cur)
+                dth, dv, dtt = [(1 - a) * x for x in dth], [(1 - a) * x for x in dv], dtt * (1 - a)
                 t_cur = tg
             handle_epoch(gi)
             gi += 1
+            t_ep = epoch_time(gi) if gi < n_ep else math.inf
         if dtt > 1e-9:
             flt.propagate(dth, dv, dtt)
         t_cur = t_next
@@ -270,7 +275,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
 def _remainder(dth, dv, t0, t1, t_from):
     a = (t_from - t0) / (t1 - t0)
     a = min(max(a, 0.0), 1.0)
-    return (1 - a) * dth, (1 - a) * dv, (t1 - t0) * (1 - a)
+    return [(1 - a) * x for x in dth], [(1 - a) * x for x in dv], (t1 - t0) * (1 - a)
 
 
 def _shift(state: NavState, offset_b: np.ndarray) -> tuple[float, float, float]:

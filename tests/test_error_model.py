@@ -135,3 +135,12 @@ def test_gravity_and_radii_closed_form() -> None:
     g1, g2 = earth.gravity(0.7, 100.0), earth.gravity(0.7, 101.0)
     assert math.isclose(g2 - g1, earth.gravity_height_gradient(0.7, 100.5), rel_tol=1e-6)
     assert -3.1e-6 < earth.gravity_height_gradient(0.7, 0.0) < -3.07e-6
+
+
+def test_constant_noise_density_equals_G_Qc_Gt() -> None:
+    from agent.nav.error_model import process_noise_density
+
+    for yaw in (0.0, 1.0, -2.0):
+        st = moving_state(yaw)
+        G = noise_input_matrix(st)
+        assert np.allclose((G * MEMS_NOISE.psd()) @ G.T, np.diag(process_noise_density(MEMS_NOISE)), atol=1e-20)

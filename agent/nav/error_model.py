@@ -149,6 +149,46 @@ _G_TEMPLATE[BG, 6:9] = np.eye(3)
 _G_TEMPLATE[BA, 9:12] = np.eye(3)
 
 
+def process_noise_density(noise: ImuNoise) -> np.ndarray:
+    """Diagonal of ``G Qc Gᵀ``, shape (15,): the density is constant and diagonal because the
+    attitude and velocity blocks are ``C (σ² I) Cᵀ = σ² I`` for an orthonormal C and isotropic
+    sensor noise."""
+    return np.concatenate([np.full(3, noise.arw**2), np.full(3, noise.vrw**2),
+                           np.zeros(3), noise.psd()[6:]])
+
+
+def discretize_density(
+    F: np.ndarray, gqg: np.ndarray, dt: float, method: str = "series"
+) -> tuple[np.ndarray, np.ndarray]:
+    """As :func:`discretize` but with the noise density ``G Qc Gᵀ`` given directly: a full
+    (n, n) matrix or, for a diagonal density, its diagonal of shape (n,)."""
+    n = F.shape[0]
+    q_diag = gqg if gqg.ndim == 1 else None
+    if q_diag is not None:
+        gqg = np.diag(q_diag)
+    if method == "series":
+        fdt = F * dt
+        f2 = fdt @ fdt
+        phi = fdt + 0.5 * f2 + (f2 @ fdt) * (1.0 / 6.0)
+        phi[np.diag_indices(n)] += 1.0
+        # F Q with a diagonal Q is a column scaling
+        fq = fdt * q_diag if q_diag is not None else fdt @ gqg
+        ffq = fdt @ fq
+        sym = 0.5 * (fq + fq.T) + (ffq + ffq.T + 2.0 * (fq @ fdt.T)) * (1.0 / 6.0)
+        qd = dt * (gqg + sym)
+    elif method == "van_loan":
+        m = np.zeros((2 * n, 2 * n))
+        m[:n, :n] = -F
+        m[:n, n:] = gqg
+        m[n:, n:] = F.T
+        e = expm(m * dt)
+        phi = e[n:, n:].T
+        qd = phi @ e[:n, n:]
+    else:
+        raise ValueError(f"unknown discretisation method {method!r}; use 'series' or 'van_loan'")
+    return phi, 0.5 * (qd + qd.T)
+
+
 def discretize(
     F: np.ndarray, G: np.ndarray, qc: np.ndarray, dt: float, method: str = "series"
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -172,23 +212,4 @@ def discretize(
     -------
     phi, qd : ndarray, shape (n, n)
     """
-    n = F.shape[0]
-    gqg = (G * qc) @ G.T
-    if method == "series":
-        fdt = F * dt
-        f2 = fdt @ fdt
-        phi = np.eye(n) + fdt + 0.5 * f2 + (f2 @ fdt) / 6.0
-        fq = fdt @ gqg
-        ffq = fdt @ fq
-        qd = dt * (gqg + 0.5 * (fq + fq.T) + (ffq + ffq.T + 2.0 * (fq @ fdt.T)) / 6.0)
-    elif method == "van_loan":
-        m = np.zeros((2 * n, 2 * n))
-        m[:n, :n] = -F
-        m[:n, n:] = gqg
-        m[n:, n:] = F.T
-        e = expm(m * dt)
-        phi = e[n:, n:].T
-        qd = phi @ e[:n, n:]
-    else:
-        raise ValueError(f"unknown discretisation method {method!r}; use 'series' or 'van_loan'")
-    return phi, 0.5 * (qd + qd.T)
+    return discretize_density(F, (G * qc) @ G.T, dt, method)

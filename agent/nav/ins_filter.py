@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .error_model import ImuNoise, discretize, noise_input_matrix, system_matrix
+from .error_model import ImuNoise, discretize_density, process_noise_density, system_matrix
 from .kalman import Measurement, UpdateResult, kalman_update, stack
-from .mechanization import mechanize
+from .mechanization import mechanize_fast
 from .rotation import euler_to_quat, quat_to_euler, wrap_angle
 from .state import ATT, N_STATES, POS, NavState, remove_error
 
@@ -85,26 +85,33 @@ class InsFilter:
         self.cov_interval = float(cov_interval)
         self.discretization = discretization
         self.stats = FilterStats()
-        self._qc = noise.psd()
-        self._prev_dtheta: np.ndarray | None = None
-        self._prev_dvel: np.ndarray | None = None
+        self._gqg = process_noise_density(noise)
+        self._prev_dtheta: tuple[float, float, float] | None = None
+        self._prev_dvel: tuple[float, float, float] | None = None
         self._acc_dt = 0.0
-        self._acc_dv_b = np.zeros(3)
+        self._acc_dv_b = (0.0, 0.0, 0.0)
         self._cov_state: NavState | None = None
 
     # ------------------------------------------------------------------ propagation
-    def propagate(self, dtheta: np.ndarray, dvel: np.ndarray, dt: float) -> None:
-        """Integrate one IMU interval of raw increments (body FRD; rad, m/s) lasting ``dt`` s."""
+    def propagate(self, dtheta, dvel, dt: float) -> None:
+        """Integrate one IMU interval of raw increments lasting ``dt`` s.
+
+        ``dtheta`` [rad] and ``dvel`` [m/s] are 3-sequences (body FRD): arrays, lists or tuples.
+        """
         if not dt > 0.0:
             raise ValueError(f"IMU interval must be positive, got {dt}")
         st = self.state
         if self._acc_dt == 0.0:
             self._cov_state = st
-        new = mechanize(st, dtheta, dvel, dt, self._prev_dtheta, self._prev_dvel)
-        self._prev_dtheta = dtheta - st.bg * dt
-        self._prev_dvel = dvel - st.ba * dt
+        if isinstance(dtheta, np.ndarray):
+            dtheta = dtheta.tolist()
+        if isinstance(dvel, np.ndarray):
+            dvel = dvel.tolist()
+        new, self._prev_dtheta, dv = mechanize_fast(st, dtheta, dvel, dt, self._prev_dtheta, self._prev_dvel)
+        self._prev_dvel = dv
         # body-frame sum, resolved with the linearisation attitude at the covariance step
-        self._acc_dv_b += self._prev_dvel
+        a = self._acc_dv_b
+        self._acc_dv_b = (a[0] + dv[0], a[1] + dv[1], a[2] + dv[2])
         self._acc_dt += dt
         self.state = new
         self.t += dt
@@ -118,10 +125,9 @@ class InsFilter:
         if dt <= 0.0:
             return
         lin = self._cov_state if self._cov_state is not None else self.state
-        f_n = lin.dcm @ (self._acc_dv_b / dt)
+        f_n = lin.dcm @ (np.array(self._acc_dv_b) / dt)
         F = system_matrix(lin, f_n, self.noise)
-        G = noise_input_matrix(lin)
-        phi, qd = discretize(F, G, self._qc, dt, self.discretization)
+        phi, qd = discretize_density(F, self._gqg, dt, self.discretization)
         if self.n > N_STATES:
             P = self.P.copy()
             P[:N_STATES, :N_STATES] = phi @ P[:N_STATES, :N_STATES] @ phi.T + qd
@@ -132,7 +138,7 @@ class InsFilter:
             P = phi @ self.P @ phi.T + qd
         self.P = 0.5 * (P + P.T)
         self._acc_dt = 0.0
-        self._acc_dv_b = np.zeros(3)
+        self._acc_dv_b = (0.0, 0.0, 0.0)
         self._cov_state = None
         self.stats.cov_steps += 1
 
@@ -146,8 +152,9 @@ class InsFilter:
         """Kalman update with one measurement, closed-loop feedback, and reset."""
         self.flush_covariance()
         if meas.H.shape[1] < self.n:
-            meas = Measurement(meas.z, np.pad(meas.H, ((0, 0), (0, self.n - meas.H.shape[1]))),
-                               meas.R, meas.name)
+            H = np.zeros((meas.H.shape[0], self.n))
+            H[:, : meas.H.shape[1]] = meas.H
+            meas = Measurement(meas.z, H, meas.R, meas.name)
         dx, P, result = kalman_update(self.P, meas, gate_probability)
         if result.accepted:
             self.state = remove_error(self.state, dx[:N_STATES])

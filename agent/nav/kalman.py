@@ -12,8 +12,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.linalg import block_diag, cho_factor, cho_solve
-from scipy.stats import chi2
 
 
 @dataclass(frozen=True)
@@ -56,15 +54,23 @@ class UpdateResult:
 @lru_cache(maxsize=256)
 def chi2_gate(dof: int, probability: float) -> float:
     """Chi-square quantile ``P(chi2_dof <= gate) = probability``."""
+    from scipy.stats import chi2  # deferred: importing scipy.stats costs ~1 s at start-up
+
     return float(chi2.ppf(probability, dof))
 
 
 def stack(measurements: list[Measurement], name: str = "stacked") -> Measurement:
     """Stack independent measurements into one (the paper's eq. 29): block-diagonal R."""
+    dims = [m.dim for m in measurements]
+    R = np.zeros((sum(dims), sum(dims)))
+    k = 0
+    for m, d in zip(measurements, dims):
+        R[k:k + d, k:k + d] = m.R
+        k += d
     return Measurement(
         z=np.concatenate([m.z for m in measurements]),
         H=np.vstack([m.H for m in measurements]),
-        R=block_diag(*[m.R for m in measurements]),
+        R=R,
         name=name,
     )
 
@@ -93,19 +99,22 @@ def kalman_update(
     result : UpdateResult
     """
     H, R, z = meas.H, meas.R, meas.z
+    n = P.shape[0]
     PHt = P @ H.T
     S = H @ PHt + R
+    # small S (<= a few rows): an explicit inverse is cheaper than a factorisation call
     try:
-        cf = cho_factor(S, lower=True, check_finite=True)
-    except (np.linalg.LinAlgError, ValueError):
-        n = P.shape[0]
+        if not (np.isfinite(S).all() and np.isfinite(z).all()):
+            raise np.linalg.LinAlgError("non-finite innovation")
+        Sinv = np.linalg.inv(S)
+        nis = float(z @ Sinv @ z)
+        if not nis >= 0.0:  # S not positive definite (or NaN)
+            raise np.linalg.LinAlgError("innovation covariance not positive definite")
+    except np.linalg.LinAlgError:
         return np.zeros(n), P, UpdateResult(np.zeros(n), float("inf"), meas.dim, False, meas.name)
-    Sinv_z = cho_solve(cf, z)
-    nis = float(z @ Sinv_z)
-    n = P.shape[0]
     if gate_probability is not None and nis > chi2_gate(meas.dim, gate_probability):
         return np.zeros(n), P, UpdateResult(np.zeros(n), nis, meas.dim, False, meas.name)
-    K = cho_solve(cf, PHt.T).T
+    K = PHt @ Sinv
     dx = K @ z
     IKH = np.eye(n) - K @ H
     P_post = IKH @ P @ IKH.T + K @ R @ K.T

@@ -49,11 +49,30 @@ def mechanize(
     -----
     Written with scalar arithmetic: on 3-vectors this is ~5x faster than numpy.
     """
+    prev_th = None if dtheta_prev is None else tuple(np.asarray(dtheta_prev, float).tolist())
+    prev_dv = None if dvel_prev is None else tuple(np.asarray(dvel_prev, float).tolist())
+    return mechanize_fast(state, np.asarray(dtheta, float).tolist(), np.asarray(dvel, float).tolist(),
+                          float(dt), prev_th, prev_dv)[0]
+
+
+def mechanize_fast(
+    state: NavState,
+    dtheta: "list[float] | tuple[float, float, float]",
+    dvel: "list[float] | tuple[float, float, float]",
+    dt: float,
+    prev_th: tuple[float, float, float] | None,
+    prev_dv: tuple[float, float, float] | None,
+) -> tuple[NavState, tuple[float, float, float], tuple[float, float, float]]:
+    """:func:`mechanize` on plain float sequences, for hot loops.
+
+    Returns the new state and this interval's bias-corrected angle and velocity increments
+    (to pass as ``prev_th``/``prev_dv`` to the next call).
+    """
     # python floats: numpy scalars are ~3x slower in scalar arithmetic
     gx, gy, gz = state.bg.tolist()
     fx, fy, fz = state.ba.tolist()
-    ax, ay, az = dtheta.tolist()
-    ux, uy, uz = dvel.tolist()
+    ax, ay, az = dtheta
+    ux, uy, uz = dvel
     ax, ay, az = ax - gx * dt, ay - gy * dt, az - gz * dt
     ux, uy, uz = ux - fx * dt, uy - fy * dt, uz - fz * dt
     lat, h = float(state.lat), float(state.h)
@@ -70,9 +89,10 @@ def mechanize(
     bx = ux + 0.5 * (ay * uz - az * uy)
     by = uy + 0.5 * (az * ux - ax * uz)
     bz = uz + 0.5 * (ax * uy - ay * ux)
-    if dtheta_prev is not None and dvel_prev is not None:
-        px, py, pz = dtheta_prev.tolist()
-        qx, qy, qz = dvel_prev.tolist()
+    corrected = ((ax, ay, az), (ux, uy, uz))
+    if prev_th is not None and prev_dv is not None:
+        px, py, pz = prev_th
+        qx, qy, qz = prev_dv
         bx += ((py * uz - pz * uy) + (qy * az - qz * ay)) / 12.0
         by += ((pz * ux - px * uz) + (qz * ax - qx * az)) / 12.0
         bz += ((px * uy - py * ux) + (qx * ay - qy * ax)) / 12.0
@@ -109,8 +129,8 @@ def mechanize(
     lon1 = state.lon + 0.5 * (ve + ve1) * dt / ((rnm + hm) * math.cos(latm))
 
     # attitude: q_new = q(-w_in dt) ⊗ q ⊗ q(phi_b), phi_b with two-sample coning
-    if dtheta_prev is not None:
-        px, py, pz = dtheta_prev.tolist()
+    if prev_th is not None:
+        px, py, pz = prev_th
         ax, ay, az = (
             ax + (py * az - pz * ay) / 12.0,
             ay + (pz * ax - px * az) / 12.0,
@@ -122,10 +142,11 @@ def mechanize(
     inv = 1.0 / math.sqrt(q1[0] ** 2 + q1[1] ** 2 + q1[2] ** 2 + q1[3] ** 2)
     if q1[0] < 0:
         inv = -inv
-    return NavState(
+    new = NavState(
         lat1, lon1, h1, np.array([vn1, ve1, vd1]),
         np.array([q1[0] * inv, q1[1] * inv, q1[2] * inv, q1[3] * inv]), state.bg, state.ba,
     )
+    return new, corrected[0], corrected[1]
 
 
 def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:

@@ -57,14 +57,14 @@ def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def quat_to_dcm(q: np.ndarray) -> np.ndarray:
     """DCM, shape (3, 3), of a unit scalar-first quaternion."""
-    w, x, y, z = q
+    w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else q
     return np.array(
         [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
         ]
-    )
+    ).reshape(3, 3)
 
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:
@@ -97,8 +97,12 @@ def dcm_to_quat(c: np.ndarray) -> np.ndarray:
 
 
 def quat_to_euler(q: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw [rad], shape (3,), of a body-to-NED quaternion."""
-    return dcm_to_euler(quat_to_dcm(q))
+    """Roll, pitch, yaw [rad], shape (3,), of a body-to-NED quaternion (closed form)."""
+    w, x, y, z = q.tolist()
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.array([roll, pitch, yaw])
 
 
 def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
