@@ -85,6 +85,11 @@ class ReplayConfig:
     use_velocity: bool = True
     zupt: bool = True
     nhc: bool = True
+    #: with GNSS on, NHC rows are stacked into each GNSS update instead of being applied at
+    #: ``constraint_rate`` (same information per epoch, a third of the updates); while coasting
+    #: (no fix for ``coast_after`` s) NHC runs at ``constraint_rate``
+    nhc_only_coasting: bool = True
+    coast_after: float = 1.0
     nhc_sigma: float = 0.1
     nhc_lever_uncertainty: float = 1.0
     zupt_sigma: float = 0.02
@@ -92,7 +97,7 @@ class ReplayConfig:
     yaw_align_speed: float = 1.0
     float_gain: float = 2.0
     single_gain: float = 5.0
-    cov_interval: float = 0.1
+    cov_interval: float = 0.2
     init_att_sigma: tuple[float, float, float] = tuple(np.radians([2.0, 2.0, 60.0]).tolist())
     init_vel_sigma: float = 0.1
     init_gyro_bias_sigma: float = math.radians(0.1)
@@ -182,6 +187,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
             return float(gnss.t[i])
         return float(gnss.t[i]) - (float(flt.extra[0]) - cfg.imu_time_offset)
     yaw_aligned = False
+    last_fix_time = [-math.inf]
 
     n_ep = len(gnss.t)
     err_t, err_h, err_w = [], [], []
@@ -206,6 +212,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
         traj.append([gnss.t[i], math.degrees(st.lat), math.degrees(st.lon), st.h, *st.v, *rpy, *sig])
         if wh:
             return
+        last_fix_time[0] = flt.t
         gain = {1: 1.0, 2: cfg.float_gain}.get(int(gnss.quality[i]), cfg.single_gain)
         cov_p = np.diag(np.square(np.maximum(gnss.sd_neu[i] * gain, 0.005)))
         jj = min(j, len(w_b) - 1)
@@ -213,11 +220,15 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
         if cfg.use_velocity:
             cov_v = np.diag(np.square(np.maximum(gnss.sd_v[i] * gain, 0.02)))
             meas.append(gnss_velocity(st, gnss.v_ned[i], cov_v, w_b[jj], lever))
+        moving = not (cfg.zupt and stationary[min(jj, len(stationary) - 1)])
+        if cfg.nhc and cfg.nhc_only_coasting and yaw_aligned and moving:
+            meas.append(_nhc(flt.state, w_b[jj], cfg))
         if cfg.estimate_time_offset:
             # the state at this filter time is the truth at t_gnss - dtau: z = ... - v dtau
             a_n = st.dcm @ f_b[max(0, jj - 9): jj + 1].mean(axis=0) - st.dcm @ st.ba
             a_n[2] += earth.gravity(st.lat, st.h)
             cols = [-st.v] + ([-a_n] if cfg.use_velocity else [])
+            cols += [np.zeros(m.dim) for m in meas[len(cols):]]
             meas = [Measurement(m.z, np.hstack([m.H, c[:, None]]), m.R, m.name) for m, c in zip(meas, cols)]
         speed = math.hypot(gnss.v_ned[i, 0], gnss.v_ned[i, 1])
         if not yaw_aligned and speed > cfg.yaw_align_speed:
@@ -256,10 +267,9 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
                 flt.update(zero_velocity(flt.state, cfg.zupt_sigma))
                 flt.update(zero_angular_rate(flt.state, cfg.detector.window_mean_gyro(w_b, j),
                                              cfg.noise.arw / math.sqrt(cfg.detector.window * 0.01) * 2))
-            elif cfg.nhc and yaw_aligned:
-                yaw_rate = abs(float(w_b[j, 2]))
-                sig = math.hypot(cfg.nhc_sigma, yaw_rate * cfg.nhc_lever_uncertainty)
-                flt.update(non_holonomic(flt.state, sig, cfg.nhc_sigma))
+            elif cfg.nhc and yaw_aligned and (
+                    not cfg.nhc_only_coasting or flt.t - last_fix_time[0] > cfg.coast_after):
+                flt.update(_nhc(flt.state, w_b[j], cfg))
         if gi >= n_ep:
             break
 
@@ -270,6 +280,12 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
     res.metrics["filter_stats"] = {"imu_samples": flt.stats.imu_samples, "cov_steps": flt.stats.cov_steps,
                                    "updates": flt.stats.updates, "rejected": flt.stats.rejected}
     return res
+
+
+def _nhc(state: NavState, w_b: np.ndarray, cfg: ReplayConfig):
+    """NHC with the lateral sigma inflated by yaw rate x the unknown IMU-to-rear-axle distance."""
+    sig = math.hypot(cfg.nhc_sigma, abs(float(w_b[2])) * cfg.nhc_lever_uncertainty)
+    return non_holonomic(state, sig, cfg.nhc_sigma)
 
 
 def _remainder(dth, dv, t0, t1, t_from):

@@ -170,12 +170,15 @@ def discretize_density(
         fdt = F * dt
         f2 = fdt @ fdt
         phi = fdt + 0.5 * f2 + (f2 @ fdt) * (1.0 / 6.0)
-        phi[np.diag_indices(n)] += 1.0
+        phi.flat[:: n + 1] += 1.0
         # F Q with a diagonal Q is a column scaling
         fq = fdt * q_diag if q_diag is not None else fdt @ gqg
-        ffq = fdt @ fq
-        sym = 0.5 * (fq + fq.T) + (ffq + ffq.T + 2.0 * (fq @ fdt.T)) * (1.0 / 6.0)
-        qd = dt * (gqg + sym)
+        a = fq + fdt @ fq * (1.0 / 3.0)
+        qd = a + a.T
+        qd *= 0.5
+        qd += (fq @ fdt.T) * (1.0 / 3.0)
+        qd += gqg
+        qd *= dt
     elif method == "van_loan":
         m = np.zeros((2 * n, 2 * n))
         m[:n, :n] = -F

@@ -116,7 +116,8 @@ def kalman_update(
         return np.zeros(n), P, UpdateResult(np.zeros(n), nis, meas.dim, False, meas.name)
     K = PHt @ Sinv
     dx = K @ z
-    IKH = np.eye(n) - K @ H
+    IKH = -(K @ H)
+    IKH[np.diag_indices(n)] += 1.0
     P_post = IKH @ P @ IKH.T + K @ R @ K.T
     P_post = 0.5 * (P_post + P_post.T)
     return dx, P_post, UpdateResult(dx, nis, meas.dim, True, meas.name)

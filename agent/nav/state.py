@@ -15,6 +15,7 @@ slice   symbol       meaning (all errors are *estimate minus truth*)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -99,16 +100,19 @@ def remove_error(state: NavState, dx: np.ndarray) -> NavState:
     Exact inverse of :func:`apply_error` to first order (and exactly for attitude, velocity
     and biases).
     """
-    out = state.copy()
-    rm, rn = earth.radii(state.lat)
-    out.h = state.h + dx[8]
-    out.lat = state.lat - dx[6] / (rm + state.h)
-    out.lon = state.lon - dx[7] / ((rn + state.h) * np.cos(state.lat))
-    out.v = state.v - dx[VEL]
-    out.q = quat_normalize(quat_mul(rotvec_to_quat(np.asarray(dx[ATT])), state.q))
-    out.bg = state.bg - dx[BG]
-    out.ba = state.ba - dx[BA]
-    return out
+    d = dx[:N_STATES].tolist()
+    lat, h = float(state.lat), float(state.h)
+    rm, rn = earth.radii(lat)
+    q = quat_mul(rotvec_to_quat(np.array(d[0:3])), state.q)
+    return NavState(
+        lat - d[6] / (rm + h),
+        float(state.lon) - d[7] / ((rn + h) * math.cos(lat)),
+        h + d[8],
+        state.v - dx[VEL],
+        quat_normalize(q),
+        state.bg - dx[BG],
+        state.ba - dx[BA],
+    )
 
 
 def state_error(est: NavState, truth: NavState) -> np.ndarray:
