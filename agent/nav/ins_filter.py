@@ -50,11 +50,13 @@ class InsFilter:
     cov_interval : float
         Covariance propagation interval [s]; 0 propagates at every IMU sample.
     discretization : {"series", "van_loan"}
-    extra_states : sequence of (initial value, initial sigma, random-walk PSD), optional
-        Additional random-walk states appended after the 15 navigation errors (e.g. the
-        IMU-GNSS time offset). Their nominal values live in :attr:`extra`; measurements give
-        their Jacobian columns after the 15th. ``P`` may be 15x15 (the extra variances are then
-        appended) or full size.
+    extra_states : sequence of (initial value, initial sigma, PSD[, tau]), optional
+        Additional states appended after the 15 navigation errors: random walks (no ``tau``,
+        e.g. the IMU-GNSS time offset) or first-order Gauss-Markov processes with correlation
+        time ``tau`` [s] and driving PSD ``2 σ²/τ`` (e.g. GNSS multipath per axis). Their
+        nominal values live in :attr:`extra` (GM means decay with ``exp(-dt/τ)``); measurements
+        give their Jacobian columns after the 15th. ``P`` may be 15x15 (the extra variances are
+        then appended) or full size.
     """
 
     def __init__(
@@ -65,19 +67,20 @@ class InsFilter:
         t: float = 0.0,
         cov_interval: float = 0.0,
         discretization: str = "series",
-        extra_states: tuple[tuple[float, float, float], ...] = (),
+        extra_states: tuple[tuple[float, ...], ...] = (),
     ) -> None:
         P = np.array(P, float)
         n = N_STATES + len(extra_states)
         if P.shape == (N_STATES, N_STATES) and extra_states:
             P = np.pad(P, (0, len(extra_states)))
-            for i, (_, sigma, _) in enumerate(extra_states):
-                P[N_STATES + i, N_STATES + i] = sigma**2
+            for i, spec in enumerate(extra_states):
+                P[N_STATES + i, N_STATES + i] = spec[1] ** 2
         if P.shape != (n, n):
             raise ValueError(f"P must be {n}x{n}, got {P.shape}")
         self.n = n
         self.extra = np.array([e[0] for e in extra_states], float)
         self._extra_psd = np.array([e[2] for e in extra_states], float)
+        self._extra_tau = np.array([e[3] if len(e) > 3 else math.inf for e in extra_states], float)
         self.state = state
         self.P = 0.5 * (P + P.T)
         self.noise = noise
@@ -132,8 +135,17 @@ class InsFilter:
             P = self.P.copy()
             P[:N_STATES, :N_STATES] = phi @ P[:N_STATES, :N_STATES] @ phi.T + qd
             P[:N_STATES, N_STATES:] = phi @ P[:N_STATES, N_STATES:]
+            # random walk: phi = 1, q = psd dt; Gauss-Markov: phi = exp(-dt/tau),
+            # q = psd tau/2 (1 - phi^2) (exact discretisation)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ph = np.exp(-dt / self._extra_tau)
+                q = np.where(np.isinf(self._extra_tau), self._extra_psd * dt,
+                             0.5 * self._extra_psd * self._extra_tau * (1.0 - ph * ph))
+            P[:N_STATES, N_STATES:] *= ph[None, :]
             P[N_STATES:, :N_STATES] = P[:N_STATES, N_STATES:].T
-            P[N_STATES:, N_STATES:] += np.diag(self._extra_psd * dt)
+            P[N_STATES:, N_STATES:] *= np.outer(ph, ph)
+            P[N_STATES:, N_STATES:] += np.diag(q)
+            self.extra = self.extra * ph
         else:
             P = phi @ self.P @ phi.T + qd
         self.P = 0.5 * (P + P.T)
