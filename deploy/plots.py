@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 def plot_replay_error(res, path: Path) -> None:
     """Horizontal error of the antenna position over time, outages shaded."""
-    t0 = res.t[0]
+    t0 = res.t0
     fig, ax = plt.subplots(figsize=(11, 4))
     for s, f in res.outages:
         ax.axvspan(s - t0, f - t0, color="tab:orange", alpha=0.2, lw=0)

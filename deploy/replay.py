@@ -107,13 +107,14 @@ class ReplayConfig:
 
 @dataclass
 class ReplayResult:
-    """Per-epoch evaluation and the recorded trajectory."""
+    """Per-epoch evaluation and the recorded trajectory; ``t0`` is the first GNSS epoch [s]."""
 
     t: np.ndarray
     h_err: np.ndarray
     withheld: np.ndarray
     outages: list[tuple[float, float]]
     trajectory: np.ndarray
+    t0: float = 0.0
     metrics: dict = field(default_factory=dict)
 
 
@@ -274,7 +275,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
             break
 
     wall = time.perf_counter() - wall0
-    res = ReplayResult(np.array(err_t), np.array(err_h), np.array(err_w, bool), outages, np.array(traj))
+    res = ReplayResult(np.array(err_t), np.array(err_h), np.array(err_w, bool), outages, np.array(traj), t0)
     res.metrics = _metrics(res, outages, float(t_imu[-1] - t_imu[0]), wall)
     res.metrics["imu_time_offset_s"] = float(flt.extra[0]) if cfg.estimate_time_offset else cfg.imu_time_offset
     res.metrics["filter_stats"] = {"imu_samples": flt.stats.imu_samples, "cov_steps": flt.stats.cov_steps,
