@@ -176,7 +176,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
         np.full(3, cfg.init_gyro_bias_sigma**2), np.full(3, cfg.init_accel_bias_sigma**2),
     ]))
     # the state is at the antenna: shift to the IMU
-    state.lat, state.lon, state.h = _shift(state, -lever)
+    state.lat, state.lon, state.h = point_llh(state, -lever)
     extra = ((cfg.imu_time_offset, cfg.time_offset_sigma, cfg.time_offset_rw**2),) \
         if cfg.estimate_time_offset else ()
     flt = InsFilter(state, P0, cfg.noise, t=float(gnss.t[gi]), cov_interval=cfg.cov_interval,
@@ -293,10 +293,6 @@ def _remainder(dth, dv, t0, t1, t_from):
     a = (t_from - t0) / (t1 - t0)
     a = min(max(a, 0.0), 1.0)
     return [(1 - a) * x for x in dth], [(1 - a) * x for x in dv], (t1 - t0) * (1 - a)
-
-
-def _shift(state: NavState, offset_b: np.ndarray) -> tuple[float, float, float]:
-    return point_llh(state, offset_b)
 
 
 def _metrics(res: ReplayResult, outages, imu_span: float, wall: float) -> dict:

@@ -114,6 +114,9 @@ def test_oblique_stop_line_and_parallel_lines() -> None:
     u = (1.0, 0.0)
     oblique = StopLineApproach(Line2D((0.0, 0.0), (math.sin(0.3), math.cos(0.3))), Line2D((0.0, -2.0), u))
     p, _ = stop_line_fix(oblique, 3.0, 1.0)
+    same = StopLineApproach(Line2D.from_points((0.0, 0.0), (math.sin(0.3), math.cos(0.3))),
+                            Line2D.from_heading((0.0, -2.0), 0.0))
+    assert np.allclose(stop_line_fix(same, 3.0, 1.0)[0], p)
     assert oblique.left_lane_line.signed_distance(p) == pytest.approx(1.0)
     assert float(oblique.stop_line_normal() @ p) == pytest.approx(-3.0)
     with pytest.raises(ValueError, match="parallel"):

@@ -17,7 +17,7 @@ from .error_model import ImuNoise, discretize_density, process_noise_density, sy
 from .kalman import Measurement, UpdateResult, kalman_update, stack
 from .mechanization import mechanize_fast
 from .rotation import euler_to_quat, quat_to_euler, wrap_angle
-from .state import ATT, N_STATES, POS, NavState, remove_error
+from .state import N_STATES, POS, NavState, remove_error
 
 
 @dataclass
@@ -154,11 +154,6 @@ class InsFilter:
         self._cov_state = None
         self.stats.cov_steps += 1
 
-    def reset_increment_history(self) -> None:
-        """Forget the previous increments (after a data gap) so coning terms restart."""
-        self._prev_dtheta = None
-        self._prev_dvel = None
-
     # ------------------------------------------------------------------ updates
     def update(self, meas: Measurement, gate_probability: float | None = None) -> UpdateResult:
         """Kalman update with one measurement, closed-loop feedback, and reset."""
@@ -203,11 +198,6 @@ class InsFilter:
         """NED position error covariance, shape (3, 3) [m²]."""
         self.flush_covariance()
         return self.P[POS, POS].copy()
-
-    @property
-    def attitude_sigma(self) -> np.ndarray:
-        """Attitude error standard deviations, shape (3,) [rad]."""
-        return np.sqrt(np.diag(self.P[ATT, ATT]))
 
 
 def level_from_accel(f_b_mean: np.ndarray) -> tuple[float, float]:

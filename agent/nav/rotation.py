@@ -31,16 +31,6 @@ def rotvec_to_quat(phi: np.ndarray) -> np.ndarray:
     return np.array([math.cos(half), s * phi[0], s * phi[1], s * phi[2]])
 
 
-def rotvec_to_dcm(phi: np.ndarray) -> np.ndarray:
-    """Direction cosine matrix ``exp([phi×])``, shape (3, 3), by Rodrigues' formula."""
-    angle2 = float(phi @ phi)
-    k = skew(phi)
-    if angle2 < 1e-16:
-        return np.eye(3) + k + 0.5 * (k @ k)
-    angle = math.sqrt(angle2)
-    return np.eye(3) + (math.sin(angle) / angle) * k + ((1.0 - math.cos(angle)) / angle2) * (k @ k)
-
-
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product ``p ⊗ q`` of scalar-first quaternions, shape (4,)."""
     pw, px, py, pz = p
@@ -82,12 +72,6 @@ def euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Body-to-NED scalar-first quaternion from roll, pitch, yaw [rad]."""
     x, y, z, w = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()
     return quat_normalize(np.array([w, x, y, z]))
-
-
-def dcm_to_euler(c: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw [rad], shape (3,), of a body-to-NED DCM; yaw in (-pi, pi]."""
-    yaw, pitch, roll = Rotation.from_matrix(c).as_euler("ZYX")
-    return np.array([roll, pitch, yaw])
 
 
 def dcm_to_quat(c: np.ndarray) -> np.ndarray:
