@@ -79,6 +79,8 @@ class ReplayConfig:
     estimate_time_offset: bool = True
     time_offset_sigma: float = 0.05
     time_offset_rw: float = 1e-3
+    #: IMU scale-factor states (accel sigma, gyro sigma, correlation time s); None disables
+    scale_factors: tuple[float, float, float] | None = None
     #: geoid undulation added to the file's MSL heights [m] (EGM96 near 40.10 N 105.15 W)
     geoid_undulation: float = -16.8
     outage: OutageProtocol = OutageProtocol()
@@ -180,7 +182,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
     extra = ((cfg.imu_time_offset, cfg.time_offset_sigma, cfg.time_offset_rw**2),) \
         if cfg.estimate_time_offset else ()
     flt = InsFilter(state, P0, cfg.noise, t=float(gnss.t[gi]), cov_interval=cfg.cov_interval,
-                    extra_states=extra)
+                    extra_states=extra, scale_factors=cfg.scale_factors)
 
     def epoch_time(i: int) -> float:
         """Filter time at which GNSS epoch ``i`` is applied (shifted by the offset estimate)."""
@@ -230,7 +232,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
             a_n[2] += earth.gravity(st.lat, st.h)
             cols = [-st.v] + ([-a_n] if cfg.use_velocity else [])
             cols += [np.zeros(m.dim) for m in meas[len(cols):]]
-            meas = [Measurement(m.z, np.hstack([m.H, c[:, None]]), m.R, m.name) for m, c in zip(meas, cols)]
+            meas = [Measurement(m.z, flt.full_jacobian(m.H, c[:, None]), m.R, m.name) for m, c in zip(meas, cols)]
         speed = math.hypot(gnss.v_ned[i, 0], gnss.v_ned[i, 1])
         if not yaw_aligned and speed > cfg.yaw_align_speed:
             course = math.atan2(gnss.v_ned[i, 1], gnss.v_ned[i, 0])

@@ -112,3 +112,29 @@ def test_treating_correlated_gnss_error_as_white_is_overconfident(truth) -> None
     rms_norm, _, _ = _monte_carlo(truth, model_gm=False)
     print(f"R inflated only: RMS(error/sigma) horizontal = {rms_norm:.3f}")
     assert rms_norm > 1.5
+
+
+def test_scale_factor_states_estimate_a_gyro_scale_error() -> None:
+    """A 2 % gyro-z scale error on a winding drive: the scale-factor state converges to it."""
+    prof = SinusoidProfile(speed0=8.0, yaw_terms=((2.0, 0.15, 0.0),))
+    tr = generate(prof, 120.0)
+    rng = np.random.default_rng(7)
+    s_true = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.02])  # accel xyz, gyro xyz
+    dt = float(tr.t[1] - tr.t[0])
+    dth = tr.dtheta * (1 + s_true[3:]) + rng.normal(0, NOISE.arw * math.sqrt(dt), tr.dtheta.shape)
+    dvl = tr.dvel * (1 + s_true[:3]) + rng.normal(0, NOISE.vrw * math.sqrt(dt), tr.dvel.shape)
+    st = NavState(*tr.llh[0], tr.v_ned[0].copy(), euler_to_quat(*tr.euler[0]))
+    p0 = np.concatenate([np.radians([0.5, 0.5, 1.0]), [0.1] * 3, [0.5] * 3,
+                         [NOISE.gyro_bias_sigma] * 3, [NOISE.accel_bias_sigma] * 3]) ** 2
+    flt = InsFilter(st, np.diag(p0), NOISE, t=0.0, cov_interval=0.05, scale_factors=(0.01, 0.03, 3600.0))
+    for k in range(len(tr.t) - 1):
+        flt.propagate(dth[k], dvl[k], dt)
+        if (k + 1) % 20 == 0:
+            i = k + 1
+            llh = tr.llh[i].copy()
+            flt.update(gnss_position(flt.state, llh, np.eye(3) * 0.05**2))
+            flt.update(gnss_velocity(flt.state, tr.v_ned[i], np.eye(3) * 0.02**2, np.zeros(3)))
+    sigma = math.sqrt(flt.P[20, 20])
+    print(f"gyro-z scale estimate {flt.scale[5]:.4f} (truth 0.02, sigma {sigma:.4f})")
+    assert abs(flt.scale[5] - 0.02) < max(3 * sigma, 1e-3)
+    assert sigma < 0.005

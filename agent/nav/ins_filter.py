@@ -17,7 +17,7 @@ from .error_model import ImuNoise, discretize_density, process_noise_density, sy
 from .kalman import Measurement, UpdateResult, kalman_update, stack
 from .mechanization import mechanize_fast
 from .rotation import euler_to_quat, quat_to_euler, wrap_angle
-from .state import N_STATES, POS, NavState, remove_error
+from .state import ATT, N_STATES, POS, VEL, NavState, remove_error
 
 
 @dataclass
@@ -57,6 +57,10 @@ class InsFilter:
         nominal values live in :attr:`extra` (GM means decay with ``exp(-dt/τ)``); measurements
         give their Jacobian columns after the 15th. ``P`` may be 15x15 (the extra variances are
         then appended) or full size.
+    scale_factors : (accel sigma, gyro sigma, tau), optional
+        Estimate IMU scale-factor errors (dimensionless, per axis) as six Gauss-Markov states
+        placed between the 15 navigation errors and ``extra_states``: measured increments are
+        modelled as ``(1 + s) * true + bias``. Nominal values in :attr:`scale` (accel xyz, gyro xyz).
     """
 
     def __init__(
@@ -68,19 +72,29 @@ class InsFilter:
         cov_interval: float = 0.0,
         discretization: str = "series",
         extra_states: tuple[tuple[float, ...], ...] = (),
+        scale_factors: tuple[float, float, float] | None = None,
     ) -> None:
         P = np.array(P, float)
-        n = N_STATES + len(extra_states)
-        if P.shape == (N_STATES, N_STATES) and extra_states:
-            P = np.pad(P, (0, len(extra_states)))
-            for i, spec in enumerate(extra_states):
+        specs = []
+        if scale_factors is not None:
+            sa, sg, tau = scale_factors
+            specs += [(0.0, sa, 2 * sa * sa / tau, tau)] * 3 + [(0.0, sg, 2 * sg * sg / tau, tau)] * 3
+        self.n_scale = len(specs)
+        specs += [tuple(e) for e in extra_states]
+        n = N_STATES + len(specs)
+        if P.shape == (N_STATES, N_STATES) and specs:
+            P = np.pad(P, (0, len(specs)))
+            for i, spec in enumerate(specs):
                 P[N_STATES + i, N_STATES + i] = spec[1] ** 2
         if P.shape != (n, n):
             raise ValueError(f"P must be {n}x{n}, got {P.shape}")
         self.n = n
-        self.extra = np.array([e[0] for e in extra_states], float)
-        self._extra_psd = np.array([e[2] for e in extra_states], float)
-        self._extra_tau = np.array([e[3] if len(e) > 3 else math.inf for e in extra_states], float)
+        #: column of the first ``extra_states`` entry in P and in measurement Jacobians
+        self.extra_offset = N_STATES + self.n_scale
+        self.scale = np.zeros(self.n_scale)
+        self.extra = np.array([e[0] for e in specs[self.n_scale:]], float)
+        self._aug_psd = np.array([e[2] for e in specs], float)
+        self._aug_tau = np.array([e[3] if len(e) > 3 else math.inf for e in specs], float)
         self.state = state
         self.P = 0.5 * (P + P.T)
         self.noise = noise
@@ -93,6 +107,7 @@ class InsFilter:
         self._prev_dvel: tuple[float, float, float] | None = None
         self._acc_dt = 0.0
         self._acc_dv_b = (0.0, 0.0, 0.0)
+        self._acc_dth_b = (0.0, 0.0, 0.0)
         self._cov_state: NavState | None = None
 
     # ------------------------------------------------------------------ propagation
@@ -110,11 +125,18 @@ class InsFilter:
             dtheta = dtheta.tolist()
         if isinstance(dvel, np.ndarray):
             dvel = dvel.tolist()
-        new, self._prev_dtheta, dv = mechanize_fast(st, dtheta, dvel, dt, self._prev_dtheta, self._prev_dvel)
-        self._prev_dvel = dv
-        # body-frame sum, resolved with the linearisation attitude at the covariance step
+        if self.n_scale:
+            sa0, sa1, sa2, sg0, sg1, sg2 = self.scale.tolist()
+            dvel = (dvel[0] * (1 - sa0), dvel[1] * (1 - sa1), dvel[2] * (1 - sa2))
+            dtheta = (dtheta[0] * (1 - sg0), dtheta[1] * (1 - sg1), dtheta[2] * (1 - sg2))
+        new, th, dv = mechanize_fast(st, dtheta, dvel, dt, self._prev_dtheta, self._prev_dvel)
+        self._prev_dtheta, self._prev_dvel = th, dv
+        # body-frame sums, resolved with the linearisation attitude at the covariance step
         a = self._acc_dv_b
         self._acc_dv_b = (a[0] + dv[0], a[1] + dv[1], a[2] + dv[2])
+        if self.n_scale:
+            b = self._acc_dth_b
+            self._acc_dth_b = (b[0] + th[0], b[1] + th[1], b[2] + th[2])
         self._acc_dt += dt
         self.state = new
         self.t += dt
@@ -128,33 +150,47 @@ class InsFilter:
         if dt <= 0.0:
             return
         lin = self._cov_state if self._cov_state is not None else self.state
-        f_n = lin.dcm @ (np.array(self._acc_dv_b) / dt)
-        F = system_matrix(lin, f_n, self.noise)
-        phi, qd = discretize_density(F, self._gqg, dt, self.discretization)
+        c_bn = lin.dcm
+        f_b = np.array(self._acc_dv_b) / dt
+        F = system_matrix(lin, c_bn @ f_b, self.noise)
         if self.n > N_STATES:
-            P = self.P.copy()
-            P[:N_STATES, :N_STATES] = phi @ P[:N_STATES, :N_STATES] @ phi.T + qd
-            P[:N_STATES, N_STATES:] = phi @ P[:N_STATES, N_STATES:]
-            # random walk: phi = 1, q = psd dt; Gauss-Markov: phi = exp(-dt/tau),
-            # q = psd tau/2 (1 - phi^2) (exact discretisation)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ph = np.exp(-dt / self._extra_tau)
-                q = np.where(np.isinf(self._extra_tau), self._extra_psd * dt,
-                             0.5 * self._extra_psd * self._extra_tau * (1.0 - ph * ph))
-            P[:N_STATES, N_STATES:] *= ph[None, :]
-            P[N_STATES:, :N_STATES] = P[:N_STATES, N_STATES:].T
-            P[N_STATES:, N_STATES:] *= np.outer(ph, ph)
-            P[N_STATES:, N_STATES:] += np.diag(q)
-            self.extra = self.extra * ph
+            # augmented model: scale factors couple into velocity/attitude errors,
+            # every augmented state is a random walk or first-order Gauss-Markov process
+            n = self.n
+            Fa = np.zeros((n, n))
+            Fa[:N_STATES, :N_STATES] = F
+            if self.n_scale:
+                w_b = np.array(self._acc_dth_b) / dt
+                Fa[VEL, 15:18] = -c_bn * f_b[None, :]
+                Fa[ATT, 18:21] = c_bn * w_b[None, :]
+            idx = np.arange(N_STATES, n)
+            Fa[idx, idx] = -1.0 / self._aug_tau
+            F = Fa
+            q = np.concatenate([self._gqg, self._aug_psd])
+            decay = np.exp(-dt / self._aug_tau)
+            self.scale = self.scale * decay[: self.n_scale]
+            self.extra = self.extra * decay[self.n_scale:]
         else:
-            P = phi @ self.P @ phi.T + qd
+            q = self._gqg
+        phi, qd = discretize_density(F, q, dt, self.discretization)
+        P = phi @ self.P @ phi.T + qd
         self.P = 0.5 * (P + P.T)
         self._acc_dt = 0.0
         self._acc_dv_b = (0.0, 0.0, 0.0)
+        self._acc_dth_b = (0.0, 0.0, 0.0)
         self._cov_state = None
         self.stats.cov_steps += 1
 
     # ------------------------------------------------------------------ updates
+    def full_jacobian(self, H_nav: np.ndarray, H_extra: np.ndarray | None = None) -> np.ndarray:
+        """Measurement Jacobian over the whole (augmented) state from its navigation part,
+        shape (m, 15), and optionally its ``extra_states`` part, shape (m, len(extra))."""
+        H = np.zeros((H_nav.shape[0], self.n))
+        H[:, :N_STATES] = H_nav
+        if H_extra is not None:
+            H[:, self.extra_offset:] = H_extra
+        return H
+
     def update(self, meas: Measurement, gate_probability: float | None = None) -> UpdateResult:
         """Kalman update with one measurement, closed-loop feedback, and reset."""
         self.flush_covariance()
@@ -165,8 +201,10 @@ class InsFilter:
         dx, P, result = kalman_update(self.P, meas, gate_probability)
         if result.accepted:
             self.state = remove_error(self.state, dx[:N_STATES])
-            if self.n > N_STATES:
-                self.extra = self.extra - dx[N_STATES:]
+            if self.n_scale:
+                self.scale = self.scale - dx[N_STATES:self.extra_offset]
+            if self.n > self.extra_offset:
+                self.extra = self.extra - dx[self.extra_offset:]
             self.P = P
         self.stats.count(result)
         return result
