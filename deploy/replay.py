@@ -93,6 +93,8 @@ class ReplayConfig:
     nhc_only_coasting: bool = True
     coast_after: float = 1.0
     nhc_sigma: float = 0.1
+    #: NHC vertical-velocity sigma [m/s]; a mount-pitch error biases this row, so it is looser
+    nhc_vertical_sigma: float = 0.1
     nhc_lever_uncertainty: float = 1.0
     zupt_sigma: float = 0.02
     constraint_rate: float = 10.0
@@ -288,7 +290,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
 def _nhc(state: NavState, w_b: np.ndarray, cfg: ReplayConfig):
     """NHC with the lateral sigma inflated by yaw rate x the unknown IMU-to-rear-axle distance."""
     sig = math.hypot(cfg.nhc_sigma, abs(float(w_b[2])) * cfg.nhc_lever_uncertainty)
-    return non_holonomic(state, sig, cfg.nhc_sigma)
+    return non_holonomic(state, sig, cfg.nhc_vertical_sigma)
 
 
 def _remainder(dth, dv, t0, t1, t_from):
