@@ -1,0 +1,139 @@
+"""Sensor and link models: emitted statistics against the configured parameters (stated
+tolerances), bit-identical seeded output, and clear parameter errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hw_emulation.sensors.gnss import GnssModel, common_mode_error, simulate_gnss
+from hw_emulation.sensors.imu import ImuModel, corrupt_increments
+from hw_emulation.sensors.processes import gauss_markov, gauss_markov_varying, two_state_markov
+from hw_emulation.sensors.radio import RadioModel, simulate_link
+from hw_emulation.sensors.uwb import UwbModel, simulate_pair
+
+
+def _tau_from_lag1(x: np.ndarray, dt: float) -> float:
+    r = np.corrcoef(x[:-1], x[1:])[0, 1]
+    return -dt / math.log(r)
+
+
+def test_gauss_markov_sigma_and_correlation_time(rng) -> None:
+    x = gauss_markov(200_000, 0.1, 2.0, 5.0, rng)[:, 0]
+    assert x.std() == pytest.approx(2.0, rel=0.05)          # ±5 %
+    assert _tau_from_lag1(x, 0.1) == pytest.approx(5.0, rel=0.10)  # ±10 %
+    y = gauss_markov_varying(np.full(200_000, 0.1), 1.5, np.full(200_000, 5.0), rng)[:, 0]
+    assert y.std() == pytest.approx(1.5, rel=0.05)
+    assert _tau_from_lag1(y, 0.1) == pytest.approx(5.0, rel=0.10)
+
+
+def test_two_state_markov_occupancy_and_dwell(rng) -> None:
+    s = two_state_markov(500_000, 0.01, 0.09, rng)
+    assert s.mean() == pytest.approx(0.1, abs=0.01)
+    runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[0], s.astype(int), [0]]))))[::2]
+    assert runs.mean() == pytest.approx(1 / 0.09, rel=0.1)
+
+
+def test_imu_noise_and_bias_statistics(rng) -> None:
+    model = ImuModel()
+    n, dt = 100_000, 0.01
+    zero = np.zeros((n, 3))
+    e = corrupt_increments(model, zero, zero, np.full(n, dt), rng)
+    noise_th = (e.dtheta - e.gyro_bias * dt) / math.sqrt(dt)
+    noise_dv = (e.dvel - e.accel_bias * dt) / math.sqrt(dt)
+    assert noise_th.std(axis=0) == pytest.approx(np.full(3, model.arw), rel=0.03)
+    assert noise_dv.std(axis=0) == pytest.approx(np.full(3, model.vrw), rel=0.03)
+    # turn-on bias spread over many seeded units (±15 %)
+    tb = np.array([corrupt_increments(model, zero[:10], zero[:10], np.full(10, dt),
+                                      np.random.default_rng(s)).gyro_bias[0] for s in range(600)])
+    expected = math.hypot(model.gyro_turn_on, model.gyro_in_run)
+    assert tb.std() == pytest.approx(expected, rel=0.15)
+    # scale factor applied to the true increments
+    ones = np.ones((n, 3)) * dt
+    e2 = corrupt_increments(ImuModel(arw=0, vrw=0, gyro_turn_on=0, accel_turn_on=0, gyro_in_run=0,
+                                     accel_in_run=0, gyro_scale=0.01, misalignment=0),
+                            ones, ones, np.full(n, dt), np.random.default_rng(3))
+    assert np.allclose(e2.dtheta[0], e2.gyro_matrix @ ones[0])
+
+
+def test_gnss_white_multipath_nlos_outage_statistics(rng) -> None:
+    t = np.arange(0, 20_000, 0.2)
+    quiet = GnssModel(multipath_h=0.0, multipath_v=0.0, nlos_rate=0.0, outage_rate=0.0)
+    e = simulate_gnss(quiet, t, np.ones(len(t), bool), rng)
+    assert e.pos_error[:, :2].std() == pytest.approx(quiet.white_h, rel=0.03)
+    assert e.pos_error[:, 2].std() == pytest.approx(quiet.white_v, rel=0.03)
+    mp = GnssModel(white_h=0.0, white_v=0.0, nlos_rate=0.0, outage_rate=0.0, multipath_tau_moving=10.0)
+    e = simulate_gnss(mp, t, np.ones(len(t), bool), rng)
+    assert e.pos_error[:, 0].std() == pytest.approx(mp.multipath_h, rel=0.1)
+    assert _tau_from_lag1(e.pos_error[:, 0], 0.2) == pytest.approx(10.0, rel=0.15)
+    ev = GnssModel(nlos_rate=1 / 100, outage_rate=1 / 200)
+    e = simulate_gnss(ev, t, np.ones(len(t), bool), rng)
+    # occupancy of (possibly overlapping) Poisson windows: 1 - exp(-rate * mean duration)
+    assert e.nlos.mean() == pytest.approx(1 - math.exp(-32.5 / 100), abs=0.05)
+    assert (~e.valid).mean() == pytest.approx(1 - math.exp(-11.0 / 200), abs=0.02)
+    assert np.abs(e.pos_error[e.nlos, :2]).max() > 5.0
+    cm = common_mode_error(t, 1.5, 600.0, rng)
+    assert cm.shape == (len(t), 3)
+
+
+def test_uwb_los_nlos_outliers_and_success(rng) -> None:
+    model = UwbModel()
+    n = 400_000
+    t = np.arange(n) / model.rate
+    r = simulate_pair(model, t, np.full(n, 20.0), rng)
+    clean = r.delivered & ~r.nlos & ~r.outlier
+    assert (r.range[clean] - 20.0).std() == pytest.approx(model.sigma_los, rel=0.03)
+    occ = model.nlos_enter / (model.nlos_enter + model.nlos_exit)
+    assert r.nlos[r.delivered].mean() == pytest.approx(occ, rel=0.15)
+    assert r.outlier[r.delivered].mean() == pytest.approx(model.outlier_prob, rel=0.15)
+    bias = r.range[r.nlos & ~r.outlier] - 20.0
+    assert model.nlos_bias_min - 0.3 < bias.mean() < model.nlos_bias_max
+    for d, p in ((30.0, 0.95), (100.0, 0.5)):
+        rr = simulate_pair(model, t[:50_000], np.full(50_000, d), rng)
+        assert rr.delivered.mean() == pytest.approx(p, abs=0.01)
+    far = simulate_pair(model, t[:1000], np.full(1000, model.max_range + 1), rng)
+    assert not far.delivered.any()
+
+
+def test_radio_loss_burstiness_latency_and_range(rng) -> None:
+    model = RadioModel()
+    n = 300_000
+    t = np.arange(n) * 0.2
+    d = simulate_link(model, t, np.full(n, 50.0), rng)
+    assert 1 - d.delivered.mean() == pytest.approx(model.expected_loss(), rel=0.05)
+    lat = (d.t_arrive - d.t_send)[d.delivered & ~d.stale]
+    assert lat.min() >= model.latency_min - 1e-9 and lat.max() <= model.latency_max + 1e-9
+    assert d.stale[d.delivered].mean() == pytest.approx(model.stale_prob, rel=0.2)
+    stale_lat = (d.t_arrive - d.t_send)[d.stale]
+    assert np.all((stale_lat >= 0.1) & (stale_lat <= 0.3))
+    # bursts: losses cluster (lag-1 correlation of the loss indicator > 0)
+    lost = (~d.delivered).astype(float)
+    assert np.corrcoef(lost[:-1], lost[1:])[0, 1] > 0.2
+    bern = simulate_link(RadioModel(loss=0.2, ge_p_good_to_bad=0.0), t, np.full(n, 50.0), rng)
+    assert 1 - bern.delivered.mean() == pytest.approx(0.2, abs=0.005)
+    assert not simulate_link(model, t[:100], np.full(100, model.max_range + 1), rng).delivered.any()
+
+
+def test_seeded_models_are_bit_identical() -> None:
+    t = np.arange(0, 600, 0.2)
+    a = simulate_gnss(GnssModel(), t, np.ones(len(t), bool), np.random.default_rng(5))
+    b = simulate_gnss(GnssModel(), t, np.ones(len(t), bool), np.random.default_rng(5))
+    assert np.array_equal(a.pos_error, b.pos_error) and np.array_equal(a.valid, b.valid)
+    u1 = simulate_pair(UwbModel(), t, np.full(len(t), 40.0), np.random.default_rng(9))
+    u2 = simulate_pair(UwbModel(), t, np.full(len(t), 40.0), np.random.default_rng(9))
+    assert np.array_equal(u1.range, u2.range, equal_nan=True)
+
+
+@pytest.mark.parametrize("cls, field, value, match", [
+    (ImuModel, "arw", -1.0, "ImuModel.arw must be >= 0"),
+    (ImuModel, "bias_tau", 0.0, "ImuModel.bias_tau must be > 0"),
+    (GnssModel, "nlos_bias_max", 1.0, "nlos_bias_min must not exceed nlos_bias_max"),
+    (UwbModel, "outlier_prob", 1.5, "UwbModel.outlier_prob must be in"),
+    (UwbModel, "rate", 500.0, "<= 100 Hz"),
+    (RadioModel, "loss", float("nan"), "RadioModel.loss must be a number"),
+])
+def test_bad_parameters_name_the_field(cls, field, value, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        cls(**{field: value})
