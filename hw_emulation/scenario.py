@@ -1,0 +1,386 @@
+"""Scenario files (TOML): map, signals, vehicles, sensors, radio, events and evaluation windows.
+
+The format is documented in the README ("Scenario format"). Units: metres, seconds, m/s;
+the geodetic origin in degrees (converted here). Sensor sections use the field names of
+:class:`~hw_emulation.sensors.imu.ImuModel`, :class:`~hw_emulation.sensors.gnss.GnssModel`,
+:class:`~hw_emulation.sensors.uwb.UwbModel` and :class:`~hw_emulation.sensors.radio.RadioModel`
+(SI units). Every error names the file, the field path and the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .geometry import polyline_length
+from .sensors.gnss import GnssModel
+from .sensors.imu import ImuModel
+from .sensors.radio import RadioModel
+from .sensors.uwb import UwbModel
+
+EVENT_KINDS = ("first_stopped", "stopped", "moving", "passes_stop_line", "near", "green", "time", "end")
+
+
+class ScenarioError(ValueError):
+    """A scenario file is invalid; the message names the file, the field and the reason."""
+
+
+@dataclass(frozen=True)
+class Lane:
+    id: str
+    centerline: np.ndarray  #: (n, 2) north, east [m]
+    width: float
+    stop_line: bool  #: a stop line across the lane at the end of its centre-line
+
+    @property
+    def end_heading(self) -> float:
+        d = self.centerline[-1] - self.centerline[-2]
+        return math.atan2(d[1], d[0])
+
+    @property
+    def start_heading(self) -> float:
+        d = self.centerline[1] - self.centerline[0]
+        return math.atan2(d[1], d[0])
+
+
+@dataclass(frozen=True)
+class SignalPhase:
+    lanes: tuple[str, ...]
+    green_start: float
+    green_end: float
+
+
+@dataclass(frozen=True)
+class Signals:
+    cycle: float
+    offset: float
+    phases: tuple[SignalPhase, ...]
+
+    def is_green(self, lane: str, t: float) -> bool:
+        """True if ``lane`` may cross its stop line at time ``t`` (lanes without a phase: always)."""
+        ph = [p for p in self.phases if lane in p.lanes]
+        if not ph:
+            return True
+        c = (t - self.offset) % self.cycle
+        return any(p.green_start <= c < p.green_end for p in ph)
+
+
+@dataclass(frozen=True)
+class Idm:
+    """Intelligent Driver Model parameters: max accel a, comfortable decel b [m/s²], jam gap
+    s0 [m], time headway T [s], exponent delta."""
+
+    a: float = 1.5
+    b: float = 2.0
+    s0: float = 2.0
+    T: float = 1.2
+    delta: float = 4.0
+
+
+@dataclass(frozen=True)
+class VehicleSpec:
+    id: str
+    route: tuple[str, ...]
+    depart: float
+    depart_pos: float
+    desired_speed: float
+    idm: Idm
+    length: float
+    l0: float  #: reference point O_b (IMU) behind the front [m]
+    stop_gap: tuple[float, float]  #: d_s ~ N(m_xb, σ_xb²), front to stop line [m]
+    lateral: tuple[float, float]  #: d_l ~ N(m_yb, σ_yb²), O_b right of the left lane line [m]
+    imu: ImuModel
+    gnss: GnssModel
+    initial_speed: float = 0.0
+
+
+@dataclass(frozen=True)
+class EventSpec:
+    """A named instant defined from the truth (see README, "Scenario format")."""
+
+    name: str
+    kind: str
+    vehicle: str | None = None
+    time: float | None = None
+    other: str | None = None
+    distance: float | None = None
+    lane: str | None = None
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    seed: int
+    duration: float
+    imu_rate: float
+    origin_llh: tuple[float, float, float]  #: radians, radians, metres
+    lanes: dict[str, Lane]
+    signals: Signals
+    vehicles: tuple[VehicleSpec, ...]
+    uwb: UwbModel
+    radio: RadioModel
+    common_mode_sigma: float
+    common_mode_tau: float
+    events: tuple[EventSpec, ...]
+    windows: dict[str, tuple[str, str]]
+    paper_table: dict[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+
+# --------------------------------------------------------------------------- parsing helpers
+class _Ctx:
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, path: str, reason: str) -> ScenarioError:
+        return ScenarioError(f"{self.source}: {path}: {reason}")
+
+    def number(self, d: dict, key: str, path: str, default: float | None = None, *,
+               positive: bool = False, non_negative: bool = False) -> float:
+        if key not in d:
+            if default is None:
+                raise self.fail(f"{path}.{key}" if path else key, "missing")
+            return float(default)
+        v = d[key]
+        p = f"{path}.{key}" if path else key
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self.fail(p, f"must be a finite number, got {v!r}")
+        if positive and not v > 0:
+            raise self.fail(p, f"must be > 0, got {v!r}")
+        if non_negative and v < 0:
+            raise self.fail(p, f"must be >= 0, got {v!r}")
+        return float(v)
+
+    def string(self, d: dict, key: str, path: str) -> str:
+        v = d.get(key)
+        if not isinstance(v, str) or not v:
+            raise self.fail(f"{path}.{key}" if path else key, f"must be a non-empty string, got {v!r}")
+        return v
+
+    def table(self, d: dict, key: str, path: str, required: bool = False) -> dict:
+        v = d.get(key, None)
+        if v is None:
+            if required:
+                raise self.fail(f"{path}.{key}" if path else key, "missing")
+            return {}
+        if not isinstance(v, dict):
+            raise self.fail(f"{path}.{key}" if path else key, "must be a table")
+        return v
+
+    def model(self, cls, d: dict, path: str, base=None):
+        base = base if base is not None else cls()
+        names = {f.name for f in dataclasses.fields(cls)}
+        for k in d:
+            if k not in names:
+                raise self.fail(f"{path}.{k}", f"unknown field (known: {', '.join(sorted(names))})")
+        try:
+            return dataclasses.replace(base, **d)
+        except (TypeError, ValueError) as exc:
+            raise self.fail(path, str(exc)) from exc
+
+
+def _check_keys(ctx: _Ctx, d: dict, allowed: set[str], path: str) -> None:
+    for k in d:
+        if k not in allowed:
+            raise ctx.fail(f"{path}.{k}" if path else k, f"unknown field (known: {', '.join(sorted(allowed))})")
+
+
+def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
+    """Validate a parsed TOML document and build a :class:`Scenario`."""
+    ctx = _Ctx(source)
+    _check_keys(ctx, data, {"scenario", "lanes", "signals", "vehicles", "sensors", "radio", "uwb",
+                            "events", "windows", "paper"}, "")
+    sc = ctx.table(data, "scenario", "", required=True)
+    _check_keys(ctx, sc, {"name", "description", "seed", "duration", "imu_rate", "origin",
+                          "common_mode_sigma", "common_mode_tau"}, "scenario")
+    name = ctx.string(sc, "name", "scenario")
+    seed = sc.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ctx.fail("scenario.seed", f"must be a non-negative integer, got {seed!r}")
+    duration = ctx.number(sc, "duration", "scenario", positive=True)
+    imu_rate = ctx.number(sc, "imu_rate", "scenario", 100.0, positive=True)
+    if abs(round(imu_rate / 10.0) * 10.0 - imu_rate) > 1e-9:
+        raise ctx.fail("scenario.imu_rate", "must be a multiple of 10 Hz (the traffic step is 0.1 s)")
+    org = ctx.table(sc, "origin", "scenario", required=True)
+    lat = ctx.number(org, "lat", "scenario.origin")
+    lon = ctx.number(org, "lon", "scenario.origin")
+    if not -90 < lat < 90 or not -180 <= lon <= 180:
+        raise ctx.fail("scenario.origin", f"latitude/longitude out of range: {lat}, {lon}")
+    origin = (math.radians(lat), math.radians(lon), ctx.number(org, "h", "scenario.origin", 0.0))
+
+    lanes: dict[str, Lane] = {}
+    raw_lanes = data.get("lanes")
+    if not isinstance(raw_lanes, list) or not raw_lanes:
+        raise ctx.fail("lanes", "must be a non-empty array of tables")
+    for i, ln in enumerate(raw_lanes):
+        p = f"lanes[{i}]"
+        if not isinstance(ln, dict):
+            raise ctx.fail(p, "must be a table")
+        _check_keys(ctx, ln, {"id", "centerline", "width", "stop_line"}, p)
+        lid = ctx.string(ln, "id", p)
+        if lid in lanes:
+            raise ctx.fail(f"{p}.id", f"duplicate lane id {lid!r}")
+        try:
+            cl = np.asarray(ln.get("centerline"), float)
+        except (TypeError, ValueError):
+            raise ctx.fail(f"{p}.centerline", "must be a list of [north, east] pairs") from None
+        if cl.ndim != 2 or cl.shape[1] != 2 or len(cl) < 2 or not np.all(np.isfinite(cl)):
+            raise ctx.fail(f"{p}.centerline", "must be at least two finite [north, east] points")
+        if np.any(np.linalg.norm(np.diff(cl, axis=0), axis=1) < 1e-6):
+            raise ctx.fail(f"{p}.centerline", "has repeated consecutive points")
+        stop = ln.get("stop_line", False)
+        if not isinstance(stop, bool):
+            raise ctx.fail(f"{p}.stop_line", "must be true or false")
+        lanes[lid] = Lane(lid, cl, ctx.number(ln, "width", p, 3.5, positive=True), stop)
+
+    sg = ctx.table(data, "signals", "")
+    _check_keys(ctx, sg, {"cycle", "offset", "phases"}, "signals")
+    phases = []
+    for i, ph in enumerate(sg.get("phases", [])):
+        p = f"signals.phases[{i}]"
+        _check_keys(ctx, ph, {"lanes", "green"}, p)
+        ls = ph.get("lanes")
+        if not isinstance(ls, list) or not all(isinstance(x, str) for x in ls):
+            raise ctx.fail(f"{p}.lanes", "must be a list of lane ids")
+        for x in ls:
+            if x not in lanes:
+                raise ctx.fail(f"{p}.lanes", f"unknown lane {x!r}")
+            if not lanes[x].stop_line:
+                raise ctx.fail(f"{p}.lanes", f"lane {x!r} has no stop line")
+        g = ph.get("green")
+        if not (isinstance(g, list) and len(g) == 2 and all(isinstance(v, (int, float)) for v in g) and g[0] < g[1]):
+            raise ctx.fail(f"{p}.green", "must be [start, end] seconds into the cycle with start < end")
+        phases.append(SignalPhase(tuple(ls), float(g[0]), float(g[1])))
+    signals = Signals(ctx.number(sg, "cycle", "signals", 60.0, positive=True),
+                      ctx.number(sg, "offset", "signals", 0.0), tuple(phases))
+
+    sensors = ctx.table(data, "sensors", "")
+    _check_keys(ctx, sensors, {"imu", "gnss"}, "sensors")
+    imu_base = ctx.model(ImuModel, ctx.table(sensors, "imu", "sensors"), "sensors.imu")
+    gnss_base = ctx.model(GnssModel, ctx.table(sensors, "gnss", "sensors"), "sensors.gnss")
+    uwb = ctx.model(UwbModel, ctx.table(data, "uwb", ""), "uwb")
+    radio = ctx.model(RadioModel, ctx.table(data, "radio", ""), "radio")
+
+    vehicles = []
+    raw_v = data.get("vehicles")
+    if not isinstance(raw_v, list) or not raw_v:
+        raise ctx.fail("vehicles", "must be a non-empty array of tables")
+    ids = set()
+    for i, v in enumerate(raw_v):
+        p = f"vehicles[{i}]"
+        _check_keys(ctx, v, {"id", "route", "depart", "depart_pos", "desired_speed", "initial_speed", "idm",
+                             "length", "l0", "stop_gap", "lateral", "imu", "gnss"}, p)
+        vid = ctx.string(v, "id", p)
+        if vid in ids:
+            raise ctx.fail(f"{p}.id", f"duplicate vehicle id {vid!r}")
+        ids.add(vid)
+        route = v.get("route")
+        if not isinstance(route, list) or not route or not all(isinstance(x, str) for x in route):
+            raise ctx.fail(f"{p}.route", "must be a non-empty list of lane ids")
+        for x in route:
+            if x not in lanes:
+                raise ctx.fail(f"{p}.route", f"unknown lane {x!r}")
+        idm_d = ctx.table(v, "idm", p)
+        idm = ctx.model(Idm, idm_d, f"{p}.idm")
+        for k in ("a", "b", "s0", "T"):
+            if not getattr(idm, k) > 0:
+                raise ctx.fail(f"{p}.idm.{k}", "must be > 0")
+        sgap = ctx.table(v, "stop_gap", p)
+        lat_d = ctx.table(v, "lateral", p)
+        first = lanes[route[0]]
+        depart_pos = ctx.number(v, "depart_pos", p, 0.0, non_negative=True)
+        if depart_pos >= polyline_length(first.centerline):
+            raise ctx.fail(f"{p}.depart_pos", f"beyond the end of lane {first.id!r}")
+        vehicles.append(VehicleSpec(
+            id=vid, route=tuple(route),
+            depart=ctx.number(v, "depart", p, 0.0, non_negative=True),
+            depart_pos=depart_pos,
+            desired_speed=ctx.number(v, "desired_speed", p, 12.0, positive=True),
+            initial_speed=ctx.number(v, "initial_speed", p, 0.0, non_negative=True),
+            idm=idm,
+            length=ctx.number(v, "length", p, 4.6, positive=True),
+            l0=ctx.number(v, "l0", p, 2.5, non_negative=True),
+            stop_gap=(ctx.number(sgap, "mean", f"{p}.stop_gap", 1.5),
+                      ctx.number(sgap, "sigma", f"{p}.stop_gap", 0.3, non_negative=True)),
+            lateral=(ctx.number(lat_d, "mean", f"{p}.lateral", first.width / 2),
+                     ctx.number(lat_d, "sigma", f"{p}.lateral", 0.15, non_negative=True)),
+            imu=ctx.model(ImuModel, ctx.table(v, "imu", p), f"{p}.imu", imu_base),
+            gnss=ctx.model(GnssModel, ctx.table(v, "gnss", p), f"{p}.gnss", gnss_base),
+        ))
+
+    events = []
+    names = set()
+    for i, e in enumerate(data.get("events", [])):
+        p = f"events[{i}]"
+        _check_keys(ctx, e, {"name", "kind", "vehicle", "time", "other", "distance", "lane"}, p)
+        en = ctx.string(e, "name", p)
+        if en in names:
+            raise ctx.fail(f"{p}.name", f"duplicate event {en!r}")
+        names.add(en)
+        kind = ctx.string(e, "kind", p)
+        if kind not in EVENT_KINDS:
+            raise ctx.fail(f"{p}.kind", f"must be one of {', '.join(EVENT_KINDS)}, got {kind!r}")
+        veh = e.get("vehicle")
+        if kind in ("first_stopped", "stopped", "moving", "passes_stop_line", "near") and veh not in ids:
+            raise ctx.fail(f"{p}.vehicle", f"unknown or missing vehicle {veh!r}")
+        tm = ctx.number(e, "time", p, non_negative=True) if kind == "time" else None
+        other = dist = lane = None
+        if kind == "near":
+            other = e.get("other")
+            if other not in ids or other == veh:
+                raise ctx.fail(f"{p}.other", f"must be another vehicle id, got {other!r}")
+            dist = ctx.number(e, "distance", p, positive=True)
+        if kind == "green":
+            lane = e.get("lane")
+            if lane not in lanes or not lanes[lane].stop_line:
+                raise ctx.fail(f"{p}.lane", f"must be a lane with a stop line, got {lane!r}")
+        events.append(EventSpec(en, kind, veh, tm, other, dist, lane))
+    windows = {}
+    for wn, w in ctx.table(data, "windows", "").items():
+        if not (isinstance(w, list) and len(w) == 2 and all(x in names for x in w)):
+            raise ctx.fail(f"windows.{wn}", f"must be [start_event, end_event] of defined events, got {w!r}")
+        windows[wn] = (w[0], w[1])
+
+    return Scenario(
+        name=name, description=str(sc.get("description", "")), seed=seed, duration=duration,
+        imu_rate=imu_rate, origin_llh=origin, lanes=lanes, signals=signals, vehicles=tuple(vehicles),
+        uwb=uwb, radio=radio,
+        common_mode_sigma=ctx.number(sc, "common_mode_sigma", "scenario", 1.5, non_negative=True),
+        common_mode_tau=ctx.number(sc, "common_mode_tau", "scenario", 600.0, positive=True),
+        events=tuple(events), windows=windows, paper_table=ctx.table(data, "paper", ""), source=source,
+    )
+
+
+def load_scenario(path_or_name: str | Path) -> Scenario:
+    """Load a scenario from a TOML file, or a shipped one by name (``paper-1``, ...)."""
+    p = Path(path_or_name)
+    if p.suffix == ".toml" or p.exists():
+        try:
+            text = p.read_text()
+        except OSError as exc:
+            raise ScenarioError(f"{p}: cannot read ({exc.strerror})") from exc
+        source = str(p)
+    else:
+        if str(path_or_name) not in shipped_scenarios():
+            raise ScenarioError(f"unknown scenario {str(path_or_name)!r}; shipped: {', '.join(shipped_scenarios())}")
+        text = resources.files("hw_emulation.scenarios").joinpath(f"{path_or_name}.toml").read_text()
+        source = f"{path_or_name}.toml"
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{source}: not valid TOML ({exc})") from exc
+    return parse_scenario(data, source)
+
+
+def shipped_scenarios() -> list[str]:
+    """Names of the scenarios shipped with the package."""
+    root = resources.files("hw_emulation.scenarios")
+    return sorted(f.name[:-5] for f in root.iterdir() if f.name.endswith(".toml"))
