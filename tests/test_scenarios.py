@@ -1,0 +1,129 @@
+"""Scenario files, traffic and truth: event order of the paper's scenarios, truth consistency
+with the navigation core's mechanisation, stop gaps, and clear errors on bad files."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+from agent.nav import earth
+from agent.nav.mechanization import mechanize
+from agent.nav.rotation import euler_to_quat
+from agent.nav.state import NavState
+from hw_emulation.events import event_times
+from hw_emulation.scenario import ScenarioError, load_scenario, parse_scenario, shipped_scenarios
+from hw_emulation.truth import build_truth
+
+
+@pytest.fixture(scope="module")
+def paper1():
+    return build_truth(load_scenario("paper-1"))
+
+
+@pytest.fixture(scope="module")
+def paper2():
+    return build_truth(load_scenario("paper-2"))
+
+
+def test_shipped_scenarios_are_listed() -> None:
+    assert {"paper-1", "paper-2"} <= set(shipped_scenarios())
+
+
+def test_paper_1_event_order(paper1) -> None:
+    ev = event_times(paper1)
+    assert ev["t_0"] < ev["t_s1"] < ev["t_s2"] < ev["t_e"]
+    # V0 moves throughout and is far from the intersection at t_e; V1 first, V2 queued behind
+    v0 = paper1.vehicles["V0"]
+    assert not v0.stopped[1:].any()
+    n, e = _ned(paper1, v0.truth.llh[-1])
+    assert math.hypot(n, e) > 150.0
+    assert paper1.vehicles["V1"].first_stopped[-1] and not paper1.vehicles["V2"].first_stopped.any()
+
+
+def test_paper_2_event_order(paper2) -> None:
+    ev = event_times(paper2)
+    order = ["t_0", "t_s1", "t_s2", "t_s3", "t_s4", "t_s5", "t_e"]
+    times = [ev[k] for k in order]
+    assert all(np.isfinite(times)) and times == sorted(times) and len(set(times)) == len(times)
+    # after the green V0 turns left (west) and V1 right (east); V2 is still stopped at t_e
+    assert paper2.vehicles["V0"].segment[-1] == "WB_out_L"
+    assert paper2.vehicles["V1"].segment[-1] == "EB_out_R"
+    assert paper2.vehicles["V2"].first_stopped[-1]
+
+
+def _ned(truth, llh):
+    o = truth.scenario.origin_llh
+    d = earth.ned_offset(*llh, *o)
+    return d[0], d[1]
+
+
+def test_first_stopped_vehicle_stands_d_s_behind_the_stop_line(paper1) -> None:
+    tr = paper1.traffic
+    route = tr.routes["V1"]
+    stop = route.next_stop_line(0.0)
+    spec = {v.id: v for v in paper1.scenario.vehicles}["V1"]
+    front_gap = stop.s1 - (tr.s["V1"][-1] + spec.l0)
+    assert front_gap == pytest.approx(tr.stop_gap["V1"], abs=0.15)
+
+
+@pytest.mark.parametrize("name", ["paper-1", "paper-2"])
+def test_truth_increments_reproduce_truth(name, paper1, paper2) -> None:
+    """Integrating each vehicle's truth increments with the mechanisation stays within 0.05 m
+    of the truth over 60 s (or the whole scenario if shorter)."""
+    truth = paper1 if name == "paper-1" else paper2
+    for vid, vt in truth.vehicles.items():
+        tr = vt.truth
+        n = min(len(tr.t) - 1, int(60 * truth.scenario.imu_rate))
+        s = NavState(*tr.llh[0], tr.v_ned[0].copy(), euler_to_quat(*tr.euler[0]))
+        pth = pdv = None
+        worst = 0.0
+        for k in range(n):
+            s = mechanize(s, tr.dtheta[k], tr.dvel[k], tr.t[k + 1] - tr.t[k], pth, pdv)
+            pth, pdv = tr.dtheta[k], tr.dvel[k]
+            if k % 100 == 99:
+                worst = max(worst, float(np.linalg.norm(earth.ned_offset(s.lat, s.lon, s.h, *tr.llh[k + 1]))))
+        assert worst < 0.05, f"{name} {vid}: {worst:.3f} m"
+
+
+def test_truth_is_bit_identical(paper1) -> None:
+    again = build_truth(load_scenario("paper-1"))
+    for vid in paper1.vehicles:
+        assert np.array_equal(again.vehicles[vid].truth.dtheta, paper1.vehicles[vid].truth.dtheta)
+
+
+def _base() -> dict:
+    from importlib import resources
+    return tomllib.loads(resources.files("hw_emulation.scenarios").joinpath("paper-1.toml").read_text())
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda d: d["scenario"].pop("duration"), r"scenario.duration: missing"),
+    (lambda d: d["scenario"].update(duration=-5), r"scenario.duration: must be > 0"),
+    (lambda d: d["lanes"][0].update(centerline=[[0, 0]]), r"lanes\[0\].centerline: must be at least two"),
+    (lambda d: d["lanes"][1].update(id="NB_in"), r"lanes\[1\].id: duplicate lane id"),
+    (lambda d: d["vehicles"][0].update(route=["NOPE"]), r"vehicles\[0\].route: unknown lane 'NOPE'"),
+    (lambda d: d["vehicles"][1].update(idm={"a": -1.0}), r"vehicles\[1\].idm.a: must be > 0"),
+    (lambda d: d["vehicles"][1].update(gnss={"white_h": -1.0}), r"vehicles\[1\].gnss: GnssModel.white_h must be >= 0"),
+    (lambda d: d["vehicles"][1].update(imu={"bogus": 1.0}), r"vehicles\[1\].imu.bogus: unknown field"),
+    (lambda d: d["events"][1].update(kind="teleport"), r"events\[1\].kind: must be one of"),
+    (lambda d: d["windows"].update(w=["t_s1", "nope"]), r"windows.w: must be \[start_event, end_event\]"),
+    (lambda d: d["signals"]["phases"][0].update(lanes=["NB_out"]), r"lane 'NB_out' has no stop line"),
+    (lambda d: d.update(extra=1), r"extra: unknown field"),
+])
+def test_bad_scenarios_name_the_field(mutate, match) -> None:
+    d = _base()
+    mutate(d)
+    with pytest.raises(ScenarioError, match=match):
+        parse_scenario(d, "test.toml")
+
+
+def test_bad_files(tmp_path) -> None:
+    with pytest.raises(ScenarioError, match="unknown scenario 'nope'"):
+        load_scenario("nope")
+    bad = tmp_path / "x.toml"
+    bad.write_text("[scenario\nname=")
+    with pytest.raises(ScenarioError, match="not valid TOML"):
+        load_scenario(bad)
