@@ -44,7 +44,46 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--imu-time-offset", type=float, default=-0.125, help="initial IMU time offset [s]")
     rp.add_argument("--out", type=Path, default=Path("runs/replay"), help="output directory")
     rp.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
+
+    sp = sub.add_parser("scenario", help="list or show emulation scenarios")
+    ssub = sp.add_subparsers(dest="scenario_command", required=True)
+    ssub.add_parser("list", help="list the shipped scenarios")
+    show = ssub.add_parser("show", help="summarise a scenario (name or TOML file)")
+    show.add_argument("name", help="shipped scenario name or path to a .toml file")
+    show.add_argument("--plot", type=Path, metavar="FILE.png", help="write a map with trajectories")
     return p
+
+
+def _cmd_scenario(args: argparse.Namespace) -> int:
+    from hw_emulation.scenario import load_scenario, shipped_scenarios
+
+    if args.scenario_command == "list":
+        for name in shipped_scenarios():
+            scn = load_scenario(name)
+            print(f"{name:12s} {len(scn.vehicles):3d} vehicles {scn.duration:6.0f} s  {scn.description}")
+        return 0
+    from hw_emulation.events import event_times, window_bounds
+    from hw_emulation.truth import build_truth
+
+    scn = load_scenario(args.name)
+    truth = build_truth(scn)
+    ev = event_times(truth)
+    print(f"{scn.name}: {scn.description}")
+    print(f"  {len(scn.lanes)} lanes, {len(scn.vehicles)} vehicles, {scn.duration:.0f} s, seed {scn.seed}")
+    for vid, vt in truth.vehicles.items():
+        first = vt.truth.t[vt.first_stopped]
+        stopped = vt.truth.t[vt.stopped]
+        print(f"  {vid:6s} route {' -> '.join(dict.fromkeys(vt.segment))}; stopped {len(stopped) / scn.imu_rate:5.1f} s"
+              + (f", first stopped from {first[0]:.1f} s" if first.size else ""))
+    print("  events: " + ", ".join(f"{k} = {v:.1f} s" for k, v in ev.items()))
+    for w, (a, b) in window_bounds(truth, ev).items():
+        print(f"  window {w}: {a:.1f} - {b:.1f} s")
+    if args.plot:
+        from .plots import plot_scenario
+
+        plot_scenario(truth, args.plot, ev)
+        print(f"  wrote {args.plot}")
+    return 0
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -100,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "replay":
             return _cmd_replay(args)
+        if args.command == "scenario":
+            return _cmd_scenario(args)
     except (DatasetError, ValueError) as exc:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2

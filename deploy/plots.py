@@ -32,3 +32,54 @@ def plot_replay_error(res, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_scenario(truth, path: Path, events: dict[str, float] | None = None) -> None:
+    """Map of a scenario: lanes, lane lines, stop lines, trajectories coloured by vehicle,
+    stop events marked."""
+    import numpy as np
+
+    from agent.nav import earth
+    from hw_emulation.geometry import offset_polyline
+
+    scn = truth.scenario
+    fig, ax = plt.subplots(figsize=(8, 8))
+    for ln in scn.lanes.values():
+        c = ln.centerline
+        ax.plot(c[:, 1], c[:, 0], color="0.85", lw=6, solid_capstyle="butt", zorder=1)
+        left = offset_polyline(c, -ln.width / 2)
+        ax.plot(left[:, 1], left[:, 0], color="0.6", lw=0.6, ls="--", zorder=2)
+        if ln.stop_line:
+            d = c[-1] - c[-2]
+            d = d / np.hypot(*d)
+            r = np.array([-d[1], d[0]]) * ln.width / 2
+            a, b = c[-1] - r, c[-1] + r
+            ax.plot([a[1], b[1]], [a[0], b[0]], color="k", lw=2.0, zorder=3)
+    cmap = plt.get_cmap("tab10" if len(truth.vehicles) <= 10 else "tab20")
+    for i, (vid, vt) in enumerate(truth.vehicles.items()):
+        llh = vt.truth.llh
+        ne = np.array([earth.ned_offset(*p, *scn.origin_llh)[:2] for p in llh[::20]])
+        col = cmap(i % cmap.N)
+        ax.plot(ne[:, 1], ne[:, 0], color=col, lw=1.5, label=vid, zorder=4)
+        ax.plot(ne[0, 1], ne[0, 0], "o", color=col, ms=4, zorder=5)
+        fs = np.flatnonzero(vt.first_stopped[::20])
+        st = np.flatnonzero(vt.stopped[::20])
+        if st.size:
+            ax.plot(ne[st[0], 1], ne[st[0], 0], "s", color=col, mec="k", ms=7, zorder=6)
+        if fs.size:
+            ax.plot(ne[fs[0], 1], ne[fs[0], 0], "*", color=col, mec="k", ms=13, zorder=7)
+    ax.set_aspect("equal")
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    lim = 120.0
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    title = f"{scn.name}: ■ stopped, ★ first stopped"
+    if events:
+        title += "\n" + ", ".join(f"{k}={v:.1f}s" for k, v in events.items())
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper left", fontsize=8, ncol=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -2,19 +2,20 @@
 
 A trajectory is given by smooth functions of time: speed along the body x axis ``s(t)`` and
 Euler angles roll, pitch, yaw with their rates. Velocity is ``v_n = s * C_bn[:, 0]`` (no side
-slip). Position follows by integrating the geodetic rates with a high-order ODE solver; the IMU
+slip). Position follows by integrating the geodetic rates; the IMU
 increments are the time integrals of the true body angular rate ``ω_ib^b`` and specific force
-``f^b`` over each sample interval, by Gauss-Legendre quadrature. Everything is vectorised and
+``f^b`` over each sample interval, and position the integral of the geodetic rates, all by
+Gauss-Legendre quadrature. Everything is vectorised and
 pure: the same inputs give bit-identical outputs.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
-from scipy.integrate import solve_ivp
+from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial.transform import Rotation
 
 from agent.nav import earth
@@ -97,14 +98,15 @@ def _dcm_bn(euler: np.ndarray) -> np.ndarray:
     return Rotation.from_euler("ZYX", euler[:, ::-1]).as_matrix()
 
 
-def _kinematics(profile: KinematicProfile, t: np.ndarray, llh_fn: Callable) -> tuple[np.ndarray, ...]:
-    """Velocity, DCM, body rates and specific force at times ``t`` (vectorised)."""
+def _velocity(profile: KinematicProfile, t: np.ndarray) -> tuple[np.ndarray, ...]:
+    """NED velocity, acceleration, DCM, Euler angles and body rate w.r.t. NED at ``t``.
+
+    Independent of position: velocity is speed along the body x axis."""
     s, sd = profile.speed(t)
     ang, rates = profile.euler(t)
     c = _dcm_bn(ang)
     x_axis = c[:, :, 0]
     v = s[:, None] * x_axis
-    # d/dt of the body x axis in NED: C [ω_nb^b ×] e_x
     r, p = ang[:, 0], ang[:, 1]
     rd, pd, yd = rates[:, 0], rates[:, 1], rates[:, 2]
     w_nb = np.stack(
@@ -115,13 +117,28 @@ def _kinematics(profile: KinematicProfile, t: np.ndarray, llh_fn: Callable) -> t
         ],
         axis=1,
     )
+    # d/dt of the body x axis in NED: C [ω_nb^b ×] e_x
     dx_axis = np.einsum("nij,nj->ni", c, np.cross(w_nb, np.array([1.0, 0.0, 0.0])))
     a = sd[:, None] * x_axis + s[:, None] * dx_axis
-    llh = llh_fn(t)
-    lat, h = llh[:, 0], llh[:, 2]
+    return v, a, c, ang, w_nb
+
+
+def _radii_vec(lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sl2 = np.sin(lat) ** 2
     rn = earth.A / np.sqrt(1 - earth.E2 * sl2)
-    rm = rn * (1 - earth.E2) / (1 - earth.E2 * sl2)
+    return rn * (1 - earth.E2) / (1 - earth.E2 * sl2), rn
+
+
+def _geodetic_rates_vec(llh: np.ndarray, v: np.ndarray) -> np.ndarray:
+    rm, rn = _radii_vec(llh[:, 0])
+    h = llh[:, 2]
+    return np.column_stack([v[:, 0] / (rm + h), v[:, 1] / ((rn + h) * np.cos(llh[:, 0])), -v[:, 2]])
+
+
+def _imu_at(llh: np.ndarray, v: np.ndarray, a: np.ndarray, c: np.ndarray, w_nb: np.ndarray):
+    """True body angular rate and specific force at given positions and motion."""
+    lat, h = llh[:, 0], llh[:, 2]
+    rm, rn = _radii_vec(lat)
     w_ie = np.stack([earth.OMEGA_E * np.cos(lat), np.zeros_like(lat), -earth.OMEGA_E * np.sin(lat)], 1)
     w_en = np.stack([v[:, 1] / (rn + h), -v[:, 0] / (rm + h), -v[:, 1] * np.tan(lat) / (rn + h)], 1)
     g = _gravity_vec(lat, h)
@@ -130,11 +147,14 @@ def _kinematics(profile: KinematicProfile, t: np.ndarray, llh_fn: Callable) -> t
     ct = np.transpose(c, (0, 2, 1))
     f_b = np.einsum("nij,nj->ni", ct, f_n)
     w_ib = np.einsum("nij,nj->ni", ct, w_ie + w_en) + w_nb
-    return v, ang, w_ib, f_b
+    return w_ib, f_b
 
 
 def _gravity_vec(lat: np.ndarray, h: np.ndarray) -> np.ndarray:
-    return np.vectorize(earth.gravity, otypes=[float])(lat, h)
+    s2 = np.sin(lat) ** 2
+    g0 = earth.GAMMA_E * (1.0 + earth._K_SOMIGLIANA * s2) / np.sqrt(1.0 - earth.E2 * s2)
+    return g0 * (1.0 - 2.0 / earth.A * (1.0 + earth.F + earth._M - 2.0 * earth.F * s2) * h
+                 + 3.0 * h * h / (earth.A * earth.A))
 
 
 def generate(
@@ -163,27 +183,24 @@ def generate(
     """
     n = int(round(duration * rate)) + 1
     t = t0 + np.arange(n) / rate
-
-    def rhs(tt: float, y: np.ndarray) -> np.ndarray:
-        s, _ = profile.speed(np.array([tt]))
-        ang, _ = profile.euler(np.array([tt]))
-        v = s[0] * _dcm_bn(ang)[0][:, 0]
-        return np.array(earth.geodetic_rates(y[0], y[2], v))
-
-    sol = solve_ivp(rhs, (t[0], t[-1]), np.array(origin_llh, float), method="DOP853",
-                    rtol=1e-12, atol=[1e-14, 1e-14, 1e-7], dense_output=True)
-    if not sol.success:
-        raise RuntimeError(f"truth integration failed: {sol.message}")
-
-    def llh_fn(tt: np.ndarray) -> np.ndarray:
-        return sol.sol(tt).T
-
     x, wq = np.polynomial.legendre.leggauss(quad_nodes)
     dt = np.diff(t)
     tq = (t[:-1, None] + 0.5 * dt[:, None] * (x[None, :] + 1.0)).ravel()
-    _, _, w_ib, f_b = _kinematics(profile, tq, llh_fn)
     wts = (0.5 * dt[:, None] * wq[None, :])[..., None]
+    vq, aq, cq, _, wnbq = _velocity(profile, tq)
+    v, _, _, ang, _ = _velocity(profile, t)
+
+    # position: Gauss-Legendre quadrature of the geodetic rates over each interval; the radii
+    # depend on the (slowly varying) position, so two passes converge to double precision
+    llh = np.tile(np.asarray(origin_llh, float), (n, 1))
+    for _ in range(2):
+        llh_q = np.repeat(llh[:-1], quad_nodes, axis=0)
+        inc = (_geodetic_rates_vec(llh_q, vq).reshape(n - 1, quad_nodes, 3) * wts).sum(axis=1)
+        llh = np.vstack([np.asarray(origin_llh, float), np.asarray(origin_llh, float) + np.cumsum(inc, axis=0)])
+    # positions at the quadrature nodes (they only enter gravity and the transport rate)
+    llh_q = CubicHermiteSpline(t, llh, _geodetic_rates_vec(llh, v), axis=0)(tq)
+
+    w_ib, f_b = _imu_at(llh_q, vq, aq, cq, wnbq)
     dtheta = (w_ib.reshape(n - 1, quad_nodes, 3) * wts).sum(axis=1)
     dvel = (f_b.reshape(n - 1, quad_nodes, 3) * wts).sum(axis=1)
-    v, ang, _, _ = _kinematics(profile, t, llh_fn)
-    return Truth(t, llh_fn(t), v, ang, dtheta, dvel)
+    return Truth(t, llh, v, ang, dtheta, dvel)

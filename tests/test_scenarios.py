@@ -28,8 +28,34 @@ def paper2():
     return build_truth(load_scenario("paper-2"))
 
 
+@pytest.fixture(scope="module")
+def rush():
+    return build_truth(load_scenario("rush-hour"))
+
+
 def test_shipped_scenarios_are_listed() -> None:
-    assert {"paper-1", "paper-2"} <= set(shipped_scenarios())
+    assert {"paper-1", "paper-2", "rush-hour"} <= set(shipped_scenarios())
+
+
+def test_rush_hour_has_three_queues_of_three(rush) -> None:
+    """Departed vehicles standing still on the same approach lane at the same time."""
+    scn = rush.scenario
+    depart = {v.id: v.depart for v in scn.vehicles}
+    best: dict[str, int] = {}
+    n = len(next(iter(rush.vehicles.values())).truth.t)
+    for k in range(0, n, 10):
+        count: dict[str, int] = {}
+        for vid, vt in rush.vehicles.items():
+            seg = str(vt.segment[k])
+            if vt.truth.t[k] > depart[vid] + 1.0 and vt.stopped[k] and seg in scn.lanes and scn.lanes[seg].stop_line:
+                count[seg] = count.get(seg, 0) + 1
+        for seg, c in count.items():
+            best[seg] = max(best.get(seg, 0), c)
+    assert len(scn.vehicles) >= 12
+    assert sum(c >= 3 for c in best.values()) >= 3, best
+    # all four approaches used, turns in every direction
+    approaches = {r.route[0][:2] for r in scn.vehicles}
+    assert approaches == {"NB", "SB", "EB", "WB"}
 
 
 def test_paper_1_event_order(paper1) -> None:
@@ -69,11 +95,11 @@ def test_first_stopped_vehicle_stands_d_s_behind_the_stop_line(paper1) -> None:
     assert front_gap == pytest.approx(tr.stop_gap["V1"], abs=0.15)
 
 
-@pytest.mark.parametrize("name", ["paper-1", "paper-2"])
-def test_truth_increments_reproduce_truth(name, paper1, paper2) -> None:
+@pytest.mark.parametrize("name", ["paper-1", "paper-2", "rush-hour"])
+def test_truth_increments_reproduce_truth(name, paper1, paper2, rush) -> None:
     """Integrating each vehicle's truth increments with the mechanisation stays within 0.05 m
     of the truth over 60 s (or the whole scenario if shorter)."""
-    truth = paper1 if name == "paper-1" else paper2
+    truth = {"paper-1": paper1, "paper-2": paper2, "rush-hour": rush}[name]
     for vid, vt in truth.vehicles.items():
         tr = vt.truth
         n = min(len(tr.t) - 1, int(60 * truth.scenario.imu_rate))
@@ -127,3 +153,17 @@ def test_bad_files(tmp_path) -> None:
     bad.write_text("[scenario\nname=")
     with pytest.raises(ScenarioError, match="not valid TOML"):
         load_scenario(bad)
+
+
+def test_cli_scenario_list_and_show(tmp_path, capsys) -> None:
+    from deploy.cli import main
+
+    assert main(["scenario", "list"]) == 0
+    out = capsys.readouterr().out
+    assert "paper-1" in out and "rush-hour" in out
+    png = tmp_path / "map.png"
+    assert main(["scenario", "show", "paper-1", "--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "t_s1 =" in out and png.stat().st_size > 10_000
+    assert main(["scenario", "show", "nope"]) == 2
+    assert "unknown scenario" in capsys.readouterr().err
