@@ -51,6 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     show = ssub.add_parser("show", help="summarise a scenario (name or TOML file)")
     show.add_argument("name", help="shipped scenario name or path to a .toml file")
     show.add_argument("--plot", type=Path, metavar="FILE.png", help="write a map with trajectories")
+    chk = ssub.add_parser("sp-check", help="SP RMSE on emulated sensors beside the paper's SP row")
+    chk.add_argument("name", help="shipped scenario name or path to a .toml file")
+    chk.add_argument("--seeds", type=int, default=20, help="sensor seeds to average (default 20)")
+    chk.add_argument("--json", action="store_true", help="print one JSON object")
     return p
 
 
@@ -67,6 +71,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
 
     scn = load_scenario(args.name)
     truth = build_truth(scn)
+    if args.scenario_command == "sp-check":
+        return _sp_check(args, scn, truth)
     ev = event_times(truth)
     print(f"{scn.name}: {scn.description}")
     print(f"  {len(scn.lanes)} lanes, {len(scn.vehicles)} vehicles, {scn.duration:.0f} s, seed {scn.seed}")
@@ -129,6 +135,34 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
         print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
         print(f"  wrote {out}/trajectory.csv, metrics.json, error.png")
+    return 0
+
+
+def _sp_check(args: argparse.Namespace, scn, truth) -> int:
+    import numpy as np
+
+    from .sp_check import sp_table
+
+    if args.seeds < 1:
+        raise ValueError("--seeds must be at least 1")
+    table = sp_table(truth, list(range(args.seeds)))
+    rows = []
+    for w, cells in table.items():
+        for vid, vals in cells.items():
+            paper = scn.paper_table.get(w, {}).get(vid, {}).get("SP")
+            rows.append({"window": w, "vehicle": vid, "mean_rmse_m": float(np.mean(vals)),
+                         "sd_rmse_m": float(np.std(vals)), "seed0_rmse_m": float(vals[0]),
+                         "paper_sp_m": paper, "ratio": float(np.mean(vals)) / paper if paper else None})
+    if args.json:
+        print(json.dumps({"scenario": scn.name, "seeds": args.seeds, "rows": rows}))
+        return 0
+    print(f"SP horizontal RMSE on {scn.name}, mean over {args.seeds} sensor seeds (truth seed {scn.seed})")
+    print(f"{'window':12s} {'vehicle':8s} {'mean':>6s} {'sd':>6s} {'seed 0':>7s} {'paper':>6s} {'ratio':>6s}")
+    for r in rows:
+        paper = f"{r['paper_sp_m']:6.2f}" if r["paper_sp_m"] else "     -"
+        ratio = f"{r['ratio']:6.2f}" if r["ratio"] else "     -"
+        print(f"{r['window']:12s} {r['vehicle']:8s} {r['mean_rmse_m']:6.2f} {r['sd_rmse_m']:6.2f} "
+              f"{r['seed0_rmse_m']:7.2f} {paper} {ratio}")
     return 0
 
 

@@ -167,3 +167,20 @@ def test_cli_scenario_list_and_show(tmp_path, capsys) -> None:
     assert "t_s1 =" in out and png.stat().st_size > 10_000
     assert main(["scenario", "show", "nope"]) == 2
     assert "unknown scenario" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["paper-1", "paper-2"])
+def test_sp_on_emulated_sensors_matches_the_papers_sp_row(name, paper1, paper2) -> None:
+    """Issue 3 acceptance 6: with the shipped parameters, SP's horizontal RMSE (mean over 20
+    sensor seeds) is within ±35 % of the paper's SP row for every vehicle and window."""
+    from deploy.sp_check import sp_table
+
+    truth = paper1 if name == "paper-1" else paper2
+    table = sp_table(truth, list(range(20)))
+    ratios = {}
+    for w, cells in table.items():
+        for vid, vals in cells.items():
+            ratios[(w, vid)] = float(np.mean(vals)) / truth.scenario.paper_table[w][vid]["SP"]
+    print({f"{w}/{v}": round(r, 2) for (w, v), r in ratios.items()})
+    assert len(ratios) == (3 if name == "paper-1" else 6)
+    assert all(0.65 <= r <= 1.35 for r in ratios.values()), ratios
