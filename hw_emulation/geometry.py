@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import CubicSpline, make_smoothing_spline
 
 
 def polyline_length(points: np.ndarray) -> float:
@@ -69,11 +69,15 @@ class Path:
         m = max(4, int(math.ceil(self.length / self.step)) + 1)
         ss = np.linspace(0.0, self.length, m)
         xy = np.column_stack([np.interp(ss, s, p[:, 0]), np.interp(ss, s, p[:, 1])])
-        # heading of each chord, smoothed by fitting a spline through chord mid-points
+        # heading of each chord, smoothed by a penalised cubic spline (GCV): chord headings of a
+        # densely sampled curve are stair-stepped, and an interpolating spline would ring on them
         d = np.diff(xy, axis=0)
         hd = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
         mid = 0.5 * (ss[1:] + ss[:-1])
-        self._heading = CubicSpline(mid, hd, bc_type="natural", extrapolate=True)
+        if np.ptp(hd) < 1e-12:
+            self._heading = CubicSpline(mid[[0, -1]], hd[[0, -1]], extrapolate=True)
+        else:
+            self._heading = make_smoothing_spline(mid, hd)
         self._s_vertices = s
         self._vertices = p
         self.points = p
@@ -86,7 +90,7 @@ class Path:
         """dHeading/ds [1/m] (zero beyond the ends)."""
         s = np.asarray(s, float)
         inside = (s >= 0.0) & (s <= self.length)
-        return np.where(inside, self._heading(np.clip(s, 0.0, self.length), 1), 0.0)
+        return np.where(inside, self._heading.derivative(1)(np.clip(s, 0.0, self.length)), 0.0)
 
     def position(self, s: np.ndarray) -> np.ndarray:
         """Point(s) (north, east) on the polyline at arc length ``s``, shape (..., 2)."""
