@@ -50,3 +50,25 @@ def numerical_jacobian(fun, n: int, eps: np.ndarray | float) -> np.ndarray:
 
 #: perturbation sizes per error state: attitude, velocity, position, gyro bias, accel bias
 EPS = np.repeat([1e-4, 1e-3, 1e-2, 1e-6, 1e-4], 3)
+
+
+def mechanization_drift(truth, n: int | None = None, every: int = 100):
+    """Integrate a truth's IMU increments with the mechanisation from the true initial state.
+
+    Returns ``(final_state, worst_position_error_m)`` over the first ``n`` intervals (all by
+    default), checking the position every ``every`` samples and at the end.
+    """
+    from agent.nav import earth as _earth
+    from agent.nav.mechanization import mechanize
+
+    n = len(truth.t) - 1 if n is None else min(n, len(truth.t) - 1)
+    s = NavState(*truth.llh[0], truth.v_ned[0].copy(), euler_to_quat(*truth.euler[0]))
+    pth = pdv = None
+    worst = 0.0
+    for k in range(n):
+        s = mechanize(s, truth.dtheta[k], truth.dvel[k], truth.t[k + 1] - truth.t[k], pth, pdv)
+        pth, pdv = truth.dtheta[k], truth.dvel[k]
+        if (k + 1) % every == 0 or k == n - 1:
+            e = _earth.ned_offset(s.lat, s.lon, s.h, *truth.llh[k + 1])
+            worst = max(worst, float(np.linalg.norm(e)))
+    return s, worst

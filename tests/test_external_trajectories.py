@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from agent.nav import earth
-from agent.nav.mechanization import mechanize
-from agent.nav.rotation import euler_to_quat
-from agent.nav.state import NavState
 from hw_emulation.external import TrajectoryError, read_csv_tracks, read_sumo_fcd, truth_from_tracks
+
+from conftest import mechanization_drift
 
 ORIGIN = (math.radians(39.9552), math.radians(116.3194), 50.0)
 RADIUS = 20.0
@@ -77,15 +76,7 @@ def test_sumo_fcd_1hz_gives_sane_imu(fcd_truth) -> None:
 
 def test_external_truth_is_consistent_with_mechanisation(fcd_truth) -> None:
     _, truths = fcd_truth
-    tr = truths["veh0"]
-    s = NavState(*tr.llh[0], tr.v_ned[0].copy(), euler_to_quat(*tr.euler[0]))
-    pth = pdv = None
-    worst = 0.0
-    for k in range(len(tr.t) - 1):
-        s = mechanize(s, tr.dtheta[k], tr.dvel[k], tr.t[k + 1] - tr.t[k], pth, pdv)
-        pth, pdv = tr.dtheta[k], tr.dvel[k]
-        if k % 100 == 99:
-            worst = max(worst, float(np.linalg.norm(earth.ned_offset(s.lat, s.lon, s.h, *tr.llh[k + 1]))))
+    _, worst = mechanization_drift(truths["veh0"])
     assert worst < 0.05
 
 

@@ -15,18 +15,7 @@ from agent.nav.rotation import euler_to_quat, quat_to_euler, wrap_angle
 from agent.nav.state import NavState
 from hw_emulation.kinematics import SinusoidProfile, generate
 
-
-def _run(truth, every: int = 1000):
-    s = NavState(*truth.llh[0], truth.v_ned[0].copy(), euler_to_quat(*truth.euler[0]))
-    pth = pdv = None
-    worst = 0.0
-    for k in range(len(truth.t) - 1):
-        s = mechanize(s, truth.dtheta[k], truth.dvel[k], truth.t[k + 1] - truth.t[k], pth, pdv)
-        pth, pdv = truth.dtheta[k], truth.dvel[k]
-        if (k + 1) % every == 0 or k == len(truth.t) - 2:
-            e = earth.ned_offset(s.lat, s.lon, s.h, *truth.llh[k + 1])
-            worst = max(worst, float(np.linalg.norm(e)))
-    return s, worst
+from conftest import mechanization_drift
 
 
 def test_stationary_ten_minutes() -> None:
@@ -55,7 +44,7 @@ def turning_truth():
 
 
 def test_turning_trajectory_ten_minutes(turning_truth) -> None:
-    s, worst = _run(turning_truth)
+    s, worst = mechanization_drift(turning_truth, every=1000)
     assert worst < 0.05, f"position drift {worst:.4f} m"
     assert np.linalg.norm(s.v - turning_truth.v_ned[-1]) < 1e-3
     att = quat_to_euler(s.q) - turning_truth.euler[-1]

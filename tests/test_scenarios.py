@@ -10,12 +10,11 @@ import numpy as np
 import pytest
 
 from agent.nav import earth
-from agent.nav.mechanization import mechanize
-from agent.nav.rotation import euler_to_quat
-from agent.nav.state import NavState
 from hw_emulation.events import event_times
 from hw_emulation.scenario import ScenarioError, load_scenario, parse_scenario, shipped_scenarios
 from hw_emulation.truth import build_truth
+
+from conftest import mechanization_drift
 
 
 @pytest.fixture(scope="module")
@@ -101,16 +100,7 @@ def test_truth_increments_reproduce_truth(name, paper1, paper2, rush) -> None:
     of the truth over 60 s (or the whole scenario if shorter)."""
     truth = {"paper-1": paper1, "paper-2": paper2, "rush-hour": rush}[name]
     for vid, vt in truth.vehicles.items():
-        tr = vt.truth
-        n = min(len(tr.t) - 1, int(60 * truth.scenario.imu_rate))
-        s = NavState(*tr.llh[0], tr.v_ned[0].copy(), euler_to_quat(*tr.euler[0]))
-        pth = pdv = None
-        worst = 0.0
-        for k in range(n):
-            s = mechanize(s, tr.dtheta[k], tr.dvel[k], tr.t[k + 1] - tr.t[k], pth, pdv)
-            pth, pdv = tr.dtheta[k], tr.dvel[k]
-            if k % 100 == 99:
-                worst = max(worst, float(np.linalg.norm(earth.ned_offset(s.lat, s.lon, s.h, *tr.llh[k + 1]))))
+        _, worst = mechanization_drift(vt.truth, n=int(60 * truth.scenario.imu_rate))
         assert worst < 0.05, f"{name} {vid}: {worst:.3f} m"
 
 
