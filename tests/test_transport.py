@@ -1,0 +1,174 @@
+"""Transport: codec round trips (property-based) and malformed input, keys, the in-memory bus,
+and two Zenoh peers on loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from transport import keys
+from transport.bus import InMemoryNetwork
+from transport.codec import SCHEMA_VERSION, CodecError, decode, encode
+from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
+
+names = st.from_regex(r"[A-Za-z0-9_.\-]{1,20}", fullmatch=True)
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64, min_value=-1e12, max_value=1e12)
+seqs = st.integers(min_value=0, max_value=2**63 - 1)
+
+
+def arr(shape):
+    return st.lists(finite, min_size=int(np.prod(shape)), max_size=int(np.prod(shape))).map(
+        lambda v: np.array(v, float).reshape(shape))
+
+
+@st.composite
+def imu_batches(draw):
+    n = draw(st.integers(1, 20))
+    return ImuBatch(draw(names), draw(seqs), draw(arr((n,))), draw(arr((n,))), draw(arr((n, 3))), draw(arr((n, 3))))
+
+
+messages = st.one_of(
+    imu_batches(),
+    st.builds(GnssFix, names, seqs, finite, arr((3,)), arr((3,)), arr((3,)), finite, st.integers(0, 9)),
+    st.builds(UwbRange, names, names, seqs, finite, finite),
+    st.builds(Beacon, names, seqs, names, finite, arr((3,)), arr((3,)), arr((3, 3)), st.binary(max_size=100)),
+    st.builds(Estimate, names, names, finite, arr((3,)), arr((3,)), arr((3,)), arr((3, 3)), st.booleans()),
+    st.builds(Diagnostics, names, finite, st.dictionaries(names, st.integers(0, 2**40), max_size=5),
+              st.dictionaries(names, st.one_of(st.integers(0, 100), names, finite), max_size=5)),
+)
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(messages)
+def test_codec_round_trip(msg) -> None:
+    assert decode(encode(msg)) == msg
+
+
+def _beacon() -> Beacon:
+    return Beacon("V1", 7, "SL-CP", 12.5, np.array([0.7, 2.0, 50.0]), np.zeros(3), np.eye(3))
+
+
+def test_truncated_and_wrong_version_and_types() -> None:
+    raw = encode(_beacon())
+    for cut in range(0, len(raw), 7):
+        with pytest.raises(CodecError):
+            decode(raw[:cut])
+    obj = msgpack.unpackb(raw)
+    for change, match in [
+        ({"v": SCHEMA_VERSION + 1}, "schema version"),
+        ({"type": "teleport"}, "unknown message type"),
+        ({"seq": -1}, "non-negative integer"),
+        ({"t": float("nan")}, "finite"),
+        ({"llh": np.array([np.nan, 0, 0]).tobytes()}, "non-finite"),
+        ({"cov_pos": np.zeros(4).tobytes()}, "expected 9 values"),
+        ({"vehicle": "x" * 100}, "string"),
+        ({"vehicle": 3}, "string"),
+        ({"extra": 1}, "unknown fields"),
+    ]:
+        bad = dict(obj, **change)
+        with pytest.raises(CodecError, match=match):
+            decode(msgpack.packb(bad, use_bin_type=True))
+    del obj["llh"]
+    with pytest.raises(CodecError, match="missing field 'llh'"):
+        decode(msgpack.packb(obj, use_bin_type=True))
+    with pytest.raises(CodecError, match="exceeds"):
+        decode(b"\x00" * (300 * 1024))
+
+
+def test_fuzzed_payloads_only_raise_codec_errors() -> None:
+    """5,000 seeded random, mutated and truncated payloads: every one is rejected with CodecError
+    (or, rarely, decodes to a valid message) and nothing else is raised."""
+    rng = np.random.default_rng(11)
+    good = [encode(_beacon()), encode(ImuBatch("V1", 1, np.ones(2), np.ones(2), np.ones((2, 3)), np.ones((2, 3))))]
+    rejected = 0
+    for i in range(5000):
+        if i % 3 == 0:
+            p = rng.bytes(int(rng.integers(0, 400)))
+        else:
+            b = bytearray(good[i % 2])
+            for _ in range(int(rng.integers(1, 6))):
+                b[int(rng.integers(0, len(b)))] = int(rng.integers(0, 256))
+            p = bytes(b[: int(rng.integers(1, len(b) + 1))])
+        try:
+            decode(p)
+        except CodecError:
+            rejected += 1
+    assert rejected > 4000
+
+
+def test_keys() -> None:
+    assert keys.imu("V1") == "slcp/v1/sensor/V1/imu"
+    assert keys.matches("slcp/v1/sensor/*/imu", keys.imu("V7"))
+    assert keys.matches("slcp/v1/**", keys.estimate("V1", "SL-CP"))
+    assert not keys.matches("slcp/v1/sensor/*/imu", keys.gnss("V1"))
+    assert keys.matches("a/**/b", "a/b") and keys.matches("a/**/b", "a/x/y/b")
+    for bad in ("", "a/b", "V*", "x" * 65, "sp ace"):
+        with pytest.raises(ValueError):
+            keys.check_name(bad)
+
+
+def test_in_memory_bus_delivery_drops_and_liveliness() -> None:
+    async def main():
+        net = InMemoryNetwork()
+        a, b = net.bus(), net.bus()
+        sub = b.subscribe("slcp/v1/radio/rx/*", maxsize=4)
+        events = []
+        b.watch_alive("slcp/v1/alive/agent/*", lambda k, alive: events.append((k, alive)))
+        a.declare_alive(keys.alive("agent", "V1"))
+        for i in range(10):
+            await a.publish(keys.radio_rx("V2"), encode(Beacon("V1", i, "SP", float(i), np.zeros(3), np.zeros(3), np.eye(3))))
+        await a.publish(keys.imu("V2"), b"not for this subscriber")
+        got = [decode((await sub.get())[1]).seq for _ in range(4)]
+        assert got == [6, 7, 8, 9] and sub.dropped == 6 and sub.received == 10
+        await a.close()
+        assert events == [("slcp/v1/alive/agent/V1", True), ("slcp/v1/alive/agent/V1", False)]
+
+    asyncio.run(main())
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.timeout(60)
+def test_two_zenoh_peers_on_loopback() -> None:
+    from transport.zenoh_bus import ZenohBus, ZenohConfig
+
+    async def main():
+        port = _free_port()
+        a = ZenohBus(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",)))
+        b = ZenohBus(ZenohConfig(connect=(f"tcp/127.0.0.1:{port}",)))
+        try:
+            sub = b.subscribe("slcp/v1/radio/rx/**")
+            alive = []
+            b.watch_alive("slcp/v1/alive/**", lambda k, up: alive.append((k, up)))
+            a.declare_alive(keys.alive("agent", "V1"))
+            await asyncio.sleep(0.5)
+            sent = [Beacon("V1", i, "SL-CP", 0.2 * i, np.array([0.7, 2.0, 50.0]), np.ones(3), np.eye(3) * i)
+                    for i in range(20)]
+            for m in sent:
+                await a.publish(keys.radio_rx("V2"), encode(m))
+            got = [decode((await asyncio.wait_for(sub.get(), 5.0))[1]) for _ in range(20)]
+            assert got == sent
+            deadline = asyncio.get_running_loop().time() + 5
+            while not alive and asyncio.get_running_loop().time() < deadline:
+                await asyncio.sleep(0.05)
+            assert alive[0] == ("slcp/v1/alive/agent/V1", True)
+            await a.close()
+            deadline = asyncio.get_running_loop().time() + 5
+            while len(alive) < 2 and asyncio.get_running_loop().time() < deadline:
+                await asyncio.sleep(0.05)
+            assert alive[-1] == ("slcp/v1/alive/agent/V1", False)
+        finally:
+            await a.close()
+            await b.close()
+
+    asyncio.run(main())

@@ -1,0 +1,149 @@
+"""msgpack codec with a schema version. Decoding validates everything (types, shapes, finite
+numbers, sizes) and raises :class:`CodecError` for any bad payload, never another exception, so
+that receivers can count and drop it.
+
+Wire form: a msgpack map ``{"v": SCHEMA_VERSION, "type": <name>, <field>: <value>, ...}``;
+arrays are raw little-endian float64 bytes (``bin``) of the field's fixed or leading shape.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import MISSING, fields
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from .messages import MESSAGE_TYPES, Message
+
+SCHEMA_VERSION = 1
+MAX_PAYLOAD = 256 * 1024  #: bytes; larger payloads are rejected
+MAX_SAMPLES = 1000  #: max samples in an IMU batch
+MAX_STR = 64  #: max length of ids and method names
+_TYPE_NAME = {cls: name for name, cls in MESSAGE_TYPES.items()}
+
+#: per-type array fields and their shapes; None = leading dimension n (shared within the message)
+_ARRAYS: dict[str, dict[str, tuple]] = {
+    "imu": {"t": (None,), "dt": (None,), "dtheta": (None, 3), "dvel": (None, 3)},
+    "gnss": {"llh": (3,), "v_ned": (3,), "sigma_ned": (3,)},
+    "uwb": {},
+    "beacon": {"llh": (3,), "v_ned": (3,), "cov_pos": (3, 3)},
+    "estimate": {"llh": (3,), "v_ned": (3,), "rpy": (3,), "cov_pos": (3, 3)},
+    "diag": {},
+}
+_STRINGS = {"vehicle", "method", "a", "b", "source"}
+_INTS = {"seq", "quality"}
+_FLOATS = {"t", "sigma_v", "range_m"}
+
+
+class CodecError(ValueError):
+    """Malformed, truncated, oversized, wrong-typed or wrong-version payload."""
+
+
+def encode(msg: Message) -> bytes:
+    """Serialise a message."""
+    name = _TYPE_NAME.get(type(msg))
+    if name is None:
+        raise CodecError(f"not a wire message: {type(msg).__name__}")
+    out: dict[str, Any] = {"v": SCHEMA_VERSION, "type": name}
+    for f in fields(msg):
+        val = getattr(msg, f.name)
+        if f.name in _ARRAYS[name]:
+            out[f.name] = np.ascontiguousarray(val, dtype="<f8").tobytes()
+        elif isinstance(val, (np.floating, np.integer)):
+            out[f.name] = val.item()
+        else:
+            out[f.name] = val
+    return msgpack.packb(out, use_bin_type=True)
+
+
+def decode(payload: bytes) -> Message:
+    """Parse and validate a payload; raises :class:`CodecError` on anything wrong."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise CodecError("payload is not bytes")
+    if len(payload) > MAX_PAYLOAD:
+        raise CodecError(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
+    try:
+        obj = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True, max_bin_len=MAX_PAYLOAD,
+                              max_str_len=4096, max_array_len=4096, max_map_len=256)
+    except Exception as exc:  # msgpack raises several unrelated types on bad input
+        raise CodecError(f"not msgpack: {type(exc).__name__}") from None
+    if not isinstance(obj, dict):
+        raise CodecError("payload is not a map")
+    if obj.get("v") != SCHEMA_VERSION:
+        raise CodecError(f"schema version {obj.get('v')!r}, expected {SCHEMA_VERSION}")
+    name = obj.get("type")
+    cls = MESSAGE_TYPES.get(name) if isinstance(name, str) else None
+    if cls is None:
+        raise CodecError(f"unknown message type {name!r}")
+    kwargs: dict[str, Any] = {}
+    n_lead: int | None = None
+    for f in fields(cls):
+        if f.name not in obj:
+            if f.default is MISSING and f.default_factory is MISSING:
+                raise CodecError(f"{name}: missing field {f.name!r}")
+            continue
+        val = obj[f.name]
+        if f.name in _ARRAYS[name]:
+            arr, n_lead = _array(name, f.name, val, _ARRAYS[name][f.name], n_lead)
+            kwargs[f.name] = arr
+        elif f.name in _STRINGS:
+            if not isinstance(val, str) or not 0 < len(val) <= MAX_STR:
+                raise CodecError(f"{name}.{f.name}: must be a string of 1-{MAX_STR} characters")
+            kwargs[f.name] = val
+        elif f.name in _INTS:
+            if isinstance(val, bool) or not isinstance(val, int) or not 0 <= val < 2**63:
+                raise CodecError(f"{name}.{f.name}: must be a non-negative integer")
+            kwargs[f.name] = val
+        elif f.name in _FLOATS:
+            if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
+                raise CodecError(f"{name}.{f.name}: must be a finite number")
+            kwargs[f.name] = float(val)
+        elif f.name == "auth":
+            if not isinstance(val, bytes) or len(val) > 1024:
+                raise CodecError(f"{name}.auth: must be bytes (<= 1024)")
+            kwargs[f.name] = val
+        elif f.name == "first_stopped":
+            if not isinstance(val, bool):
+                raise CodecError(f"{name}.first_stopped: must be a boolean")
+            kwargs[f.name] = val
+        elif f.name == "counters":
+            if not isinstance(val, dict) or not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
+                                                     for k, v in val.items()):
+                raise CodecError(f"{name}.counters: must map strings to integers")
+            kwargs[f.name] = val
+        elif f.name == "status":
+            if not isinstance(val, dict) or not all(isinstance(k, str) for k in val):
+                raise CodecError(f"{name}.status: must be a map with string keys")
+            kwargs[f.name] = val
+        else:  # pragma: no cover - every field is listed above
+            raise CodecError(f"{name}.{f.name}: no validator")
+    extra = set(obj) - {"v", "type"} - {f.name for f in fields(cls)}
+    if extra:
+        raise CodecError(f"{name}: unknown fields {sorted(extra)}")
+    return cls(**kwargs)
+
+
+def _array(name: str, fname: str, val: Any, shape: tuple, n_lead: int | None) -> tuple[np.ndarray, int | None]:
+    if not isinstance(val, bytes) or len(val) % 8:
+        raise CodecError(f"{name}.{fname}: must be float64 bytes")
+    arr = np.frombuffer(val, dtype="<f8").astype(float)
+    inner = int(np.prod([d for d in shape if d is not None])) if any(d is not None for d in shape) else 1
+    if shape[0] is None:
+        if len(arr) % inner:
+            raise CodecError(f"{name}.{fname}: length {len(arr)} not a multiple of {inner}")
+        n = len(arr) // inner
+        if n_lead is not None and n != n_lead:
+            raise CodecError(f"{name}.{fname}: {n} rows, other fields have {n_lead}")
+        if not 0 < n <= MAX_SAMPLES:
+            raise CodecError(f"{name}.{fname}: {n} rows outside 1-{MAX_SAMPLES}")
+        arr = arr.reshape((n,) + tuple(d for d in shape[1:]))
+        n_lead = n
+    else:
+        if arr.size != int(np.prod(shape)):
+            raise CodecError(f"{name}.{fname}: expected {int(np.prod(shape))} values, got {arr.size}")
+        arr = arr.reshape(shape)
+    if not np.all(np.isfinite(arr)):
+        raise CodecError(f"{name}.{fname}: non-finite values")
+    return arr, n_lead

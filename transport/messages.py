@@ -1,0 +1,119 @@
+"""Wire messages (frozen dataclasses). SI units, radians, sensor time in seconds.
+
+Array fields are numpy float64 arrays with the shapes given per field; the codec checks them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class Message:
+    """Base class: value equality that understands numpy arrays."""
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for f in fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if not np.array_equal(np.asarray(a), np.asarray(b)):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+@dataclass(frozen=True, eq=False)
+class ImuBatch(Message):
+    """IMU increments of several samples. ``t[k]`` ends interval ``k`` of length ``dt[k]``.
+
+    Shapes: ``t``, ``dt`` (n,); ``dtheta`` [rad], ``dvel`` [m/s] (n, 3), body FRD.
+    """
+
+    vehicle: str
+    seq: int
+    t: np.ndarray
+    dt: np.ndarray
+    dtheta: np.ndarray
+    dvel: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class GnssFix(Message):
+    """A GNSS fix: ``llh`` (lat, lon rad; h m ellipsoidal), ``v_ned`` [m/s], reported ``sigma_ned`` [m]."""
+
+    vehicle: str
+    seq: int
+    t: float
+    llh: np.ndarray
+    v_ned: np.ndarray
+    sigma_ned: np.ndarray
+    sigma_v: float
+    quality: int = 1
+
+
+@dataclass(frozen=True, eq=False)
+class UwbRange(Message):
+    """A two-way range between vehicles ``a`` and ``b`` measured at ``t`` [s]; both ends receive it."""
+
+    a: str
+    b: str
+    seq: int
+    t: float
+    range_m: float
+
+
+@dataclass(frozen=True, eq=False)
+class Beacon(Message):
+    """A vehicle's broadcast estimate: time, id, sequence, method, position, velocity, covariance.
+
+    ``cov_pos`` is the NED position covariance [m²] (3, 3). ``auth`` carries an optional
+    signature block (key id + signature), opaque to the codec.
+    """
+
+    vehicle: str
+    seq: int
+    method: str
+    t: float
+    llh: np.ndarray
+    v_ned: np.ndarray
+    cov_pos: np.ndarray
+    auth: bytes = b""
+
+
+@dataclass(frozen=True, eq=False)
+class Estimate(Message):
+    """An agent's estimate for recording: state, attitude (roll, pitch, yaw rad), covariance."""
+
+    vehicle: str
+    method: str
+    t: float
+    llh: np.ndarray
+    v_ned: np.ndarray
+    rpy: np.ndarray
+    cov_pos: np.ndarray
+    first_stopped: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class Diagnostics(Message):
+    """Counters and status of a process (``counters``: name -> count)."""
+
+    source: str
+    t: float
+    counters: dict[str, int] = field(default_factory=dict)
+    status: dict[str, Any] = field(default_factory=dict)
+
+
+#: message type names on the wire
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    "imu": ImuBatch, "gnss": GnssFix, "uwb": UwbRange, "beacon": Beacon,
+    "estimate": Estimate, "diag": Diagnostics,
+}

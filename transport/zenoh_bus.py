@@ -1,0 +1,123 @@
+"""The Zenoh implementation of the Bus: the only module of slcp that imports zenoh.
+
+Zenoh (1.x) has no asyncio API and runs callbacks on its own threads, where calling Zenoh or
+blocking is forbidden: each callback copies the payload bytes and hands them to the event loop
+with ``loop.call_soon_threadsafe``. Sessions are closed explicitly.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from dataclasses import dataclass, field
+
+import zenoh
+
+from .bus import Subscription
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    """Session settings.
+
+    Attributes
+    ----------
+    mode : {"peer", "client", "router"}
+    listen, connect : tuple of str
+        Endpoints such as ``tcp/127.0.0.1:7447``.
+    multicast_scouting : bool
+        Off by default (tests and deployments name their endpoints).
+    lease_ms : int
+        Transport lease; a frozen peer is declared gone after about this long.
+    config_file : str, optional
+        A Zenoh JSON5 configuration file (TLS, ACL, ...) loaded first; the fields above
+        override it.
+    """
+
+    mode: str = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    lease_ms: int = 2000
+    config_file: str | None = None
+    extra: dict = field(default_factory=dict)
+
+    def to_zenoh(self) -> "zenoh.Config":
+        if self.mode not in ("peer", "client", "router"):
+            raise ValueError(f"zenoh mode must be peer, client or router, got {self.mode!r}")
+        conf = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+        conf.insert_json5("mode", json.dumps(self.mode))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        conf.insert_json5("transport/link/tx/lease", json.dumps(int(self.lease_ms)))
+        if self.listen:
+            conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        if self.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        for k, v in self.extra.items():
+            conf.insert_json5(k, json.dumps(v))
+        return conf
+
+
+class ZenohBus:
+    """Bus over a Zenoh session. Create inside a running event loop."""
+
+    def __init__(self, config: ZenohConfig) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.session = zenoh.open(config.to_zenoh())
+        self._publishers: dict[str, object] = {}
+        self._subscribers: list[object] = []
+        self._subs: list[Subscription] = []
+        self._tokens: list[object] = []
+        self._closed = False
+
+    async def publish(self, key: str, payload: bytes) -> None:
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publishers[key] = self.session.declare_publisher(key)
+        pub.put(payload)
+
+    def subscribe(self, expr: str, maxsize: int = 1024) -> Subscription:
+        sub = Subscription(expr, maxsize, self.loop)
+        loop = self.loop
+
+        def on_sample(sample) -> None:  # zenoh thread: copy, hand over, never block
+            try:
+                loop.call_soon_threadsafe(sub.offer, str(sample.key_expr), sample.payload.to_bytes())
+            except RuntimeError:  # loop closed during shutdown
+                pass
+
+        self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
+        self._subs.append(sub)
+        return sub
+
+    def declare_alive(self, key: str) -> None:
+        self._tokens.append(self.session.liveliness().declare_token(key))
+
+    def watch_alive(self, expr: str, callback) -> None:
+        """``callback(key, alive: bool)`` on the event loop for tokens matching ``expr``."""
+        loop = self.loop
+
+        def on_sample(sample) -> None:
+            alive = sample.kind == zenoh.SampleKind.PUT
+            try:
+                loop.call_soon_threadsafe(callback, str(sample.key_expr), alive)
+            except RuntimeError:
+                pass
+
+        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, on_sample, history=True))
+
+    async def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for sub in self._subs:
+            sub.closed = True
+        for obj in self._tokens + self._subscribers + list(self._publishers.values()):
+            try:
+                obj.undeclare()
+            except Exception:  # already gone with the session
+                log.debug("undeclare failed", exc_info=True)
+        self.session.close()
