@@ -1,0 +1,107 @@
+"""Neighbour table: the latest beacon of each neighbour, aged out, time-aligned for fusion.
+
+Pure logic (no I/O). A range measured at time ``t`` needs the neighbour's position at ``t``:
+the beacon is extrapolated with its velocity and its covariance inflated with the age
+(``P(t) = P + (age² σ_v² + age³ q_a / 3) I_h``, a constant-velocity model with white
+acceleration of density ``q_a``). Beacons older than ``max_age`` are never fused; neighbours not
+heard for ``timeout`` are dropped. Duplicates and out-of-order beacons (sequence not newer) are
+counted and ignored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .nav import earth
+
+
+@dataclass(frozen=True)
+class NeighbourState:
+    """A neighbour's position at a requested time, ready for a range update."""
+
+    vehicle: str
+    llh: np.ndarray  #: (3,) lat, lon [rad], h [m]
+    cov_ned: np.ndarray  #: (3, 3) [m²]
+    age: float  #: [s] since the beacon's time
+
+
+@dataclass
+class _Entry:
+    seq: int
+    t: float
+    llh: np.ndarray
+    v_ned: np.ndarray
+    cov: np.ndarray
+    method: str
+    received_at: float
+
+
+@dataclass
+class NeighbourTable:
+    """Latest beacons per neighbour.
+
+    Parameters
+    ----------
+    max_age : float
+        Beacons older than this [s] at the time of use are not fused (default 0.3 s).
+    timeout : float
+        A neighbour not heard for this long [s] is removed (default 2 s).
+    sigma_v : float
+        Velocity uncertainty used when extrapolating [m/s].
+    accel_psd : float
+        White-acceleration density for extrapolation [m²/s³].
+    """
+
+    max_age: float = 0.3
+    timeout: float = 2.0
+    sigma_v: float = 0.5
+    accel_psd: float = 1.0
+    entries: dict[str, _Entry] = field(default_factory=dict)
+    counters: dict[str, int] = field(default_factory=lambda: {
+        "beacons": 0, "duplicate_or_old": 0, "stale": 0, "timed_out": 0})
+
+    def update(self, vehicle: str, seq: int, t: float, llh: np.ndarray, v_ned: np.ndarray,
+               cov_pos: np.ndarray, method: str, now: float) -> bool:
+        """Store a beacon; returns False (and counts) for a duplicate or out-of-order one."""
+        old = self.entries.get(vehicle)
+        if old is not None and (seq <= old.seq or t < old.t):
+            self.counters["duplicate_or_old"] += 1
+            return False
+        self.entries[vehicle] = _Entry(seq, float(t), np.asarray(llh, float), np.asarray(v_ned, float),
+                                       np.asarray(cov_pos, float), method, float(now))
+        self.counters["beacons"] += 1
+        return True
+
+    def expire(self, now: float) -> list[str]:
+        """Drop neighbours not heard for ``timeout``; returns their ids."""
+        gone = [v for v, e in self.entries.items() if now - e.received_at > self.timeout]
+        for v in gone:
+            del self.entries[v]
+        self.counters["timed_out"] += len(gone)
+        return gone
+
+    def remove(self, vehicle: str) -> None:
+        """Forget a neighbour (e.g. its liveliness token disappeared)."""
+        self.entries.pop(vehicle, None)
+
+    def at(self, vehicle: str, t: float) -> NeighbourState | None:
+        """The neighbour's position and covariance at time ``t``, or None if unknown or stale."""
+        e = self.entries.get(vehicle)
+        if e is None:
+            return None
+        age = t - e.t
+        if age > self.max_age or age < -self.max_age:
+            self.counters["stale"] += 1
+            return None
+        rm, rn = earth.radii(float(e.llh[0]))
+        d = e.v_ned * age
+        llh = e.llh + np.array([d[0] / (rm + e.llh[2]), d[1] / ((rn + e.llh[2]) * np.cos(e.llh[0])), -d[2]])
+        a = abs(age)
+        grow = a * a * self.sigma_v**2 + a**3 * self.accel_psd / 3.0
+        cov = e.cov + np.diag([grow, grow, grow])
+        return NeighbourState(vehicle, llh, cov, age)
+
+    def vehicles(self) -> list[str]:
+        return sorted(self.entries)

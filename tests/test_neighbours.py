@@ -1,0 +1,35 @@
+"""Neighbour table: extrapolation, covariance growth, staleness, duplicates, time-out."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.nav import earth
+from agent.neighbours import NeighbourTable
+
+LLH = np.array([math.radians(39.95), math.radians(116.32), 50.0])
+
+
+def test_extrapolation_and_covariance_growth() -> None:
+    tab = NeighbourTable(sigma_v=0.5, accel_psd=1.0)
+    assert tab.update("V2", 1, 10.0, LLH, np.array([10.0, 0.0, 0.0]), np.eye(3), "SP", now=10.01)
+    s = tab.at("V2", 10.2)
+    d = earth.ned_offset(*s.llh, *LLH)
+    assert d == pytest.approx([2.0, 0.0, 0.0], abs=1e-6)  # 0.2 s at 10 m/s north
+    grow = 0.04 * 0.25 + 0.008 / 3
+    assert np.allclose(s.cov_ned, np.eye(3) * (1 + grow))
+    assert s.age == pytest.approx(0.2)
+
+
+def test_stale_duplicate_and_timeout() -> None:
+    tab = NeighbourTable(max_age=0.3, timeout=2.0)
+    tab.update("V2", 5, 10.0, LLH, np.zeros(3), np.eye(3), "SP", now=10.0)
+    assert tab.at("V2", 10.31) is None and tab.counters["stale"] == 1
+    assert not tab.update("V2", 5, 10.2, LLH, np.zeros(3), np.eye(3), "SP", now=10.2)   # duplicate seq
+    assert not tab.update("V2", 6, 9.9, LLH, np.zeros(3), np.eye(3), "SP", now=10.2)    # older time
+    assert tab.counters["duplicate_or_old"] == 2
+    assert tab.expire(11.9) == [] and tab.expire(12.1) == ["V2"]
+    assert tab.at("V2", 12.1) is None and tab.vehicles() == []
