@@ -1,0 +1,140 @@
+"""The four estimation methods of the paper, as pure filters driven by sensor-time events.
+
+============  =====================================================================
+method        fuses
+============  =====================================================================
+``SP``        own IMU + GNSS (loosely coupled)
+``SL-SP``     SP + the stop-line fix while this vehicle is the first stopped one
+``CP``        SP + UWB ranges to neighbours, with their beacons' positions (eq. 26-28)
+``SL-CP``     all of the above
+============  =====================================================================
+
+No I/O here: the agent runtime (asyncio shell) feeds measurements in sensor-time order.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .nav.error_model import ImuNoise
+from .nav.ins_filter import InsFilter, level_from_accel
+from .nav.kalman import UpdateResult
+from .nav.measurements.gnss import gnss_position, gnss_velocity
+from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_line_measurement
+from .nav.measurements.v2v_range import range_measurement
+from .nav.rotation import euler_to_quat
+from .nav.state import NavState
+from .neighbours import NeighbourState
+
+METHODS = ("SP", "SL-SP", "CP", "SL-CP")
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """What a method fuses."""
+
+    name: str
+    stop_line: bool
+    ranges: bool
+
+    @classmethod
+    def of(cls, name: str) -> "MethodSpec":
+        if name not in METHODS:
+            raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
+        return cls(name, name.startswith("SL-"), name.endswith("CP"))
+
+
+@dataclass(frozen=True)
+class FilterSettings:
+    """Tuning shared by the methods (SI units)."""
+
+    noise: ImuNoise
+    sigma_uwb: float = 0.1
+    range_gate: float = 0.999  #: chi-square probability of the NIS gate for ranges
+    second_order_ranges: bool = True
+    gnss_gate: float | None = None
+    init_att_sigma: tuple[float, float, float] = (math.radians(2.0), math.radians(2.0), math.radians(5.0))
+    init_vel_sigma: float = 0.3
+    stop_line_interval: float = 1.0  #: apply the stop-line fix at most this often [s]
+    max_range: float = 150.0  #: physical gate on UWB ranges [m]
+
+
+def initial_state(llh: np.ndarray, v_ned: np.ndarray, f_b_mean: np.ndarray) -> NavState:
+    """Initial nominal state from a GNSS fix and the mean specific force (level, heading from
+    the GNSS course; a standing vehicle starts with heading 0 and a large yaw variance)."""
+    roll, pitch = level_from_accel(f_b_mean)
+    yaw = math.atan2(v_ned[1], v_ned[0]) if math.hypot(v_ned[0], v_ned[1]) > 1.0 else 0.0
+    return NavState(float(llh[0]), float(llh[1]), float(llh[2]), np.asarray(v_ned, float).copy(),
+                    euler_to_quat(roll, pitch, yaw))
+
+
+class MethodFilter:
+    """One method's filter for one vehicle."""
+
+    def __init__(self, spec: MethodSpec, state: NavState, sigma_pos: np.ndarray, settings: FilterSettings,
+                 t: float, gap: StopGapModel | None = None, origin_llh: tuple[float, float, float] | None = None,
+                 heading_known: bool = True) -> None:
+        s = settings
+        n = s.noise
+        att = np.array(s.init_att_sigma)
+        if not heading_known:
+            att[2] = math.radians(60.0)
+        p0 = np.concatenate([att, [s.init_vel_sigma] * 3, np.maximum(sigma_pos, 0.1),
+                             [max(n.gyro_bias_sigma, 1e-6)] * 3, [max(n.accel_bias_sigma, 1e-4)] * 3]) ** 2
+        self.spec = spec
+        self.settings = settings
+        self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=0.1)
+        self.gap = gap
+        self.origin = origin_llh
+        self.heading_known = heading_known
+        self.last_stop_line = -math.inf
+        self.counters = {"gnss": 0, "ranges": 0, "ranges_rejected": 0, "stop_line": 0}
+
+    @property
+    def t(self) -> float:
+        return self.filter.t
+
+    def propagate(self, dtheta, dvel, dt: float) -> None:
+        self.filter.propagate(dtheta, dvel, dt)
+
+    def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float) -> None:
+        st = self.filter.state
+        if not self.heading_known and math.hypot(v_ned[0], v_ned[1]) > 1.5:
+            self.filter.reset_yaw(math.atan2(v_ned[1], v_ned[0]), math.radians(5.0))
+            self.heading_known = True
+        res = self.filter.update(gnss_position(st, llh, np.diag(np.square(sigma_ned))), self.settings.gnss_gate)
+        self.filter.update(gnss_velocity(self.filter.state, v_ned, np.eye(3) * sigma_v**2, np.zeros(3)))
+        self.counters["gnss"] += int(res.accepted)
+
+    def stop_line(self, approach: StopLineApproach) -> UpdateResult | None:
+        """Apply the stop-line fix (only for SL methods, at most once per interval)."""
+        if not self.spec.stop_line or self.gap is None or self.origin is None:
+            return None
+        if self.t - self.last_stop_line < self.settings.stop_line_interval:
+            return None
+        self.last_stop_line = self.t
+        res = self.filter.update(stop_line_measurement(self.filter.state, approach, self.gap, self.origin))
+        self.counters["stop_line"] += int(res.accepted)
+        return res
+
+    def range(self, neighbour: NeighbourState, measured: float) -> UpdateResult | None:
+        """Fuse a UWB range to a neighbour (CP methods; physical and NIS gates)."""
+        if not self.spec.ranges:
+            return None
+        if not 0.0 < measured < self.settings.max_range:
+            self.counters["ranges_rejected"] += 1
+            return None
+        m = range_measurement(self.filter.state, measured, self.settings.sigma_uwb, neighbour.llh,
+                              neighbour.cov_ned, own_cov_ned=self.filter.position_cov,
+                              second_order=self.settings.second_order_ranges)
+        res = self.filter.update(m, self.settings.range_gate)
+        self.counters["ranges" if res.accepted else "ranges_rejected"] += 1
+        return res
+
+    def beacon(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(llh, v_ned, cov_pos)`` to broadcast."""
+        st = self.filter.state
+        return st.llh.copy(), st.v.copy(), self.filter.position_cov

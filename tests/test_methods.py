@@ -1,0 +1,61 @@
+"""The four methods as pure filters: what each fuses, and the stop-line and range updates."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.methods import METHODS, FilterSettings, MethodFilter, MethodSpec, initial_state
+from agent.nav import earth
+from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
+from agent.neighbours import NeighbourState
+
+from conftest import MEMS_NOISE
+
+ORIGIN = (math.radians(39.95), math.radians(116.32), 50.0)
+
+
+def test_method_specs() -> None:
+    assert [(m.stop_line, m.ranges) for m in map(MethodSpec.of, METHODS)] == [
+        (False, False), (True, False), (False, True), (True, True)]
+    with pytest.raises(ValueError, match="unknown method"):
+        MethodSpec.of("XP")
+
+
+def _stopped_filter(method: str, offset_ne=(3.0, -2.0)) -> tuple[MethodFilter, StopLineApproach, StopGapModel, np.ndarray]:
+    approach = StopLineApproach(Line2D((0.0, 0.0), (0.0, 1.0)), Line2D((0.0, -1.75), (1.0, 0.0)))  # north-bound
+    gap = StopGapModel(1.5, 0.2, 1.75, 0.1, 2.5)
+    p_true, _ = stop_line_position(approach, gap)
+    rm, rn = earth.radii(ORIGIN[0])
+    true_llh = np.array([ORIGIN[0] + p_true[0] / (rm + 50), ORIGIN[1] + p_true[1] / ((rn + 50) * math.cos(ORIGIN[0])), 50.0])
+    est_llh = true_llh + np.array([offset_ne[0] / (rm + 50), offset_ne[1] / ((rn + 50) * math.cos(ORIGIN[0])), 0.0])
+    st = initial_state(est_llh, np.zeros(3), np.array([0.0, 0.0, -9.8]))
+    f = MethodFilter(MethodSpec.of(method), st, np.array([4.0, 4.0, 6.0]), FilterSettings(MEMS_NOISE), 0.0, gap, ORIGIN)
+    return f, approach, gap, true_llh
+
+
+def test_stop_line_fix_pulls_a_stopped_vehicle_onto_its_place() -> None:
+    f, approach, _, true_llh = _stopped_filter("SL-SP")
+    assert f.stop_line(approach).accepted
+    e = earth.ned_offset(*f.filter.state.llh, *true_llh)
+    sig = np.sqrt(np.diag(f.filter.position_cov))
+    # prior 4 m, fix σ 0.2/0.1 m: the posterior sits within a few σ_fix of the true place
+    assert math.hypot(e[0], e[1]) < 0.1 and sig[0] < 0.25 and sig[1] < 0.15
+    assert f.stop_line(approach) is None  # rate-limited
+    sp, approach, _, _ = _stopped_filter("SP")
+    assert sp.stop_line(approach) is None  # SP never uses it
+
+
+def test_range_update_and_gates() -> None:
+    f, _, _, true_llh = _stopped_filter("CP", offset_ne=(0.0, 0.0))
+    rm, _ = earth.radii(ORIGIN[0])
+    nb = NeighbourState("V2", true_llh + np.array([-7.0 / (rm + 50), 0.0, 0.0]), np.eye(3) * 0.01, 0.05)
+    res = f.range(nb, 7.0)
+    assert res.accepted and f.counters["ranges"] == 1
+    assert f.range(nb, 500.0) is None and f.counters["ranges_rejected"] == 1   # physical gate
+    res = f.range(nb, 37.0)                                                      # 30 m outlier: NIS gate
+    assert res is not None and not res.accepted and f.counters["ranges_rejected"] == 2
+    sp, _, _, _ = _stopped_filter("SP")
+    assert sp.range(nb, 7.0) is None
