@@ -109,14 +109,15 @@ class MethodFilter:
         self.filter.update(gnss_velocity(self.filter.state, v_ned, np.eye(3) * sigma_v**2, np.zeros(3)))
         self.counters["gnss"] += int(res.accepted)
 
-    def stop_line(self, approach: StopLineApproach) -> UpdateResult | None:
+    def stop_line(self, approach: StopLineApproach, along_only: bool = False) -> UpdateResult | None:
         """Apply the stop-line fix (only for SL methods, at most once per interval)."""
         if not self.spec.stop_line or self.gap is None or self.origin is None:
             return None
         if self.t - self.last_stop_line < self.settings.stop_line_interval:
             return None
         self.last_stop_line = self.t
-        res = self.filter.update(stop_line_measurement(self.filter.state, approach, self.gap, self.origin))
+        res = self.filter.update(stop_line_measurement(self.filter.state, approach, self.gap, self.origin,
+                                                       along_only=along_only))
         self.counters["stop_line"] += int(res.accepted)
         return res
 

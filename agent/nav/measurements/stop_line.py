@@ -169,8 +169,12 @@ def stop_line_measurement(
     gap: StopGapModel,
     origin_llh: tuple[float, float, float],
     lever_arm_b: np.ndarray = np.zeros(3),
+    along_only: bool = False,
 ) -> Measurement:
     """Horizontal position fix of the reference point from the stop line (2 rows).
+
+    With ``along_only`` only the component along the stop-line normal is used (1 row, noise
+    σ_xb): for a vehicle whose lane is ambiguous among lanes sharing the stop line.
 
     Parameters
     ----------
@@ -191,5 +195,8 @@ def stop_line_measurement(
     # rotate the vehicle's NED errors into the map's NED (differs by ~distance/R rad)
     c_map = earth.ned_to_ecef_dcm(origin_llh[0], origin_llh[1]).T @ earth.ned_to_ecef_dcm(lat, lon)
     H = (c_map @ point_position_jacobian(state, lever_arm_b))[:2]
+    if along_only:
+        n = approach.stop_line_normal()
+        return Measurement(np.array([n @ z]), (n @ H)[None, :], np.array([[gap.sigma_xb**2]]), "stop_line_along")
     return Measurement(z, H, cov, "stop_line")
 
