@@ -21,7 +21,7 @@ import numpy as np
 
 from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
-from .nav.kalman import UpdateResult
+from .nav.kalman import Measurement, UpdateResult
 from .nav.measurements.gnss import gnss_position, gnss_velocity
 from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_line_measurement
 from .nav.measurements.v2v_range import range_measurement
@@ -60,6 +60,12 @@ class FilterSettings:
     init_vel_sigma: float = 0.3
     stop_line_interval: float = 1.0  #: apply the stop-line fix at most this often [s]
     max_range: float = 150.0  #: physical gate on UWB ranges [m]
+    #: GNSS receiver characteristics: correlated (multipath) error carried as three
+    #: Gauss-Markov states, so that correlated fixes are not averaged as if independent;
+    #: None treats the reported sigma as white noise (the paper's filter)
+    gnss_multipath_sigma: float | None = 3.0
+    gnss_multipath_tau: float = 60.0
+    gnss_white_sigma: float = 0.5
 
 
 def initial_state(llh: np.ndarray, v_ned: np.ndarray, f_b_mean: np.ndarray) -> NavState:
@@ -86,7 +92,11 @@ class MethodFilter:
                              [max(n.gyro_bias_sigma, 1e-6)] * 3, [max(n.accel_bias_sigma, 1e-4)] * 3]) ** 2
         self.spec = spec
         self.settings = settings
-        self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=0.1)
+        extra = ()
+        if s.gnss_multipath_sigma:
+            sm, tau = s.gnss_multipath_sigma, s.gnss_multipath_tau
+            extra = tuple((0.0, sm, 2 * sm * sm / tau, tau) for _ in range(3))
+        self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=0.1, extra_states=extra)
         self.gap = gap
         self.origin = origin_llh
         self.heading_known = heading_known
@@ -105,7 +115,14 @@ class MethodFilter:
         if not self.heading_known and math.hypot(v_ned[0], v_ned[1]) > 1.5:
             self.filter.reset_yaw(math.atan2(v_ned[1], v_ned[0]), math.radians(5.0))
             self.heading_known = True
-        res = self.filter.update(gnss_position(st, llh, np.diag(np.square(sigma_ned))), self.settings.gnss_gate)
+        s = self.settings
+        if s.gnss_multipath_sigma:
+            # predicted = position + multipath state; the white part is what remains
+            m = gnss_position(st, llh, np.eye(3) * s.gnss_white_sigma**2)
+            m = Measurement(m.z + self.filter.extra, self.filter.full_jacobian(m.H, np.eye(3)), m.R, m.name)
+        else:
+            m = gnss_position(st, llh, np.diag(np.square(sigma_ned)))
+        res = self.filter.update(m, s.gnss_gate)
         self.filter.update(gnss_velocity(self.filter.state, v_ned, np.eye(3) * sigma_v**2, np.zeros(3)))
         self.counters["gnss"] += int(res.accepted)
 
@@ -134,6 +151,11 @@ class MethodFilter:
         res = self.filter.update(m, self.settings.range_gate)
         self.counters["ranges" if res.accepted else "ranges_rejected"] += 1
         return res
+
+    @property
+    def position_cov(self) -> np.ndarray:
+        """Position error covariance [m²] (3, 3)."""
+        return self.filter.position_cov
 
     def beacon(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(llh, v_ned, cov_pos)`` to broadcast."""

@@ -1,0 +1,194 @@
+"""All vehicles and methods of a scenario in one process, in lockstep on sensor time.
+
+This is the reference evaluation of the methods before the distributed fleet: the same emulated
+sensors, beacons through the V2V radio model (loss, latency, range) into per-method neighbour
+tables, UWB ranges fused by both ends, and first-stopped decisions from each filter's own
+estimate and its neighbours' beacons (no truth).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pymap3d
+
+from agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView
+from agent.methods import METHODS, FilterSettings, MethodFilter, MethodSpec, initial_state
+from agent.nav import earth
+from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
+from agent.nav.rotation import quat_to_euler
+from agent.neighbours import NeighbourTable
+from hw_emulation.emulate import emulate_uwb, emulate_vehicle_sensors
+from hw_emulation.geometry import offset_polyline
+from hw_emulation.scenario import Scenario
+from hw_emulation.sensors.radio import simulate_link
+from hw_emulation.truth import ScenarioTruth
+
+from .sp_check import imu_noise_of
+
+BEACON_RATE = 5.0
+DECISION_RATE = 1.0
+RECORD_STEP = 10
+
+
+def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:
+    """Stop line (perpendicular, at the centre-line end) and left lane line of every approach."""
+    out = {}
+    for lane in scn.lanes.values():
+        if not lane.stop_line:
+            continue
+        c = lane.centerline
+        d = c[-1] - c[-2]
+        d = d / np.hypot(*d)
+        left = offset_polyline(c[-2:], -lane.width / 2)
+        approach = StopLineApproach(Line2D(tuple(c[-1]), (-d[1], d[0])), Line2D(tuple(left[-1]), tuple(d)))
+        out[lane.id] = ApproachLane(lane.id, approach, lane.width)
+    return out
+
+
+@dataclass
+class RunResult:
+    t: np.ndarray
+    err: dict[tuple[str, str], np.ndarray]  #: (vehicle, method) -> horizontal error [m]
+    sigma: dict[tuple[str, str], np.ndarray]
+    first: dict[tuple[str, str], np.ndarray]  #: detector decisions at the record times
+    counters: dict[tuple[str, str], dict[str, int]] = field(default_factory=dict)
+
+
+def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS) -> RunResult:
+    scn = truth.scenario
+    rng = np.random.default_rng(seed)
+    sensors = emulate_vehicle_sensors(truth, rng)
+    ranges = emulate_uwb(truth, rng)
+    specs = {v.id: v for v in scn.vehicles}
+    lanes = approach_lanes(scn)
+    ids = sorted(truth.vehicles)
+    t = truth.vehicles[ids[0]].truth.t
+    dt = np.diff(t)
+
+    filters: dict[tuple[str, str], MethodFilter] = {}
+    detectors = {}
+    for vid in ids:
+        sp = specs[vid]
+        g = sensors[vid].gnss
+        f_b = sensors[vid].imu.dvel[:10].mean(axis=0) / dt[0]
+        st0 = initial_state(g.llh[0], g.v_ned[0], f_b)
+        gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
+        detectors[vid] = FirstStoppedDetector(lanes, gap)
+        # the receiver's error characteristics (a configuration of the agent, not truth)
+        gm = sp.gnss
+        settings = FilterSettings(imu_noise_of(sp.imu), sigma_uwb=max(scn.uwb.sigma_los, 0.05),
+                                  gnss_multipath_sigma=math.hypot(gm.multipath_h, scn.common_mode_sigma),
+                                  gnss_multipath_tau=gm.multipath_tau_moving,
+                                  gnss_white_sigma=max(gm.white_h, 0.1))
+        for m in methods:
+            filters[(vid, m)] = MethodFilter(MethodSpec.of(m), st0.copy(), g.sigma_ned[0], settings, float(t[0]),
+                                             gap, scn.origin_llh, heading_known=np.hypot(*g.v_ned[0, :2]) > 1.0)
+    tables = {(vid, m): NeighbourTable() for vid in ids for m in methods}
+    claims: dict[tuple[str, str], bool] = {k: False for k in filters}
+    stationary_since: dict[tuple[str, str], float | None] = {k: None for k in filters}
+
+    # beacon schedule and radio fates per directed pair
+    step = int(round(scn.imu_rate / BEACON_RATE))
+    b_idx = np.arange(step, len(t), step)
+    fates = {}
+    for a in ids:
+        for b in ids:
+            if a != b:
+                la, lb = truth.vehicles[a].truth.llh[b_idx], truth.vehicles[b].truth.llh[b_idx]
+                rm, rn = earth.radii(float(la[0, 0]))
+                dist = np.hypot((la[:, 0] - lb[:, 0]) * rm, (la[:, 1] - lb[:, 1]) * rn * np.cos(la[:, 0]))
+                fates[(a, b)] = simulate_link(scn.radio, t[b_idx], dist, rng)
+    pending: list[tuple[float, str, str, str, tuple]] = []  # (arrive, sender, receiver, method, beacon)
+    uwb_step = int(round(scn.imu_rate / scn.uwb.rate))
+    dec_step = int(round(scn.imu_rate / DECISION_RATE))
+    gnss_i = {vid: 0 for vid in ids}
+    imu = {vid: (sensors[vid].imu.dtheta.tolist(), sensors[vid].imu.dvel.tolist()) for vid in ids}
+    dts = dt.tolist()
+    rec_t, err, sig, first = [], {k: [] for k in filters}, {k: [] for k in filters}, {k: [] for k in filters}
+
+    for k in range(len(dts)):
+        tk = float(t[k + 1])
+        for vid in ids:
+            th, dv = imu[vid][0][k], imu[vid][1][k]
+            for m in methods:
+                filters[(vid, m)].propagate(th, dv, dts[k])
+            g = sensors[vid].gnss
+            while gnss_i[vid] < len(g.t) and g.t[gnss_i[vid]] <= tk + 1e-6:
+                i = gnss_i[vid]
+                if g.t[i] > t[0] + 1e-6:
+                    for m in methods:
+                        filters[(vid, m)].gnss(g.llh[i], g.v_ned[i], g.sigma_ned[i], g.sigma_v)
+                gnss_i[vid] += 1
+        # beacons: send at the schedule, deliver after the radio latency
+        if (k + 1) % step == 0:
+            j = (k + 1) // step - 1
+            for a in ids:
+                for m in methods:
+                    if not MethodSpec.of(m).ranges:
+                        continue
+                    llh, v, cov = filters[(a, m)].beacon()
+                    for b in ids:
+                        if b != a and fates[(a, b)].delivered[j]:
+                            pending.append((float(fates[(a, b)].t_arrive[j]), a, b, m, (j, tk, llh, v, cov)))
+        if pending:
+            still = []
+            for item in pending:
+                arrive, a, b, m, (seq, tb, llh, v, cov) = item
+                if arrive <= tk:
+                    tables[(b, m)].update(a, seq, tb, llh, v, cov, m, now=tk)
+                else:
+                    still.append(item)
+            pending = still
+        # UWB: one value per pair, fused by both ends
+        if (k + 1) % uwb_step == 0:
+            r_i = (k + 1) // uwb_step
+            for (a, b), rr in ranges.items():
+                if r_i >= len(rr.t) or not np.isfinite(rr.range[r_i]):
+                    continue
+                for me, other in ((a, b), (b, a)):
+                    for m in methods:
+                        if MethodSpec.of(m).ranges:
+                            nb = tables[(me, m)].at(other, tk)
+                            if nb is not None:
+                                filters[(me, m)].range(nb, float(rr.range[r_i]))
+        # first-stopped decisions and stop-line fixes
+        if (k + 1) % dec_step == 0:
+            for key, f in filters.items():
+                vid, m = key
+                if not MethodSpec.of(m).stop_line:
+                    continue
+                st = f.filter.state
+                speed = float(np.hypot(st.v[0], st.v[1]))
+                if speed < 0.2:
+                    stationary_since[key] = stationary_since[key] if stationary_since[key] is not None else tk
+                else:
+                    stationary_since[key] = None
+                still_for = tk - stationary_since[key] if stationary_since[key] is not None else 0.0
+                ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *scn.origin_llh, deg=False)[:2])
+                nbs = []
+                for other in tables[key].vehicles():
+                    e = tables[key].entries[other]
+                    o_ne = np.array(pymap3d.geodetic2ned(*e.llh, *scn.origin_llh, deg=False)[:2])
+                    nbs.append(NeighbourView(other, o_ne, float(np.hypot(*e.v_ned[:2])) < 0.3,
+                                             claims.get((other, m), False)))
+                yaw = float(quat_to_euler(st.q)[2])
+                dec = detectors[vid].decide(ne, f.filter.position_cov[:2, :2], yaw, still_for, nbs)
+                claims[key] = dec.first
+                if dec.first:
+                    f.last_stop_line = -math.inf
+                    f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only)
+        if (k + 1) % RECORD_STEP == 0:
+            rec_t.append(tk)
+            for (vid, m), f in filters.items():
+                s = f.filter.state
+                e = earth.ned_offset(s.lat, s.lon, s.h, *truth.vehicles[vid].truth.llh[k + 1])
+                p = f.filter.position_cov
+                err[(vid, m)].append(math.hypot(e[0], e[1]))
+                sig[(vid, m)].append(math.sqrt(p[0, 0] + p[1, 1]))
+                first[(vid, m)].append(claims[(vid, m)])
+    return RunResult(np.array(rec_t), {k: np.array(v) for k, v in err.items()},
+                     {k: np.array(v) for k, v in sig.items()}, {k: np.array(v) for k, v in first.items()},
+                     {k: dict(f.counters) for k, f in filters.items()})
