@@ -127,7 +127,8 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
             j = (k + 1) // step - 1
             for a in ids:
                 for m in methods:
-                    if not MethodSpec.of(m).ranges:
+                    spec = MethodSpec.of(m)
+                    if not (spec.ranges or spec.stop_line):  # SL methods need beacons to detect "first"
                         continue
                     llh, v, cov = filters[(a, m)].beacon()
                     for b in ids:
@@ -184,6 +185,8 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
             rec_t.append(tk)
             for (vid, m), f in filters.items():
                 s = f.filter.state
+                if claims[(vid, m)] and float(np.hypot(s.v[0], s.v[1])) > 0.15:
+                    claims[(vid, m)] = False  # moving again: no longer first stopped
                 e = earth.ned_offset(s.lat, s.lon, s.h, *truth.vehicles[vid].truth.llh[k + 1])
                 p = f.filter.position_cov
                 err[(vid, m)].append(math.hypot(e[0], e[1]))
