@@ -55,6 +55,10 @@ def build_parser() -> argparse.ArgumentParser:
     chk.add_argument("name", help="shipped scenario name or path to a .toml file")
     chk.add_argument("--seeds", type=int, default=20, help="sensor seeds to average (default 20)")
     chk.add_argument("--json", action="store_true", help="print one JSON object")
+    ev = ssub.add_parser("evaluate", help="run all vehicles and the four methods in one process (no bus)")
+    ev.add_argument("name", help="shipped scenario name or path to a .toml file")
+    ev.add_argument("--seed", type=int, default=0, help="sensor seed (default 0)")
+    ev.add_argument("--json", action="store_true", help="print one JSON object")
     return p
 
 
@@ -73,6 +77,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
     truth = build_truth(scn)
     if args.scenario_command == "sp-check":
         return _sp_check(args, scn, truth)
+    if args.scenario_command == "evaluate":
+        return _evaluate(args, scn, truth)
     ev = event_times(truth)
     print(f"{scn.name}: {scn.description}")
     print(f"  {len(scn.lanes)} lanes, {len(scn.vehicles)} vehicles, {scn.duration:.0f} s, seed {scn.seed}")
@@ -135,6 +141,48 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
         print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
         print(f"  wrote {out}/trajectory.csv, metrics.json, error.png")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace, scn, truth) -> int:
+    import numpy as np
+
+    from agent.methods import METHODS
+    from hw_emulation.events import window_bounds
+
+    from .inprocess import run_inprocess
+
+    r = run_inprocess(truth, args.seed)
+    rows = []
+    for w, (a, b) in window_bounds(truth).items():
+        m = (r.t >= a) & (r.t <= b)
+        for vid in sorted(truth.vehicles):
+            row = {"window": w, "vehicle": vid}
+            for meth in METHODS:
+                row[meth] = float(np.sqrt(np.mean(r.err[(vid, meth)][m] ** 2))) if m.any() else None
+            row["paper"] = scn.paper_table.get(w, {}).get(vid, {})
+            rows.append(row)
+    detect = {}
+    for vid, vt in truth.vehicles.items():
+        true_first = vt.first_stopped[9::10][: len(r.t)]
+        claims = r.first[(vid, "SL-SP")]
+        detect[vid] = {"true_first_s": float(true_first.sum() / 10), "claimed_s": float(claims.sum() / 10),
+                       "claimed_while_not_first_s": float((claims & ~true_first).sum() / 10)}
+    if args.json:
+        print(json.dumps({"scenario": scn.name, "seed": args.seed, "rows": rows, "first_stopped": detect}))
+        return 0
+    print(f"{scn.name}, sensor seed {args.seed}: horizontal RMSE [m] (paper in brackets)")
+    print(f"{'window':12s} {'vehicle':8s} " + " ".join(f"{m:>14s}" for m in METHODS))
+    for row in rows:
+        cells = []
+        for meth in METHODS:
+            p = row["paper"].get(meth)
+            v = row[meth]
+            cells.append(f"{v:6.2f}" + (f" [{p:5.2f}]" if p is not None else "        ") if v is not None else "     -")
+        print(f"{row['window']:12s} {row['vehicle']:8s} " + " ".join(f"{c:>14s}" for c in cells))
+    print("first-stopped detection (SL-SP filter, seconds): " + "; ".join(
+        f"{v}: truth {d['true_first_s']:.1f}, claimed {d['claimed_s']:.1f}, wrongly {d['claimed_while_not_first_s']:.1f}"
+        for v, d in detect.items()))
     return 0
 
 

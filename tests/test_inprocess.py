@@ -52,3 +52,15 @@ def test_cooperation_improves_the_fleet(run) -> None:
         print(f"{name} {vid}: SP {s:.2f} CP {c:.2f}")
         sp, cp = sp + s, cp + c
     assert cp < sp
+
+
+def test_cli_evaluate_json(capsys) -> None:
+    import json
+
+    from deploy.cli import main
+
+    assert main(["scenario", "evaluate", "paper-1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    row = out["rows"][0]
+    assert {"SP", "SL-SP", "CP", "SL-CP", "paper"} <= set(row)
+    assert out["first_stopped"]["V1"]["claimed_while_not_first_s"] == 0.0
