@@ -192,7 +192,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
             return float(gnss.t[i])
         return float(gnss.t[i]) - (float(flt.extra[0]) - cfg.imu_time_offset)
     yaw_aligned = False
-    last_fix_time = [-math.inf]
+    last_fix_time = -math.inf
 
     n_ep = len(gnss.t)
     err_t, err_h, err_w = [], [], []
@@ -204,7 +204,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
     pending = _remainder(dtheta[j], dvel[j], t_imu[j], t_imu[j + 1], t_cur) if j < len(dt) else None
 
     def handle_epoch(i: int) -> None:
-        nonlocal yaw_aligned
+        nonlocal yaw_aligned, last_fix_time
         st = flt.state
         alat, alon, ah = point_llh(st, lever)
         e = earth.ned_offset(alat, alon, ah, *llh_ref[i])
@@ -217,7 +217,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
         traj.append([gnss.t[i], math.degrees(st.lat), math.degrees(st.lon), st.h, *st.v, *rpy, *sig])
         if wh:
             return
-        last_fix_time[0] = flt.t
+        last_fix_time = flt.t
         gain = {1: 1.0, 2: cfg.float_gain}.get(int(gnss.quality[i]), cfg.single_gain)
         cov_p = np.diag(np.square(np.maximum(gnss.sd_neu[i] * gain, 0.005)))
         jj = min(j, len(w_b) - 1)
@@ -273,7 +273,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
                 flt.update(zero_angular_rate(flt.state, cfg.detector.window_mean_gyro(w_b, j),
                                              cfg.noise.arw / math.sqrt(cfg.detector.window * 0.01) * 2))
             elif cfg.nhc and yaw_aligned and (
-                    not cfg.nhc_only_coasting or flt.t - last_fix_time[0] > cfg.coast_after):
+                    not cfg.nhc_only_coasting or flt.t - last_fix_time > cfg.coast_after):
                 flt.update(_nhc(flt.state, w_b[j], cfg))
         if gi >= n_ep:
             break
