@@ -1,0 +1,103 @@
+"""Time ordering of measurements against the IMU stream (pure logic, sensor time).
+
+Measurements (GNSS fixes, UWB ranges, ...) arrive over the network in any order and with
+latency; the filter can only apply a measurement when its own time has reached the
+measurement's time. The sequencer holds measurements in a time-ordered heap and, for each IMU
+interval, yields the interval split at every pending measurement time inside it, with the
+measurement applied exactly there.
+
+A measurement older than the filter time is *late*: within ``late_tolerance`` it is applied at
+once (its time error is below what the models resolve); beyond that it is dropped and counted.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from dataclasses import dataclass, field
+from typing import Any, Iterator
+
+
+@dataclass(frozen=True)
+class Propagate:
+    """Integrate these increments over ``dt`` seconds (a whole or partial IMU interval)."""
+
+    dtheta: tuple[float, float, float]
+    dvel: tuple[float, float, float]
+    dt: float
+
+
+@dataclass(frozen=True)
+class Apply:
+    """Apply a measurement at filter time ``t``."""
+
+    t: float
+    kind: str
+    payload: Any
+
+
+@dataclass
+class Sequencer:
+    """Merges measurements into the IMU stream by sensor time.
+
+    Parameters
+    ----------
+    late_tolerance : float
+        Measurements at most this much older than the filter time are applied late [s].
+    max_pending : int
+        Bound on buffered measurements; beyond it the oldest is dropped and counted.
+    """
+
+    late_tolerance: float = 0.05
+    max_pending: int = 10_000
+    t: float | None = None
+    _heap: list = field(default_factory=list)
+    _order: itertools.count = field(default_factory=itertools.count)
+    counters: dict[str, int] = field(default_factory=lambda: {"queued": 0, "late_applied": 0,
+                                                              "late_dropped": 0, "overflow": 0,
+                                                              "imu_gaps": 0, "imu_out_of_order": 0})
+
+    def push(self, t: float, kind: str, payload: Any) -> list[Apply]:
+        """Queue a measurement; returns measurements to apply *now* (late but tolerable)."""
+        if self.t is not None and t <= self.t:
+            if self.t - t <= self.late_tolerance:
+                self.counters["late_applied"] += 1
+                return [Apply(self.t, kind, payload)]
+            self.counters["late_dropped"] += 1
+            return []
+        heapq.heappush(self._heap, (t, next(self._order), kind, payload))
+        self.counters["queued"] += 1
+        if len(self._heap) > self.max_pending:
+            heapq.heappop(self._heap)
+            self.counters["overflow"] += 1
+        return []
+
+    def imu(self, t_end: float, dtheta, dvel, dt: float, max_gap: float = 0.1) -> Iterator[Propagate | Apply]:
+        """Steps for one IMU interval ending at ``t_end`` lasting ``dt`` seconds."""
+        t0 = t_end - dt
+        if self.t is not None:
+            if t_end <= self.t:
+                self.counters["imu_out_of_order"] += 1
+                return
+            if t0 - self.t > max_gap:
+                self.counters["imu_gaps"] += 1
+            elif abs(t0 - self.t) > 1e-9:
+                t0 = self.t  # absorb jitter: intervals are contiguous
+        th = tuple(float(x) for x in dtheta)
+        dv = tuple(float(x) for x in dvel)
+        span = t_end - t0
+        cur = t0
+        done = 0.0  # fraction of the interval already yielded
+        while self._heap and self._heap[0][0] <= t_end:
+            tm, _, kind, payload = heapq.heappop(self._heap)
+            if tm > cur:
+                frac = (tm - cur) / span
+                yield Propagate(tuple(frac * x for x in th), tuple(frac * x for x in dv), tm - cur)
+                done += frac
+                cur = tm
+            self.t = cur
+            yield Apply(cur, kind, payload)
+        rest = 1.0 - done
+        if t_end - cur > 1e-12:
+            yield Propagate(tuple(rest * x for x in th), tuple(rest * x for x in dv), t_end - cur)
+        self.t = t_end
