@@ -14,38 +14,21 @@ from dataclasses import dataclass, field
 import numpy as np
 import pymap3d
 
-from agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView
-from agent.methods import METHODS, FilterSettings, MethodFilter, MethodSpec, initial_state
+from agent.first_stopped import FirstStoppedDetector, NeighbourView
+from agent.methods import METHODS, MethodFilter, MethodSpec, initial_state
 from agent.nav import earth
-from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
 from agent.nav.rotation import quat_to_euler
 from agent.neighbours import NeighbourTable
 from hw_emulation.emulate import emulate_uwb, emulate_vehicle_sensors
-from hw_emulation.geometry import offset_polyline
-from hw_emulation.scenario import Scenario
 from hw_emulation.sensors.radio import simulate_link
 from hw_emulation.truth import ScenarioTruth
 
-from .sp_check import imu_noise_of
+from .agent_configs import agent_config, approach_lanes
+
 
 BEACON_RATE = 5.0
 DECISION_RATE = 1.0
 RECORD_STEP = 10
-
-
-def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:
-    """Stop line (perpendicular, at the centre-line end) and left lane line of every approach."""
-    out = {}
-    for lane in scn.lanes.values():
-        if not lane.stop_line:
-            continue
-        c = lane.centerline
-        d = c[-1] - c[-2]
-        d = d / np.hypot(*d)
-        left = offset_polyline(c[-2:], -lane.width / 2)
-        approach = StopLineApproach(Line2D(tuple(c[-1]), (-d[1], d[0])), Line2D(tuple(left[-1]), tuple(d)))
-        out[lane.id] = ApproachLane(lane.id, approach, lane.width)
-    return out
 
 
 @dataclass
@@ -62,7 +45,6 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     rng = np.random.default_rng(seed)
     sensors = emulate_vehicle_sensors(truth, rng)
     ranges = emulate_uwb(truth, rng)
-    specs = {v.id: v for v in scn.vehicles}
     lanes = approach_lanes(scn)
     ids = sorted(truth.vehicles)
     t = truth.vehicles[ids[0]].truth.t
@@ -71,18 +53,12 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     filters: dict[tuple[str, str], MethodFilter] = {}
     detectors = {}
     for vid in ids:
-        sp = specs[vid]
         g = sensors[vid].gnss
         f_b = sensors[vid].imu.dvel[:10].mean(axis=0) / dt[0]
         st0 = initial_state(g.llh[0], g.v_ned[0], f_b)
-        gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
+        cfg = agent_config(scn, vid, methods)
+        gap, settings = cfg.gap, cfg.settings
         detectors[vid] = FirstStoppedDetector(lanes, gap)
-        # the receiver's error characteristics (a configuration of the agent, not truth)
-        gm = sp.gnss
-        settings = FilterSettings(imu_noise_of(sp.imu), sigma_uwb=max(scn.uwb.sigma_los, 0.05),
-                                  gnss_multipath_sigma=math.hypot(gm.multipath_h, scn.common_mode_sigma),
-                                  gnss_multipath_tau=gm.multipath_tau_moving,
-                                  gnss_white_sigma=max(gm.white_h, 0.1))
         for m in methods:
             filters[(vid, m)] = MethodFilter(MethodSpec.of(m), st0.copy(), g.sigma_ned[0], settings, float(t[0]),
                                              gap, scn.origin_llh, heading_known=np.hypot(*g.v_ned[0, :2]) > 1.0)

@@ -74,8 +74,9 @@ class UwbRange(Message):
 class Beacon(Message):
     """A vehicle's broadcast estimate: time, id, sequence, method, position, velocity, covariance.
 
-    ``cov_pos`` is the NED position covariance [m²] (3, 3). ``auth`` carries an optional
-    signature block (key id + signature), opaque to the codec.
+    ``cov_pos`` is the NED position covariance [m²] (3, 3). ``first_stopped`` is the sender's
+    claim to be the first stopped vehicle of its lane (used by the receivers' detectors).
+    ``auth`` carries an optional signature block (key id + signature), opaque to the codec.
     """
 
     vehicle: str
@@ -86,6 +87,7 @@ class Beacon(Message):
     v_ned: np.ndarray
     cov_pos: np.ndarray
     auth: bytes = b""
+    first_stopped: bool = False
 
 
 @dataclass(frozen=True, eq=False)

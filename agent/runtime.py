@@ -1,0 +1,260 @@
+"""The agent: an asyncio shell around the pure engine, one per vehicle.
+
+It subscribes to its own IMU, GNSS and UWB topics and to the beacons the V2V radio delivers to
+it; orders measurements by sensor time against the IMU (:mod:`agent.sequencer`); runs the
+configured methods side by side (CP-family filters use only beacons of the same method);
+decides "first stopped" from its own data, the map and the beacons; and publishes beacons
+(5 Hz), estimates (10 Hz) and diagnostics (1 Hz) on sensor time. Bad payloads are counted and
+dropped; nothing received can crash the agent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pymap3d
+
+from transport import keys
+from transport.bus import Bus, Subscription
+from transport.codec import CodecError, decode, encode
+from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
+
+from .first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView
+from .methods import FilterSettings, MethodFilter, MethodSpec, initial_state
+from .nav.measurements.stop_line import StopGapModel
+from .nav.rotation import quat_to_euler
+from .neighbours import NeighbourTable
+from .sequencer import Apply, Propagate, Sequencer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """Everything an agent needs (SI units; built at the config edge)."""
+
+    vehicle: str
+    methods: tuple[str, ...]
+    settings: FilterSettings
+    gap: StopGapModel
+    lanes: dict[str, ApproachLane]
+    origin_llh: tuple[float, float, float]
+    beacon_rate: float = 5.0
+    estimate_rate: float = 10.0
+    decision_rate: float = 1.0
+    queue_size: int = 4096
+
+
+class Agent:
+    def __init__(self, cfg: AgentConfig, bus: Bus) -> None:
+        keys.check_name(cfg.vehicle)
+        for m in cfg.methods:
+            MethodSpec.of(m)
+        self.cfg = cfg
+        self.bus = bus
+        self.seq = Sequencer()
+        self.filters: dict[str, MethodFilter] = {}
+        self.tables = {m: NeighbourTable() for m in cfg.methods}
+        self.detector = FirstStoppedDetector(cfg.lanes, cfg.gap)
+        self.claims: dict[str, bool] = {m: False for m in cfg.methods}
+        self.nb_claims: dict[tuple[str, str], bool] = {}
+        self.stationary_since: dict[str, float | None] = {m: None for m in cfg.methods}
+        self.counters: dict[str, int] = {"imu_batches": 0, "gnss": 0, "uwb": 0, "beacons_rx": 0,
+                                         "beacons_tx": 0, "estimates_tx": 0, "codec_errors": 0,
+                                         "not_for_me": 0, "before_init": 0, "decisions": 0}
+        self.decision_log: list[tuple[float, str, str]] = []
+        self._pending_fix: GnssFix | None = None
+        self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
+        self._beacon_seq = 0
+
+    # ----------------------------------------------------------------- lifecycle
+    async def run(self, stop: asyncio.Event) -> None:
+        v = self.cfg.vehicle
+        subs = {
+            "imu": self.bus.subscribe(keys.imu(v), self.cfg.queue_size),
+            "gnss": self.bus.subscribe(keys.gnss(v), self.cfg.queue_size),
+            "uwb": self.bus.subscribe(keys.uwb(v), self.cfg.queue_size),
+            "beacon": self.bus.subscribe(keys.radio_rx(v), self.cfg.queue_size),
+        }
+        self.bus.declare_alive(keys.alive("agent", v))
+        self.bus.watch_alive(keys.ROOT + "/alive/agent/*", self._on_alive)
+        async with asyncio.TaskGroup() as tg:
+            tasks = [tg.create_task(self._consume(kind, sub), name=f"{v}-{kind}") for kind, sub in subs.items()]
+            await stop.wait()
+            for t in tasks:
+                t.cancel()
+        self.dropped = {k: s.dropped for k, s in subs.items()}
+
+    def _on_alive(self, key: str, alive: bool) -> None:
+        if not alive:
+            other = key.rsplit("/", 1)[-1]
+            for tab in self.tables.values():
+                tab.remove(other)
+
+    async def _consume(self, kind: str, sub: Subscription) -> None:
+        while True:
+            _, payload = await sub.get()
+            try:
+                msg = decode(payload)
+            except CodecError as exc:
+                self.counters["codec_errors"] += 1
+                log.debug("%s: dropped bad %s payload: %s", self.cfg.vehicle, kind, exc)
+                continue
+            try:
+                await self.handle(msg)
+            except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+                # a well-formed but unusable message (e.g. a range to ourselves): count, go on
+                self.counters[f"rejected_{type(msg).__name__}"] = self.counters.get(f"rejected_{type(msg).__name__}", 0) + 1
+                log.debug("%s: rejected %s: %s", self.cfg.vehicle, type(msg).__name__, exc)
+
+    # ----------------------------------------------------------------- messages
+    async def handle(self, msg) -> None:
+        v = self.cfg.vehicle
+        if isinstance(msg, ImuBatch):
+            if msg.vehicle != v:
+                self.counters["not_for_me"] += 1
+                return
+            self.counters["imu_batches"] += 1
+            await self._imu(msg)
+        elif isinstance(msg, GnssFix):
+            if msg.vehicle != v:
+                self.counters["not_for_me"] += 1
+                return
+            self.counters["gnss"] += 1
+            if not self.filters:
+                self._pending_fix = msg
+                return
+            self._apply_now(self.seq.push(msg.t, "gnss", msg))
+        elif isinstance(msg, UwbRange):
+            if v not in (msg.a, msg.b) or msg.a == msg.b:
+                self.counters["not_for_me"] += 1
+                return
+            self.counters["uwb"] += 1
+            if self.filters:
+                self._apply_now(self.seq.push(msg.t, "uwb", msg))
+        elif isinstance(msg, Beacon):
+            if msg.vehicle == v or msg.method not in self.tables:
+                self.counters["not_for_me"] += 1
+                return
+            self.counters["beacons_rx"] += 1
+            now = self.seq.t if self.seq.t is not None else msg.t
+            self.tables[msg.method].update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos,
+                                           msg.method, now)
+            self.nb_claims[(msg.vehicle, msg.method)] = msg.first_stopped
+        else:
+            self.counters["not_for_me"] += 1
+
+    async def _imu(self, msg: ImuBatch) -> None:
+        if not self.filters:
+            if self._pending_fix is None:
+                self.counters["before_init"] += 1
+                return
+            self._init(self._pending_fix, msg)
+        for k in range(len(msg.t)):
+            for step in self.seq.imu(float(msg.t[k]), msg.dtheta[k], msg.dvel[k], float(msg.dt[k])):
+                if isinstance(step, Propagate):
+                    for f in self.filters.values():
+                        f.propagate(step.dtheta, step.dvel, step.dt)
+                else:
+                    self._apply(step)
+            await self._timers(float(msg.t[k]))
+
+    def _init(self, fix: GnssFix, batch: ImuBatch) -> None:
+        f_b = batch.dvel.sum(axis=0) / max(float(batch.dt.sum()), 1e-3)
+        st0 = initial_state(fix.llh, fix.v_ned, f_b)
+        moving = math.hypot(fix.v_ned[0], fix.v_ned[1]) > 1.0
+        for m in self.cfg.methods:
+            self.filters[m] = MethodFilter(MethodSpec.of(m), st0.copy(), fix.sigma_ned, self.cfg.settings,
+                                           float(batch.t[0] - batch.dt[0]), self.cfg.gap, self.cfg.origin_llh,
+                                           heading_known=moving)
+        self.seq.t = float(batch.t[0] - batch.dt[0])
+        for name, rate in (("beacon", self.cfg.beacon_rate), ("estimate", self.cfg.estimate_rate),
+                           ("decision", self.cfg.decision_rate), ("diag", 1.0)):
+            self._next[name] = self.seq.t + 1.0 / rate
+        log.info("%s: initialised %s at t=%.2f", self.cfg.vehicle, ",".join(self.cfg.methods), self.seq.t)
+
+    def _apply_now(self, steps: list[Apply]) -> None:
+        for s in steps:
+            self._apply(s)
+
+    def _apply(self, step: Apply) -> None:
+        msg = step.payload
+        if step.kind == "gnss":
+            for f in self.filters.values():
+                f.gnss(msg.llh, msg.v_ned, msg.sigma_ned, msg.sigma_v)
+        elif step.kind == "uwb":
+            other = msg.b if msg.a == self.cfg.vehicle else msg.a
+            for m, f in self.filters.items():
+                if f.spec.ranges:
+                    nb = self.tables[m].at(other, step.t)
+                    if nb is not None:
+                        f.range(nb, msg.range_m)
+
+    # ----------------------------------------------------------------- sensor-time timers
+    async def _timers(self, t: float) -> None:
+        if self._next["decision"] is not None and t >= self._next["decision"]:
+            self._next["decision"] += 1.0 / self.cfg.decision_rate
+            self._decide(t)
+        if self._next["beacon"] is not None and t >= self._next["beacon"]:
+            self._next["beacon"] += 1.0 / self.cfg.beacon_rate
+            self._beacon_seq += 1
+            for m, f in self.filters.items():
+                if f.spec.ranges or f.spec.stop_line:
+                    llh, v, cov = f.beacon()
+                    b = Beacon(self.cfg.vehicle, self._beacon_seq, m, t, llh, v, cov,
+                               first_stopped=self.claims[m])
+                    await self.bus.publish(keys.radio_tx(self.cfg.vehicle), encode(b))
+                    self.counters["beacons_tx"] += 1
+        if self._next["estimate"] is not None and t >= self._next["estimate"]:
+            self._next["estimate"] += 1.0 / self.cfg.estimate_rate
+            for m, f in self.filters.items():
+                s = f.filter.state
+                e = Estimate(self.cfg.vehicle, m, t, s.llh.copy(), s.v.copy(), quat_to_euler(s.q),
+                             f.position_cov, self.claims[m])
+                await self.bus.publish(keys.estimate(self.cfg.vehicle, m), encode(e))
+                self.counters["estimates_tx"] += 1
+        if self._next["diag"] is not None and t >= self._next["diag"]:
+            self._next["diag"] += 1.0
+            counters = dict(self.counters)
+            counters.update({f"seq_{k}": v for k, v in self.seq.counters.items()})
+            for m, tab in self.tables.items():
+                counters.update({f"{m}_{k}": v for k, v in tab.counters.items()})
+            for m, f in self.filters.items():
+                counters.update({f"{m}_{k}": v for k, v in f.counters.items()})
+            status = {"t": t, "neighbours": len(next(iter(self.tables.values())).vehicles()) if self.tables else 0}
+            await self.bus.publish(keys.diag(self.cfg.vehicle), encode(Diagnostics(self.cfg.vehicle, t, counters, status)))
+
+    def _decide(self, t: float) -> None:
+        for m, f in self.filters.items():
+            if not f.spec.stop_line:
+                continue
+            st = f.filter.state
+            speed = float(np.hypot(st.v[0], st.v[1]))
+            if speed < 0.2:
+                if self.stationary_since[m] is None:
+                    self.stationary_since[m] = t
+            else:
+                self.stationary_since[m] = None
+            still = t - self.stationary_since[m] if self.stationary_since[m] is not None else 0.0
+            ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *self.cfg.origin_llh, deg=False)[:2])
+            tab = self.tables[m]
+            nbs = []
+            for other in tab.vehicles():
+                e = tab.entries[other]
+                o_ne = np.array(pymap3d.geodetic2ned(*e.llh, *self.cfg.origin_llh, deg=False)[:2])
+                nbs.append(NeighbourView(other, o_ne, float(np.hypot(*e.v_ned[:2])) < 0.3,
+                                         self.nb_claims.get((other, m), False)))
+            dec = self.detector.decide(ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]), still, nbs)
+            if dec.first != self.claims[m]:
+                self.decision_log.append((t, m, dec.reason))
+                log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,
+                         "first stopped" if dec.first else "not first", t, dec.reason)
+            self.claims[m] = dec.first
+            self.counters["decisions"] += 1
+            if dec.first:
+                f.last_stop_line = -math.inf
+                f.stop_line(self.cfg.lanes[dec.lane].approach, along_only=dec.along_only)

@@ -1,0 +1,45 @@
+"""Agent configurations derived from a scenario (the map and each vehicle's sensor specs)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agent.first_stopped import ApproachLane
+from agent.methods import METHODS, FilterSettings
+from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
+from agent.runtime import AgentConfig
+from hw_emulation.geometry import offset_polyline
+from hw_emulation.scenario import Scenario
+
+from .sp_check import imu_noise_of
+
+
+def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:
+    """Stop line (perpendicular, at the centre-line end) and left lane line of every approach."""
+    out = {}
+    for lane in scn.lanes.values():
+        if not lane.stop_line:
+            continue
+        c = lane.centerline
+        d = c[-1] - c[-2]
+        d = d / np.hypot(*d)
+        left = offset_polyline(c[-2:], -lane.width / 2)
+        approach = StopLineApproach(Line2D(tuple(c[-1]), (-d[1], d[0])), Line2D(tuple(left[-1]), tuple(d)))
+        out[lane.id] = ApproachLane(lane.id, approach, lane.width)
+    return out
+
+
+def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS) -> AgentConfig:
+    """The configuration a vehicle computer would carry for this scenario's site and sensors."""
+    specs = {v.id: v for v in scn.vehicles}
+    if vehicle not in specs:
+        raise ValueError(f"vehicle {vehicle!r} not in scenario {scn.name!r}")
+    sp = specs[vehicle]
+    gm = sp.gnss
+    settings = FilterSettings(imu_noise_of(sp.imu), sigma_uwb=max(scn.uwb.sigma_los, 0.05),
+                              gnss_multipath_sigma=math.hypot(gm.multipath_h, scn.common_mode_sigma),
+                              gnss_multipath_tau=gm.multipath_tau_moving, gnss_white_sigma=max(gm.white_h, 0.1))
+    gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
+    return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh)

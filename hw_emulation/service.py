@@ -1,0 +1,215 @@
+"""The emulator service: publishes a scenario's sensor data on the bus and plays the V2V radio.
+
+Impure shell over the pure emulation. Sensor data go out in sensor-time order: per vehicle, IMU
+batches of ``batch`` samples, GNSS fixes, and UWB ranges to *both* ends of each pair. The radio
+subscribes to the agents' beacons (``radio/tx/*``) and delivers each to every other vehicle
+(``radio/rx/<receiver>``) with the scenario's loss, latency and range limit, on sensor time.
+
+Pacing: ``speed`` = N plays N× real time; ``speed = None`` plays as fast as the slowest agent
+keeps up: publication never runs more than ``lead`` seconds of sensor time ahead of the slowest
+agent's latest estimate, so no sample is dropped by a full queue.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent.nav import earth
+from transport import keys
+from transport.bus import Bus
+from transport.codec import CodecError, decode, encode
+from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, UwbRange
+
+from .emulate import emulate_uwb, emulate_vehicle_sensors
+from .sensors.radio import RadioModel
+from .truth import ScenarioTruth
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RadioStats:
+    sent: int = 0
+    delivered: int = 0
+    lost: int = 0
+    out_of_range: int = 0
+    stale: int = 0
+    codec_errors: int = 0
+
+
+@dataclass
+class EmulatorService:
+    truth: ScenarioTruth
+    bus: Bus
+    seed: int = 0
+    speed: float | None = None
+    batch: int = 10
+    lead: float = 1.0
+    radio_stats: RadioStats = field(default_factory=RadioStats)
+    published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "uwb": 0})
+    agent_time: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        rng = np.random.default_rng(self.seed)
+        self.sensors = emulate_vehicle_sensors(self.truth, rng)
+        self.ranges = emulate_uwb(self.truth, rng)
+        self.radio_rng = np.random.default_rng(self.seed + 1_000_003)
+        self.radio: RadioModel = self.truth.scenario.radio
+        self.ids = sorted(self.truth.vehicles)
+        self._pending: list[tuple[float, str, bytes]] = []  # (deliver at, receiver, payload)
+        self._ge_bad: dict[tuple[str, str], bool] = {}
+        self.now = float(next(iter(self.truth.vehicles.values())).truth.t[0])
+        self.done = asyncio.Event()
+
+    # ----------------------------------------------------------------- radio
+    def _positions(self, t: float) -> dict[str, np.ndarray]:
+        out = {}
+        for vid, vt in self.truth.vehicles.items():
+            k = min(int(np.searchsorted(vt.truth.t, t)), len(vt.truth.t) - 1)
+            out[vid] = vt.truth.llh[k]
+        return out
+
+    def _radio_send(self, payload: bytes) -> None:
+        try:
+            b = decode(payload)
+        except CodecError:
+            self.radio_stats.codec_errors += 1
+            return
+        if not isinstance(b, Beacon) or b.vehicle not in self.truth.vehicles:
+            self.radio_stats.codec_errors += 1
+            return
+        self.radio_stats.sent += 1
+        pos = self._positions(self.now)
+        r = self.radio
+        for rx in self.ids:
+            if rx == b.vehicle:
+                continue
+            d = float(np.linalg.norm(earth.ned_offset(*pos[b.vehicle], *pos[rx])[:2]))
+            if d > r.max_range:
+                self.radio_stats.out_of_range += 1
+                continue
+            link = (b.vehicle, rx)
+            bad = self._ge_bad.get(link, False)
+            u = self.radio_rng.random()
+            bad = (u >= r.ge_p_bad_to_good) if bad else (u < r.ge_p_good_to_bad)
+            self._ge_bad[link] = bad
+            if self.radio_rng.random() < (r.ge_loss_bad if bad else r.loss):
+                self.radio_stats.lost += 1
+                continue
+            if self.radio_rng.random() < r.stale_prob:
+                lat = self.radio_rng.uniform(r.stale_min, r.stale_max)
+                self.radio_stats.stale += 1
+            else:
+                lat = min(r.latency_min + self.radio_rng.exponential(r.jitter_mean), r.latency_max)
+            self._pending.append((self.now + lat, rx, payload))
+
+    async def _radio_deliver(self) -> None:
+        due = [p for p in self._pending if p[0] <= self.now]
+        if not due:
+            return
+        self._pending = [p for p in self._pending if p[0] > self.now]
+        for _, rx, payload in sorted(due, key=lambda p: p[0]):
+            await self.bus.publish(keys.radio_rx(rx), payload)
+            self.radio_stats.delivered += 1
+
+    async def _radio_loop(self) -> None:
+        sub = self.bus.subscribe(keys.ROOT + "/radio/tx/*", 65536)
+        while True:
+            _, payload = await sub.get()
+            self._radio_send(payload)
+
+    async def _watch_agents(self) -> None:
+        sub = self.bus.subscribe(keys.ROOT + "/estimate/**", 65536)
+        while True:
+            _, payload = await sub.get()
+            try:
+                e = decode(payload)
+            except CodecError:
+                continue
+            if isinstance(e, Estimate):
+                self.agent_time[e.vehicle] = max(self.agent_time.get(e.vehicle, -np.inf), e.t)
+
+    # ----------------------------------------------------------------- playback
+    def _events(self):
+        """(time, kind, vehicle or pair, index) in sensor-time order."""
+        ev = []
+        for vid in self.ids:
+            t = self.sensors[vid].imu_t
+            for j in range(self.batch, len(t), self.batch):
+                ev.append((float(t[j]), 1, "imu", vid, j))
+            g = self.sensors[vid].gnss
+            for i in range(len(g.t)):
+                if g.t[i] > t[0] + 1e-9:
+                    ev.append((float(g.t[i]), 0, "gnss", vid, i))
+        for pair, rr in self.ranges.items():
+            for i in np.flatnonzero(np.isfinite(rr.range)):
+                if rr.t[i] > 0:
+                    ev.append((float(rr.t[i]), 0, "uwb", pair, int(i)))
+        ev.sort(key=lambda e: (e[0], e[1]))
+        return ev
+
+    async def run(self, stop: asyncio.Event | None = None) -> None:
+        stop = stop or asyncio.Event()
+        radio = asyncio.create_task(self._radio_loop(), name="radio")
+        watch = asyncio.create_task(self._watch_agents(), name="agent-watch")
+        self.bus.declare_alive(keys.alive("emulator", "main"))
+        wall0, t0 = time.monotonic(), self.now
+        seq: dict[str, int] = {}
+        try:
+            for t, _, kind, who, idx in self._events():
+                if stop.is_set():
+                    break
+                await self._pace(t, wall0, t0, stop)
+                self.now = t
+                await self._radio_deliver()
+                if kind == "imu":
+                    s = self.sensors[who]
+                    j0 = idx - self.batch
+                    msg = ImuBatch(who, seq.setdefault(who, 0), s.imu_t[j0 + 1: idx + 1],
+                                   np.diff(s.imu_t[j0: idx + 1]), s.imu.dtheta[j0: idx], s.imu.dvel[j0: idx])
+                    seq[who] += 1
+                    await self.bus.publish(keys.imu(who), encode(msg))
+                    self.published["imu"] += 1
+                elif kind == "gnss":
+                    g = self.sensors[who].gnss
+                    msg = GnssFix(who, idx, float(g.t[idx]), g.llh[idx], g.v_ned[idx], g.sigma_ned[idx], g.sigma_v)
+                    await self.bus.publish(keys.gnss(who), encode(msg))
+                    self.published["gnss"] += 1
+                else:
+                    a, b = who
+                    rr = self.ranges[who]
+                    payload = encode(UwbRange(a, b, idx, float(rr.t[idx]), float(rr.range[idx])))
+                    await self.bus.publish(keys.uwb(a), payload)
+                    await self.bus.publish(keys.uwb(b), payload)
+                    self.published["uwb"] += 1
+            # let the last beacons and estimates through
+            await self._pace(self.now + self.lead, wall0, t0, stop, final=True)
+        finally:
+            radio.cancel()
+            watch.cancel()
+            self.done.set()
+
+    async def _pace(self, t: float, wall0: float, t0: float, stop: asyncio.Event, final: bool = False) -> None:
+        if self.speed:
+            delay = (t - t0) / self.speed - (time.monotonic() - wall0)
+            if delay > 0:
+                await asyncio.sleep(delay)
+            else:
+                await asyncio.sleep(0)
+            return
+        # as fast as the slowest agent keeps up
+        deadline = time.monotonic() + 30.0
+        while not stop.is_set():
+            slow = min((self.agent_time.get(v, -np.inf) for v in self.ids), default=-np.inf)
+            if slow >= t - self.lead or (not final and slow == -np.inf and t - t0 < self.lead):
+                break
+            if time.monotonic() > deadline:
+                log.warning("agents stalled at t=%.2f (slowest %.2f); continuing", t, slow)
+                break
+            await asyncio.sleep(0.001)
+        await asyncio.sleep(0)
