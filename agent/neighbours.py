@@ -10,6 +10,7 @@ counted and ignored.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,7 +59,9 @@ class NeighbourTable:
     timeout: float = 2.0
     sigma_v: float = 0.5
     accel_psd: float = 1.0
+    history: int = 10  #: beacons kept per neighbour; the one nearest the requested time is used
     entries: dict[str, _Entry] = field(default_factory=dict)
+    _past: dict[str, deque] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=lambda: {
         "beacons": 0, "duplicate_or_old": 0, "stale": 0, "timed_out": 0})
 
@@ -69,8 +72,10 @@ class NeighbourTable:
         if old is not None and (seq <= old.seq or t < old.t):
             self.counters["duplicate_or_old"] += 1
             return False
-        self.entries[vehicle] = _Entry(seq, float(t), np.asarray(llh, float), np.asarray(v_ned, float),
-                                       np.asarray(cov_pos, float), method, float(now))
+        e = _Entry(seq, float(t), np.asarray(llh, float), np.asarray(v_ned, float),
+                   np.asarray(cov_pos, float), method, float(now))
+        self.entries[vehicle] = e
+        self._past.setdefault(vehicle, deque(maxlen=self.history)).append(e)
         self.counters["beacons"] += 1
         return True
 
@@ -79,18 +84,22 @@ class NeighbourTable:
         gone = [v for v, e in self.entries.items() if now - e.received_at > self.timeout]
         for v in gone:
             del self.entries[v]
+            self._past.pop(v, None)
         self.counters["timed_out"] += len(gone)
         return gone
 
     def remove(self, vehicle: str) -> None:
         """Forget a neighbour (e.g. its liveliness token disappeared)."""
         self.entries.pop(vehicle, None)
+        self._past.pop(vehicle, None)
 
     def at(self, vehicle: str, t: float) -> NeighbourState | None:
         """The neighbour's position and covariance at time ``t``, or None if unknown or stale."""
-        e = self.entries.get(vehicle)
-        if e is None:
+        past = self._past.get(vehicle)
+        if not past:
             return None
+        # the newest beacon not after t (a receiver may run behind the sender), else the oldest
+        e = next((b for b in reversed(past) if b.t <= t), past[0])
         age = t - e.t
         if age > self.max_age or age < -self.max_age:
             self.counters["stale"] += 1

@@ -47,6 +47,9 @@ class AgentConfig:
     estimate_rate: float = 10.0
     decision_rate: float = 1.0
     queue_size: int = 4096
+    #: IMU batches are processed only once this much newer IMU data has arrived [s], so that
+    #: GNSS/UWB of earlier times, travelling on other topics, are applied in order
+    imu_hold: float = 0.25
 
 
 class Agent:
@@ -68,6 +71,7 @@ class Agent:
                                          "not_for_me": 0, "before_init": 0, "decisions": 0}
         self.decision_log: list[tuple[float, str, str]] = []
         self._pending_fix: GnssFix | None = None
+        self._imu_buffer: list[ImuBatch] = []
         self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
         self._beacon_seq = 0
 
@@ -87,6 +91,8 @@ class Agent:
             await stop.wait()
             for t in tasks:
                 t.cancel()
+        while self._imu_buffer:  # flush held IMU data
+            await self._imu(self._imu_buffer.pop(0))
         self.dropped = {k: s.dropped for k, s in subs.items()}
 
     def _on_alive(self, key: str, alive: bool) -> None:
@@ -119,7 +125,10 @@ class Agent:
                 self.counters["not_for_me"] += 1
                 return
             self.counters["imu_batches"] += 1
-            await self._imu(msg)
+            self._imu_buffer.append(msg)
+            newest = float(msg.t[-1])
+            while self._imu_buffer and float(self._imu_buffer[0].t[-1]) <= newest - self.cfg.imu_hold:
+                await self._imu(self._imu_buffer.pop(0))
         elif isinstance(msg, GnssFix):
             if msg.vehicle != v:
                 self.counters["not_for_me"] += 1

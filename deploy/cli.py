@@ -45,6 +45,22 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", type=Path, default=Path("runs/replay"), help="output directory")
     rp.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
 
+    ag = sub.add_parser("agent", help="run one vehicle agent (Zenoh)")
+    ag.add_argument("--vehicle", help="vehicle id (overrides the config file)")
+    ag.add_argument("--config", type=Path, required=True, help="agent TOML (see README)")
+    em = sub.add_parser("emulate", help="run the emulator service (sensors, UWB, V2V radio) over Zenoh")
+    em.add_argument("scenario", help="shipped scenario name or .toml")
+    em.add_argument("--seed", type=int, default=0)
+    em.add_argument("--speed", type=float, default=None, help="real-time factor (default: as fast as agents keep up)")
+    em.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    em.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    rn = sub.add_parser("run", help="run a fleet on this machine over Zenoh and evaluate it")
+    rn.add_argument("scenario", nargs="?", default="paper-1", help="scenario (default paper-1)")
+    rn.add_argument("--methods", nargs="+", default=None, help="methods (default: SP SL-SP CP SL-CP)")
+    rn.add_argument("--speed", type=float, default=None, help="real-time factor (default: as fast as agents keep up)")
+    rn.add_argument("--seed", type=int, default=0)
+    rn.add_argument("--out", type=Path, default=None, help="run directory (default runs/<scenario>-seed<S>)")
+
     sp = sub.add_parser("scenario", help="list or show emulation scenarios")
     ssub = sp.add_subparsers(dest="scenario_command", required=True)
     ssub.add_parser("list", help="list the shipped scenarios")
@@ -144,6 +160,20 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from agent.methods import METHODS
+
+    from .launcher import run_fleet
+
+    methods = tuple(args.methods) if args.methods else METHODS
+    out = args.out or Path("runs") / f"{args.scenario.replace('/', '_')}-seed{args.seed}"
+    print(f"slcp run {args.scenario}: {', '.join(methods)}; writing {out}")
+    m = run_fleet(args.scenario, methods, args.speed, args.seed, out, progress=lambda s: print("  " + s, flush=True))
+    print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
+    print((out / "report.md").read_text())
+    return 0
+
+
 def _evaluate(args: argparse.Namespace, scn, truth) -> int:
     import numpy as np
 
@@ -223,6 +253,23 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_replay(args)
         if args.command == "scenario":
             return _cmd_scenario(args)
+        if args.command == "agent":
+            import asyncio
+
+            from .processes import agent_main
+
+            return asyncio.run(agent_main(args.config, args.vehicle))
+        if args.command == "emulate":
+            import asyncio
+
+            from transport.zenoh_bus import ZenohConfig
+
+            from .processes import emulator_main
+
+            z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
+            return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z))
+        if args.command == "run":
+            return _cmd_run(args)
     except (DatasetError, ValueError) as exc:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2

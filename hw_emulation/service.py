@@ -7,7 +7,8 @@ subscribes to the agents' beacons (``radio/tx/*``) and delivers each to every ot
 
 Pacing: ``speed`` = N plays N× real time; ``speed = None`` plays as fast as the slowest agent
 keeps up: publication never runs more than ``lead`` seconds of sensor time ahead of the slowest
-agent's latest estimate, so no sample is dropped by a full queue.
+agent's latest estimate (so no sample is dropped by a full queue and the agents stay within
+``lead`` of each other), and never faster than ``max_speed``× real time.
 """
 
 from __future__ import annotations
@@ -49,7 +50,10 @@ class EmulatorService:
     seed: int = 0
     speed: float | None = None
     batch: int = 10
-    lead: float = 1.0
+    lead: float = 0.5
+    #: in agent-paced mode, never faster than this real-time factor: spreads publication so that
+    #: reordering across topics stays far below the agents' IMU hold time
+    max_speed: float = 20.0
     radio_stats: RadioStats = field(default_factory=RadioStats)
     published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "uwb": 0})
     agent_time: dict[str, float] = field(default_factory=dict)
@@ -106,7 +110,8 @@ class EmulatorService:
                 self.radio_stats.stale += 1
             else:
                 lat = min(r.latency_min + self.radio_rng.exponential(r.jitter_mean), r.latency_max)
-            self._pending.append((self.now + lat, rx, payload))
+            # the radio works in sensor time: the beacon reaches rx at its own time plus latency
+            self._pending.append((b.t + lat, rx, payload))
 
     async def _radio_deliver(self) -> None:
         due = [p for p in self._pending if p[0] <= self.now]
@@ -202,7 +207,10 @@ class EmulatorService:
             else:
                 await asyncio.sleep(0)
             return
-        # as fast as the slowest agent keeps up
+        # as fast as the slowest agent keeps up (and no faster than max_speed)
+        ahead = (t - t0) / self.max_speed - (time.monotonic() - wall0)
+        if ahead > 0:
+            await asyncio.sleep(ahead)
         deadline = time.monotonic() + 30.0
         while not stop.is_set():
             slow = min((self.agent_time.get(v, -np.inf) for v in self.ids), default=-np.inf)

@@ -1,0 +1,140 @@
+"""Process entry points: one agent (``slcp agent``) and the emulator service (``slcp emulate``),
+each an asyncio program over a Zenoh session that shuts down cleanly on SIGINT/SIGTERM.
+
+Agent configuration file (TOML)::
+
+    [agent]
+    vehicle = "V1"                              # may also be given with --vehicle
+    scenario = "paper-1"                        # site map and sensor characteristics
+    methods = ["SP", "SL-SP", "CP", "SL-CP"]
+
+    [zenoh]
+    mode = "peer"                               # peer | client | router
+    connect = ["tcp/127.0.0.1:7447"]
+    listen = []
+    lease_ms = 2000
+    config_file = ""                            # optional Zenoh JSON5 (TLS, ACL)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import tomllib
+from pathlib import Path
+
+from transport.zenoh_bus import ZenohConfig
+
+log = logging.getLogger(__name__)
+
+
+class ConfigError(ValueError):
+    """A process configuration file is invalid (the message names the field)."""
+
+
+def zenoh_config(d: dict, source: str) -> ZenohConfig:
+    allowed = {"mode", "connect", "listen", "lease_ms", "config_file", "multicast_scouting"}
+    for k in d:
+        if k not in allowed:
+            raise ConfigError(f"{source}: zenoh.{k}: unknown field (known: {', '.join(sorted(allowed))})")
+    mode = d.get("mode", "peer")
+    if mode not in ("peer", "client", "router"):
+        raise ConfigError(f"{source}: zenoh.mode: must be peer, client or router, got {mode!r}")
+    for k in ("connect", "listen"):
+        v = d.get(k, [])
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            raise ConfigError(f"{source}: zenoh.{k}: must be a list of endpoint strings")
+    lease = d.get("lease_ms", 2000)
+    if isinstance(lease, bool) or not isinstance(lease, int) or lease < 100:
+        raise ConfigError(f"{source}: zenoh.lease_ms: must be an integer >= 100")
+    return ZenohConfig(mode=mode, connect=tuple(d.get("connect", [])), listen=tuple(d.get("listen", [])),
+                       lease_ms=lease, config_file=d.get("config_file") or None,
+                       multicast_scouting=bool(d.get("multicast_scouting", False)))
+
+
+def load_agent_config(path: Path, vehicle: str | None):
+    from agent.methods import METHODS, MethodSpec
+    from hw_emulation.scenario import load_scenario
+
+    from .agent_configs import agent_config
+
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+    a = data.get("agent", {})
+    vid = vehicle or a.get("vehicle")
+    if not isinstance(vid, str) or not vid:
+        raise ConfigError(f"{path}: agent.vehicle: missing (or give --vehicle)")
+    methods = a.get("methods", list(METHODS))
+    if not isinstance(methods, list):
+        raise ConfigError(f"{path}: agent.methods: must be a list")
+    for m in methods:
+        try:
+            MethodSpec.of(m)
+        except ValueError as exc:
+            raise ConfigError(f"{path}: agent.methods: {exc}") from None
+    scn = load_scenario(a.get("scenario", "paper-1"))
+    return agent_config(scn, vid, tuple(methods)), zenoh_config(data.get("zenoh", {}), str(path))
+
+
+def _install_signals(stop: asyncio.Event) -> None:
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+        except (NotImplementedError, RuntimeError):  # pragma: no cover - non-main thread / platform
+            pass
+
+
+async def agent_main(config_path: Path, vehicle: str | None) -> int:
+    from agent.runtime import Agent
+    from transport.zenoh_bus import ZenohBus
+
+    cfg, zcfg = load_agent_config(config_path, vehicle)
+    stop = asyncio.Event()
+    _install_signals(stop)
+    bus = ZenohBus(zcfg)
+    agent = Agent(cfg, bus)
+    try:
+        await agent.run(stop)
+    finally:
+        await bus.close()
+    log.info("%s: stopped; counters %s", cfg.vehicle, agent.counters)
+    return 0
+
+
+async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: ZenohConfig,
+                        wait_for_agents: float = 20.0) -> int:
+    from hw_emulation.scenario import load_scenario
+    from hw_emulation.service import EmulatorService
+    from hw_emulation.truth import build_truth
+    from transport import keys
+    from transport.zenoh_bus import ZenohBus
+
+    scn = load_scenario(scenario)
+    truth = build_truth(scn)
+    stop = asyncio.Event()
+    _install_signals(stop)
+    bus = ZenohBus(zcfg)
+    try:
+        alive: set[str] = set()
+        bus.watch_alive(keys.ROOT + "/alive/agent/*",
+                        lambda k, up: alive.add(k.rsplit("/", 1)[-1]) if up else alive.discard(k.rsplit("/", 1)[-1]))
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + wait_for_agents
+        while not stop.is_set() and not set(truth.vehicles) <= alive and loop.time() < deadline:
+            await asyncio.sleep(0.05)
+        missing = set(truth.vehicles) - alive
+        if missing:
+            log.warning("starting without agents %s", sorted(missing))
+        await asyncio.sleep(0.3)  # let the agents' subscriptions propagate
+        emu = EmulatorService(truth, bus, seed=seed, speed=speed)
+        await emu.run(stop)
+        log.info("emulator done: published %s, radio %s", emu.published, emu.radio_stats)
+    finally:
+        await bus.close()
+    return 0
