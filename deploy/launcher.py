@@ -15,6 +15,7 @@ Run directory::
     estimates/<vehicle>.csv          time, method, lat, lon, h, velocity, attitude, sigma, errors
     metrics.json                     RMSE per window, vehicle and method; detection; counters
     report.md                        paper-style tables beside the paper's figures
+    errors.png, map.png              error over time per vehicle and method; the map
 """
 
 from __future__ import annotations
@@ -216,6 +217,14 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
                     ts.append(r["t"])
                     eh.append((math.hypot(e[0], e[1]), along, cross))
                 series[(vid, m)] = (np.array(ts), np.array(eh).reshape(-1, 3))
+    try:
+        from .plots import plot_run_errors, plot_scenario
+
+        plot_run_errors(series, windows, methods, out / "errors.png",
+                        f"{truth.scenario.name}: horizontal error per vehicle and method")
+        plot_scenario(truth, out / "map.png", event_times(truth))
+    except ImportError:  # pragma: no cover - matplotlib is a dependency
+        log.warning("matplotlib unavailable: no plots")
     for wname, (a, b) in windows.items():
         for (vid, m), (ts, eh) in series.items():
             sel = (ts >= a) & (ts <= b)
@@ -245,5 +254,6 @@ def report_markdown(scn, metrics: dict) -> str:
                                + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}")
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
-    lines += ["## Events", "", ", ".join(f"{k} = {v:.1f} s" for k, v in metrics["events"].items()), ""]
+    lines += ["## Events", "", ", ".join(f"{k} = {v:.1f} s" for k, v in metrics["events"].items()), "",
+              "![errors](errors.png)", "", "![map](map.png)", ""]
     return "\n".join(lines)

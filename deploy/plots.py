@@ -83,3 +83,27 @@ def plot_scenario(truth, path: Path, events: dict[str, float] | None = None) -> 
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_run_errors(series: dict, windows: dict, methods, path: Path, title: str) -> None:
+    """Horizontal error over time per vehicle (rows) and method (colours), like the paper's
+    Fig. 9/11; evaluation windows shaded."""
+    vehicles = sorted({v for v, _ in series})
+    fig, axes = plt.subplots(len(vehicles), 1, figsize=(10, 2.6 * len(vehicles)), sharex=True, squeeze=False)
+    colours = {"SP": "tab:gray", "SL-SP": "tab:red", "CP": "tab:blue", "SL-CP": "tab:green"}
+    for ax, vid in zip(axes[:, 0], vehicles):
+        for i, (w, (a, b)) in enumerate(windows.items()):
+            ax.axvspan(a, b, color="tab:orange", alpha=0.06 + 0.04 * (i % 2), lw=0)
+        for m in methods:
+            ts, eh = series.get((vid, m), (None, None))
+            if ts is not None and len(ts):
+                ax.plot(ts, eh[:, 0], lw=0.9, color=colours.get(m), label=m)
+        ax.set_ylabel(f"{vid} error [m]")
+        ax.set_yscale("symlog", linthresh=0.5)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", ncol=len(methods), fontsize=8)
+    axes[-1, 0].set_xlabel("time [s]")
+    axes[0, 0].set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

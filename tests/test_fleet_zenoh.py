@@ -17,7 +17,8 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
     out = tmp_path / "run"
     m = run_fleet("paper-1", out=out, seed=0)
     assert m["processes"]["exit_codes"] == {"agent-V0": 0, "agent-V1": 0, "agent-V2": 0, "emulator": 0}
-    for name in ("metrics.json", "report.md", "recorded/messages.jsonl", "estimates/V1.csv", "logs/emulator.log"):
+    for name in ("metrics.json", "report.md", "recorded/messages.jsonl", "estimates/V1.csv", "logs/emulator.log",
+                 "errors.png", "map.png"):
         assert (out / name).exists(), name
     diag = m["diagnostics"]
     for vid in ("V0", "V1", "V2"):
