@@ -8,9 +8,15 @@ fix, so the decision is conservative:
 2. associated to approach lanes: heading within ``heading_tol`` of the lane, laterally inside the
    lane up to ``k_sigma`` position σ, and behind the stop line by no more than
    ``l0 + m_xb + 3 σ_xb + k_sigma σ_along + margin``;
-3. no stopped neighbour within ``neighbour_range`` (beacon distance) in those lanes that is not
-   clearly behind (its distance to the stop line must exceed mine by ``behind_margin``), and no
-   such neighbour claiming to be first.
+3. no stopped neighbour within ``neighbour_range`` (beacon distance, widened by my σ) in those
+   lanes that is not clearly behind (its distance to the stop line must exceed mine by
+   ``behind_margin``), and no such neighbour claiming to be first, *unless* it stopped clearly
+   after me (``order_tol``): in a queue the leader stops before its followers, so a neighbour
+   that came to rest after me is behind me or in another lane. A neighbour first heard already
+   stopped counts as stopped before me.
+
+:class:`StopTracker` keeps the bookkeeping around the detector (own stationarity, when each
+neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
 
 If several adjacent lanes sharing the stop line match (lateral uncertainty larger than a lane),
 the decision is *along-only*: the stop line fixes the along-track position, not the lane.
@@ -36,12 +42,15 @@ class ApproachLane:
 
 @dataclass(frozen=True)
 class DetectorSettings:
-    min_stationary: float = 1.0
+    min_stationary: float = 0.5  #: [s] at rest before a claim
     heading_tol: float = math.radians(30.0)
     k_sigma: float = 2.5
     margin: float = 2.0
-    neighbour_range: float = 12.0
+    neighbour_range: float = 15.0  #: [m] plus k_sigma times my horizontal σ
     behind_margin: float = 3.0
+    order_tol: float = 0.5  #: [s] a neighbour at rest this much later than me is behind me
+    stop_speed: float = 0.1  #: [m/s] own filter speed below which the vehicle is at rest
+    neighbour_stop_speed: float = 0.3  #: [m/s] beacon speed below which a neighbour is at rest
 
 
 @dataclass(frozen=True)
@@ -52,6 +61,8 @@ class NeighbourView:
     ne: np.ndarray
     stopped: bool
     claims_first: bool = False
+    #: sensor time [s] at which it came to rest; -inf if first heard at rest, None if moving
+    stopped_since: float | None = None
 
 
 @dataclass(frozen=True)
@@ -60,6 +71,7 @@ class Decision:
     lane: str | None
     along_only: bool
     reason: str
+    vetoed_by: str | None = None  #: the neighbour that may be ahead, if that is the reason
 
 
 class FirstStoppedDetector:
@@ -99,18 +111,99 @@ class FirstStoppedDetector:
         return out
 
     def decide(self, ne: np.ndarray, cov_ne: np.ndarray, yaw: float, stationary_for: float,
-               neighbours: list[NeighbourView]) -> Decision:
+               neighbours: list[NeighbourView], stopped_since: float | None = None) -> Decision:
+        """Decide for a vehicle at ``ne`` (map NED [m], (2,)) with covariance ``cov_ne`` (2, 2)
+        [m²], heading ``yaw`` [rad], at rest for ``stationary_for`` s since ``stopped_since``
+        (sensor time; None disables the queue-order rule)."""
         if stationary_for < self.s.min_stationary:
             return Decision(False, None, False, "moving")
         cands = self.candidates(ne, cov_ne, yaw)
         if not cands:
             return Decision(False, None, False, "not near a stop line")
+        reach = self.s.neighbour_range + self.s.k_sigma * math.sqrt(max(float(np.trace(cov_ne)), 0.0))
         for nb in neighbours:
-            if not nb.stopped or float(np.hypot(*(nb.ne - ne))) > self.s.neighbour_range:
+            if not nb.stopped or float(np.hypot(*(nb.ne - ne))) > reach:
                 continue
+            if (stopped_since is not None and nb.stopped_since is not None
+                    and nb.stopped_since > stopped_since + self.s.order_tol):
+                continue  # came to rest after me: behind me in my lane, or in another lane
             for lid, behind in cands:
                 nb_behind, nb_right = self._geometry(self.lanes[lid], nb.ne)
                 if nb.claims_first or nb_behind < behind + self.s.behind_margin:
-                    return Decision(False, None, False, f"neighbour {nb.vehicle} may be ahead")
+                    return Decision(False, None, False, f"neighbour {nb.vehicle} may be ahead", nb.vehicle)
         lid = min(cands, key=lambda c: c[1])[0]
         return Decision(True, lid, len(cands) > 1, "first stopped" + (" (lane ambiguous)" if len(cands) > 1 else ""))
+
+
+@dataclass
+class _NeighbourStop:
+    t: float
+    speed: float
+    claims_first: bool
+    stopped_since: float | None
+
+
+class StopTracker:
+    """Bookkeeping around :class:`FirstStoppedDetector` for one filter of one vehicle.
+
+    Feed it the neighbours' beacons (:meth:`observe_neighbour`) and call :meth:`decide` at the
+    decision rate with the filter's own estimate. It tracks when this vehicle and each neighbour
+    came to rest (sensor time) and holds the current claim.
+    """
+
+    def __init__(self, detector: FirstStoppedDetector) -> None:
+        self.detector = detector
+        self.s = detector.s
+        self.since: float | None = None
+        self.claim = False
+        self.lane: str | None = None
+        self.along_only = False
+        self.vetoed: str | None = None  #: neighbour that was ahead of me during this stop
+        self._nb: dict[str, _NeighbourStop] = {}
+
+    def observe_neighbour(self, vehicle: str, t: float, speed: float, claims_first: bool) -> None:
+        """A beacon of ``vehicle`` at sensor time ``t`` [s] with horizontal ``speed`` [m/s]."""
+        old = self._nb.get(vehicle)
+        if old is not None and t < old.t:
+            return
+        was = old.stopped_since if old is not None else None
+        if speed < self.s.neighbour_stop_speed:
+            since = -math.inf if old is None else (was if was is not None else t)
+        elif speed < 2.0 * self.s.neighbour_stop_speed and old is not None:
+            since = was  # hysteresis: velocity noise does not restart a neighbour's stop
+        else:
+            since = None
+        self._nb[vehicle] = _NeighbourStop(t, speed, claims_first, since)
+
+    def forget(self, vehicle: str) -> None:
+        self._nb.pop(vehicle, None)
+
+    def decide(self, t: float, ne: np.ndarray, cov_ne: np.ndarray, yaw: float, speed: float,
+               neighbour_ne: dict[str, np.ndarray]) -> tuple[Decision, bool]:
+        """Decide at sensor time ``t`` [s]; ``neighbour_ne`` maps each neighbour heard to its beacon
+        position (map NED [m]). Returns the decision and whether the claim changed."""
+        if speed < self.s.stop_speed:
+            if self.since is None:
+                self.since, self.vetoed = t, None
+        elif speed >= 2.0 * self.s.stop_speed:
+            self.since, self.vetoed = None, None
+        still = t - self.since if self.since is not None else 0.0
+        if self.vetoed is not None:
+            # a vehicle that stopped behind a leader stays off the stop line when the leader leaves
+            dec = Decision(False, None, False, f"stopped behind {self.vetoed}")
+            changed = self.claim
+            self.claim, self.lane, self.along_only = False, None, False
+            return dec, changed
+        nbs = []
+        for v, p in neighbour_ne.items():
+            st = self._nb.get(v)
+            if st is not None:
+                nbs.append(NeighbourView(v, p, st.stopped_since is not None, st.claims_first, st.stopped_since))
+        if speed >= self.s.stop_speed:
+            still = 0.0  # a claim ends as soon as the vehicle moves (the stop itself has hysteresis)
+        dec = self.detector.decide(ne, cov_ne, yaw, still, nbs, self.since)
+        if dec.vetoed_by is not None:
+            self.vetoed = dec.vetoed_by
+        changed = dec.first != self.claim or (dec.first and dec.lane != self.lane)
+        self.claim, self.lane, self.along_only = dec.first, dec.lane, dec.along_only
+        return dec, changed

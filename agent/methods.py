@@ -58,6 +58,10 @@ class FilterSettings:
     gnss_gate: float | None = None
     init_att_sigma: tuple[float, float, float] = (math.radians(2.0), math.radians(2.0), math.radians(5.0))
     init_vel_sigma: float = 0.3
+    #: initial bias uncertainty (the IMU's turn-on bias repeatability) [rad/s], [m/s²];
+    #: None uses the in-run bias sigma of ``noise``
+    init_gyro_bias_sigma: float | None = None
+    init_accel_bias_sigma: float | None = None
     stop_line_interval: float = 1.0  #: apply the stop-line fix at most this often [s]
     max_range: float = 150.0  #: physical gate on UWB ranges [m]
     #: GNSS receiver characteristics: correlated (multipath) error carried as three
@@ -88,8 +92,10 @@ class MethodFilter:
         att = np.array(s.init_att_sigma)
         if not heading_known:
             att[2] = math.radians(60.0)
+        bg0 = math.hypot(n.gyro_bias_sigma, s.init_gyro_bias_sigma or 0.0)
+        ba0 = math.hypot(n.accel_bias_sigma, s.init_accel_bias_sigma or 0.0)
         p0 = np.concatenate([att, [s.init_vel_sigma] * 3, np.maximum(sigma_pos, 0.1),
-                             [max(n.gyro_bias_sigma, 1e-6)] * 3, [max(n.accel_bias_sigma, 1e-4)] * 3]) ** 2
+                             [max(bg0, 1e-6)] * 3, [max(ba0, 1e-4)] * 3]) ** 2
         self.spec = spec
         self.settings = settings
         extra = ()

@@ -23,7 +23,7 @@ from transport.bus import Bus, Subscription
 from transport.codec import CodecError, decode, encode
 from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
 
-from .first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView
+from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
 from .methods import FilterSettings, MethodFilter, MethodSpec, initial_state
 from .nav.measurements.stop_line import StopGapModel
 from .nav.rotation import quat_to_euler
@@ -45,7 +45,7 @@ class AgentConfig:
     origin_llh: tuple[float, float, float]
     beacon_rate: float = 5.0
     estimate_rate: float = 10.0
-    decision_rate: float = 1.0
+    decision_rate: float = 5.0
     queue_size: int = 4096
     #: IMU batches are processed only once this much newer IMU data has arrived [s], so that
     #: GNSS/UWB of earlier times, travelling on other topics, are applied in order
@@ -63,9 +63,7 @@ class Agent:
         self.filters: dict[str, MethodFilter] = {}
         self.tables = {m: NeighbourTable() for m in cfg.methods}
         self.detector = FirstStoppedDetector(cfg.lanes, cfg.gap)
-        self.claims: dict[str, bool] = {m: False for m in cfg.methods}
-        self.nb_claims: dict[tuple[str, str], bool] = {}
-        self.stationary_since: dict[str, float | None] = {m: None for m in cfg.methods}
+        self.trackers = {m: StopTracker(self.detector) for m in cfg.methods if MethodSpec.of(m).stop_line}
         self.counters: dict[str, int] = {"imu_batches": 0, "gnss": 0, "uwb": 0, "beacons_rx": 0,
                                          "beacons_tx": 0, "estimates_tx": 0, "codec_errors": 0,
                                          "not_for_me": 0, "before_init": 0, "decisions": 0}
@@ -100,6 +98,8 @@ class Agent:
             other = key.rsplit("/", 1)[-1]
             for tab in self.tables.values():
                 tab.remove(other)
+            for tr in self.trackers.values():
+                tr.forget(other)
 
     async def _consume(self, kind: str, sub: Subscription) -> None:
         while True:
@@ -153,7 +153,9 @@ class Agent:
             now = self.seq.t if self.seq.t is not None else msg.t
             self.tables[msg.method].update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos,
                                            msg.method, now)
-            self.nb_claims[(msg.vehicle, msg.method)] = msg.first_stopped
+            if msg.method in self.trackers:
+                self.trackers[msg.method].observe_neighbour(msg.vehicle, msg.t, float(np.hypot(*msg.v_ned[:2])),
+                                                            msg.first_stopped)
         else:
             self.counters["not_for_me"] += 1
 
@@ -215,7 +217,7 @@ class Agent:
                 if f.spec.ranges or f.spec.stop_line:
                     llh, v, cov = f.beacon()
                     b = Beacon(self.cfg.vehicle, self._beacon_seq, m, t, llh, v, cov,
-                               first_stopped=self.claims[m])
+                               first_stopped=self.claim(m))
                     await self.bus.publish(keys.radio_tx(self.cfg.vehicle), encode(b))
                     self.counters["beacons_tx"] += 1
         if self._next["estimate"] is not None and t >= self._next["estimate"]:
@@ -223,7 +225,7 @@ class Agent:
             for m, f in self.filters.items():
                 s = f.filter.state
                 e = Estimate(self.cfg.vehicle, m, t, s.llh.copy(), s.v.copy(), quat_to_euler(s.q),
-                             f.position_cov, self.claims[m])
+                             f.position_cov, self.claim(m))
                 await self.bus.publish(keys.estimate(self.cfg.vehicle, m), encode(e))
                 self.counters["estimates_tx"] += 1
         if self._next["diag"] is not None and t >= self._next["diag"]:
@@ -237,33 +239,26 @@ class Agent:
             status = {"t": t, "neighbours": len(next(iter(self.tables.values())).vehicles()) if self.tables else 0}
             await self.bus.publish(keys.diag(self.cfg.vehicle), encode(Diagnostics(self.cfg.vehicle, t, counters, status)))
 
+    def claim(self, method: str) -> bool:
+        """Whether ``method``'s filter currently claims "first stopped"."""
+        tr = self.trackers.get(method)
+        return tr is not None and tr.claim
+
     def _decide(self, t: float) -> None:
-        for m, f in self.filters.items():
-            if not f.spec.stop_line:
-                continue
+        for m, tr in self.trackers.items():
+            f = self.filters[m]
             st = f.filter.state
-            speed = float(np.hypot(st.v[0], st.v[1]))
-            if speed < 0.2:
-                if self.stationary_since[m] is None:
-                    self.stationary_since[m] = t
-            else:
-                self.stationary_since[m] = None
-            still = t - self.stationary_since[m] if self.stationary_since[m] is not None else 0.0
             ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *self.cfg.origin_llh, deg=False)[:2])
             tab = self.tables[m]
-            nbs = []
-            for other in tab.vehicles():
-                e = tab.entries[other]
-                o_ne = np.array(pymap3d.geodetic2ned(*e.llh, *self.cfg.origin_llh, deg=False)[:2])
-                nbs.append(NeighbourView(other, o_ne, float(np.hypot(*e.v_ned[:2])) < 0.3,
-                                         self.nb_claims.get((other, m), False)))
-            dec = self.detector.decide(ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]), still, nbs)
-            if dec.first != self.claims[m]:
+            nb_ne = {o: np.array(pymap3d.geodetic2ned(*tab.entries[o].llh, *self.cfg.origin_llh, deg=False)[:2])
+                     for o in tab.vehicles()}
+            dec, changed = tr.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
+                                     float(np.hypot(st.v[0], st.v[1])), nb_ne)
+            if changed:
                 self.decision_log.append((t, m, dec.reason))
                 log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,
                          "first stopped" if dec.first else "not first", t, dec.reason)
-            self.claims[m] = dec.first
+                f.last_stop_line = -math.inf  # a new claim fixes at once
             self.counters["decisions"] += 1
             if dec.first:
-                f.last_stop_line = -math.inf
                 f.stop_line(self.cfg.lanes[dec.lane].approach, along_only=dec.along_only)

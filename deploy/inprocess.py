@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pymap3d
 
-from agent.first_stopped import FirstStoppedDetector, NeighbourView
+from agent.first_stopped import FirstStoppedDetector, StopTracker
 from agent.methods import METHODS, MethodFilter, MethodSpec, initial_state
 from agent.nav import earth
 from agent.nav.rotation import quat_to_euler
@@ -27,7 +27,7 @@ from .agent_configs import agent_config, approach_lanes
 
 
 BEACON_RATE = 5.0
-DECISION_RATE = 1.0
+DECISION_RATE = 5.0
 RECORD_STEP = 10
 
 
@@ -38,6 +38,7 @@ class RunResult:
     sigma: dict[tuple[str, str], np.ndarray]
     first: dict[tuple[str, str], np.ndarray]  #: detector decisions at the record times
     counters: dict[tuple[str, str], dict[str, int]] = field(default_factory=dict)
+    decisions: list[tuple[float, str, str, str]] = field(default_factory=list)  #: (t, vehicle, method, reason)
 
 
 def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS) -> RunResult:
@@ -63,8 +64,13 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
             filters[(vid, m)] = MethodFilter(MethodSpec.of(m), st0.copy(), g.sigma_ned[0], settings, float(t[0]),
                                              gap, scn.origin_llh, heading_known=np.hypot(*g.v_ned[0, :2]) > 1.0)
     tables = {(vid, m): NeighbourTable() for vid in ids for m in methods}
-    claims: dict[tuple[str, str], bool] = {k: False for k in filters}
-    stationary_since: dict[tuple[str, str], float | None] = {k: None for k in filters}
+    trackers = {(vid, m): StopTracker(detectors[vid]) for vid in ids for m in methods if MethodSpec.of(m).stop_line}
+
+    decisions: list[tuple[float, str, str, str]] = []
+
+    def claim_of(vid: str, m: str) -> bool:
+        tr = trackers.get((vid, m))
+        return tr is not None and tr.claim
 
     # beacon schedule and radio fates per directed pair
     step = int(round(scn.imu_rate / BEACON_RATE))
@@ -109,13 +115,15 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                     llh, v, cov = filters[(a, m)].beacon()
                     for b in ids:
                         if b != a and fates[(a, b)].delivered[j]:
-                            pending.append((float(fates[(a, b)].t_arrive[j]), a, b, m, (j, tk, llh, v, cov)))
+                            pending.append((float(fates[(a, b)].t_arrive[j]), a, b, m,
+                                            (j, tk, llh, v, cov, claim_of(a, m))))
         if pending:
             still = []
             for item in pending:
-                arrive, a, b, m, (seq, tb, llh, v, cov) = item
+                arrive, a, b, m, (seq, tb, llh, v, cov, claim_at_send) = item
                 if arrive <= tk:
-                    tables[(b, m)].update(a, seq, tb, llh, v, cov, m, now=tk)
+                    if tables[(b, m)].update(a, seq, tb, llh, v, cov, m, now=tk) and (b, m) in trackers:
+                        trackers[(b, m)].observe_neighbour(a, tb, float(np.hypot(v[0], v[1])), claim_at_send)
                 else:
                     still.append(item)
             pending = still
@@ -133,41 +141,29 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                                 filters[(me, m)].range(nb, float(rr.range[r_i]))
         # first-stopped decisions and stop-line fixes
         if (k + 1) % dec_step == 0:
-            for key, f in filters.items():
-                vid, m = key
-                if not MethodSpec.of(m).stop_line:
-                    continue
+            for key, tr in trackers.items():
+                f = filters[key]
                 st = f.filter.state
-                speed = float(np.hypot(st.v[0], st.v[1]))
-                if speed < 0.2:
-                    stationary_since[key] = stationary_since[key] if stationary_since[key] is not None else tk
-                else:
-                    stationary_since[key] = None
-                still_for = tk - stationary_since[key] if stationary_since[key] is not None else 0.0
                 ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *scn.origin_llh, deg=False)[:2])
-                nbs = []
-                for other in tables[key].vehicles():
-                    e = tables[key].entries[other]
-                    o_ne = np.array(pymap3d.geodetic2ned(*e.llh, *scn.origin_llh, deg=False)[:2])
-                    nbs.append(NeighbourView(other, o_ne, float(np.hypot(*e.v_ned[:2])) < 0.3,
-                                             claims.get((other, m), False)))
-                yaw = float(quat_to_euler(st.q)[2])
-                dec = detectors[vid].decide(ne, f.filter.position_cov[:2, :2], yaw, still_for, nbs)
-                claims[key] = dec.first
-                if dec.first:
+                tab = tables[key]
+                nb_ne = {o: np.array(pymap3d.geodetic2ned(*tab.entries[o].llh, *scn.origin_llh, deg=False)[:2])
+                         for o in tab.vehicles()}
+                dec, changed = tr.decide(tk, ne, f.filter.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
+                                         float(np.hypot(st.v[0], st.v[1])), nb_ne)
+                if changed:
                     f.last_stop_line = -math.inf
+                    decisions.append((tk, key[0], key[1], dec.reason))
+                if dec.first:
                     f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only)
         if (k + 1) % RECORD_STEP == 0:
             rec_t.append(tk)
             for (vid, m), f in filters.items():
                 s = f.filter.state
-                if claims[(vid, m)] and float(np.hypot(s.v[0], s.v[1])) > 0.15:
-                    claims[(vid, m)] = False  # moving again: no longer first stopped
                 e = earth.ned_offset(s.lat, s.lon, s.h, *truth.vehicles[vid].truth.llh[k + 1])
                 p = f.filter.position_cov
                 err[(vid, m)].append(math.hypot(e[0], e[1]))
                 sig[(vid, m)].append(math.sqrt(p[0, 0] + p[1, 1]))
-                first[(vid, m)].append(claims[(vid, m)])
+                first[(vid, m)].append(claim_of(vid, m))
     return RunResult(np.array(rec_t), {k: np.array(v) for k, v in err.items()},
                      {k: np.array(v) for k, v in sig.items()}, {k: np.array(v) for k, v in first.items()},
-                     {k: dict(f.counters) for k, f in filters.items()})
+                     {k: dict(f.counters) for k, f in filters.items()}, decisions)

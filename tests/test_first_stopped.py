@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView
+from agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView, StopTracker
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
 
 GAP = StopGapModel(1.5, 0.3, 1.75, 0.15, 2.5)
@@ -53,3 +53,52 @@ def test_ambiguous_adjacent_lanes_give_an_along_only_fix() -> None:
     assert d.first and d.along_only
     d = det.decide(p, np.diag([0.04, 0.04]), math.pi / 2, 3.0, [])
     assert d.first and not d.along_only and d.lane == "EB_L"
+
+
+def _queue(err_ahead: float):
+    """Leader A stops 4 m behind the NB stop line; follower B stops 7 m behind A. Both estimates
+    carry a 3 m σ; ``err_ahead`` moves B's beacon forward (an along-track error)."""
+    a = np.array([-15.0, 1.75])
+    b = np.array([-22.0 + err_ahead, 1.75])
+    return a, b, np.eye(2) * 9.0
+
+
+def test_a_follower_that_stops_after_me_does_not_veto_even_if_its_estimate_looks_ahead() -> None:
+    a, b, cov = _queue(err_ahead=8.0)  # B's beacon is 1 m *ahead* of A
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    for k in range(30):  # 6 s at 5 Hz: A at rest from t = 0; B moving until t = 2 s, then at rest
+        t = 0.2 * k
+        tr.observe_neighbour("B", t, 2.0 if t < 2.0 else 0.0, False)
+        dec, _ = tr.decide(t, a, cov, 0.0, 0.0, {"B": b})
+    assert dec.first and tr.claim
+
+
+def test_a_neighbour_already_at_rest_when_first_heard_vetoes_and_the_veto_sticks() -> None:
+    a, b, cov = _queue(err_ahead=0.0)
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    tr.observe_neighbour("A", 0.0, 0.0, True)  # first heard at rest: counts as stopped before me
+    for k in range(10):
+        dec, _ = tr.decide(0.2 * k, b, cov, 0.0, 0.0, {"A": a})
+    assert not dec.first and tr.vetoed == "A"
+    # the leader drives off at the green: B, still at rest 7 m back, must not claim the stop line
+    for k in range(10, 20):
+        tr.observe_neighbour("A", 0.2 * k, 3.0, False)
+        dec, _ = tr.decide(0.2 * k, b, cov, 0.0, 0.0, {"A": a + [10.0, 0.0]})
+    assert not dec.first and "stopped behind A" in dec.reason
+    # once B moves and stops again at the line with nobody ahead, it may claim
+    tr.decide(4.2, b, cov, 0.0, 2.0, {})
+    for k in range(22, 30):
+        dec, _ = tr.decide(0.2 * k, a, cov, 0.0, 0.0, {})
+    assert dec.first
+
+
+def test_a_claim_ends_as_soon_as_the_vehicle_moves_and_neighbour_noise_does_not_restart_a_stop() -> None:
+    a, b, cov = _queue(err_ahead=0.0)
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    for k in range(10):
+        tr.observe_neighbour("B", 0.2 * k, 0.35 if k % 2 else 0.1, False)  # noise around the threshold
+        dec, _ = tr.decide(0.2 * k, b, cov, 0.0, 0.0, {})
+    assert dec.first
+    assert tr._nb["B"].stopped_since == -np.inf  # first heard at rest, never "restarted" by noise
+    dec, changed = tr.decide(2.2, b, cov, 0.0, 0.15, {})
+    assert not dec.first and changed
