@@ -42,7 +42,7 @@ class ApproachLane:
 
 @dataclass(frozen=True)
 class DetectorSettings:
-    min_stationary: float = 0.5  #: [s] at rest before a claim
+    min_stationary: float = 0.3  #: [s] at rest before a claim
     heading_tol: float = math.radians(30.0)
     k_sigma: float = 2.5
     margin: float = 2.0

@@ -15,10 +15,12 @@ No I/O here: the agent runtime (asyncio shell) feeds measurements in sensor-time
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
+from .nav import earth
 from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
 from .nav.kalman import Measurement, UpdateResult
@@ -108,13 +110,35 @@ class MethodFilter:
         self.heading_known = heading_known
         self.last_stop_line = -math.inf
         self.counters = {"gnss": 0, "ranges": 0, "ranges_rejected": 0, "stop_line": 0}
+        # INS displacement (NED, m) integrated from the nominal velocity, unaffected by updates:
+        # places a delayed range at its own time (p(t) = p(now) - (D(now) - D(t)))
+        self._disp = [0.0, 0.0, 0.0]
+        self._disp_hist: deque[tuple[float, float, float, float]] = deque(maxlen=64)
+        self._disp_hist.append((t, 0.0, 0.0, 0.0))
 
     @property
     def t(self) -> float:
         return self.filter.t
 
     def propagate(self, dtheta, dvel, dt: float) -> None:
+        v = self.filter.state.v
+        d = self._disp
+        d[0] += float(v[0]) * dt
+        d[1] += float(v[1]) * dt
+        d[2] += float(v[2]) * dt
         self.filter.propagate(dtheta, dvel, dt)
+        if self.filter.t - self._disp_hist[-1][0] >= 0.05:
+            self._disp_hist.append((self.filter.t, d[0], d[1], d[2]))
+
+    def displacement_since(self, t: float) -> np.ndarray:
+        """INS displacement [m] (NED, (3,)) from time ``t`` to the filter time (0 if ``t`` is
+        not in the recent history, which spans about 3 s)."""
+        h = self._disp_hist
+        if t >= self.filter.t or t < h[0][0]:
+            return np.zeros(3)
+        ts = [x[0] for x in h]
+        past = [float(np.interp(t, ts, [x[i] for x in h])) for i in (1, 2, 3)]
+        return np.array(self._disp) - np.array(past)
 
     def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float) -> None:
         st = self.filter.state
@@ -144,14 +168,21 @@ class MethodFilter:
         self.counters["stop_line"] += int(res.accepted)
         return res
 
-    def range(self, neighbour: NeighbourState, measured: float) -> UpdateResult | None:
-        """Fuse a UWB range to a neighbour (CP methods; physical and NIS gates)."""
+    def range(self, neighbour: NeighbourState, measured: float, t: float | None = None) -> UpdateResult | None:
+        """Fuse a UWB range [m] to a neighbour (CP methods; physical and NIS gates), measured at
+        sensor time ``t`` [s] (default: now; earlier for a range deferred until the neighbour's
+        beacon of that time arrived)."""
         if not self.spec.ranges:
             return None
         if not 0.0 < measured < self.settings.max_range:
             self.counters["ranges_rejected"] += 1
             return None
-        m = range_measurement(self.filter.state, measured, self.settings.sigma_uwb, neighbour.llh,
+        nb_llh = neighbour.llh
+        if t is not None and t < self.t:
+            # a delayed range: move the neighbour by my displacement since t, which keeps the
+            # relative geometry of time t while the Jacobian acts on my current error
+            nb_llh = earth.offset_llh(nb_llh, self.displacement_since(t))
+        m = range_measurement(self.filter.state, measured, self.settings.sigma_uwb, nb_llh,
                               neighbour.cov_ned, own_cov_ned=self.filter.position_cov,
                               second_order=self.settings.second_order_ranges)
         res = self.filter.update(m, self.settings.range_gate)

@@ -98,19 +98,22 @@ class NeighbourTable:
         past = self._past.get(vehicle)
         if not past:
             return None
-        # the newest beacon not after t (a receiver may run behind the sender), else the oldest
-        e = next((b for b in reversed(past) if b.t <= t), past[0])
+        # the beacon nearest in time: extrapolated forwards, or backwards from a newer one
+        e = min(past, key=lambda b: abs(t - b.t))
         age = t - e.t
         if age > self.max_age or age < -self.max_age:
             self.counters["stale"] += 1
             return None
-        rm, rn = earth.radii(float(e.llh[0]))
-        d = e.v_ned * age
-        llh = e.llh + np.array([d[0] / (rm + e.llh[2]), d[1] / ((rn + e.llh[2]) * np.cos(e.llh[0])), -d[2]])
+        llh = earth.offset_llh(e.llh, e.v_ned * age)
         a = abs(age)
         grow = a * a * self.sigma_v**2 + a**3 * self.accel_psd / 3.0
         cov = e.cov + np.diag([grow, grow, grow])
         return NeighbourState(vehicle, llh, cov, age)
+
+    def newest_time(self, vehicle: str) -> float | None:
+        """Time [s] of the newest beacon of ``vehicle``, or None."""
+        e = self.entries.get(vehicle)
+        return None if e is None else e.t
 
     def vehicles(self) -> list[str]:
         return sorted(self.entries)

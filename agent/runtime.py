@@ -45,11 +45,14 @@ class AgentConfig:
     origin_llh: tuple[float, float, float]
     beacon_rate: float = 5.0
     estimate_rate: float = 10.0
-    decision_rate: float = 5.0
+    decision_rate: float = 10.0
     queue_size: int = 4096
     #: IMU batches are processed only once this much newer IMU data has arrived [s], so that
     #: GNSS/UWB of earlier times, travelling on other topics, are applied in order
     imu_hold: float = 0.25
+    #: a UWB range waits up to this long (filter time) for the neighbour's beacon of its time,
+    #: then is fused with the nearest beacon (or counted stale) [s]
+    range_defer: float = 1.0
 
 
 class Agent:
@@ -69,6 +72,7 @@ class Agent:
                                          "not_for_me": 0, "before_init": 0, "decisions": 0}
         self.decision_log: list[tuple[float, str, str]] = []
         self._pending_fix: GnssFix | None = None
+        self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
         self._imu_buffer: list[ImuBatch] = []
         self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
         self._beacon_seq = 0
@@ -91,6 +95,8 @@ class Agent:
                 t.cancel()
         while self._imu_buffer:  # flush held IMU data
             await self._imu(self._imu_buffer.pop(0))
+        if self.filters:
+            self._fuse_ranges(final=True)
         self.dropped = {k: s.dropped for k, s in subs.items()}
 
     def _on_alive(self, key: str, alive: bool) -> None:
@@ -153,6 +159,8 @@ class Agent:
             now = self.seq.t if self.seq.t is not None else msg.t
             self.tables[msg.method].update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos,
                                            msg.method, now)
+            if self._deferred:
+                self._fuse_ranges()
             if msg.method in self.trackers:
                 self.trackers[msg.method].observe_neighbour(msg.vehicle, msg.t, float(np.hypot(*msg.v_ned[:2])),
                                                             msg.first_stopped)
@@ -173,6 +181,8 @@ class Agent:
                 else:
                     self._apply(step)
             await self._timers(float(msg.t[k]))
+        if self._deferred:
+            self._fuse_ranges()
 
     def _init(self, fix: GnssFix, batch: ImuBatch) -> None:
         f_b = batch.dvel.sum(axis=0) / max(float(batch.dt.sum()), 1e-3)
@@ -201,9 +211,24 @@ class Agent:
             other = msg.b if msg.a == self.cfg.vehicle else msg.a
             for m, f in self.filters.items():
                 if f.spec.ranges:
-                    nb = self.tables[m].at(other, step.t)
-                    if nb is not None:
-                        f.range(nb, msg.range_m)
+                    self._deferred.append((step.t, m, other, msg.range_m))
+            self._fuse_ranges()
+
+    def _fuse_ranges(self, final: bool = False) -> None:
+        """Fuse the ranges whose neighbour beacon of that time has arrived (or that waited
+        ``range_defer``); the others keep waiting."""
+        keep = []
+        for item in self._deferred:
+            t, m, other, r = item
+            f, tab = self.filters[m], self.tables[m]
+            newest = tab.newest_time(other)
+            if final or (newest is not None and newest >= t) or f.t - t >= self.cfg.range_defer:
+                nb = tab.at(other, t)
+                if nb is not None:
+                    f.range(nb, r, t)
+            else:
+                keep.append(item)
+        self._deferred = keep
 
     # ----------------------------------------------------------------- sensor-time timers
     async def _timers(self, t: float) -> None:

@@ -27,7 +27,7 @@ from .agent_configs import agent_config, approach_lanes
 
 
 BEACON_RATE = 5.0
-DECISION_RATE = 5.0
+DECISION_RATE = 10.0
 RECORD_STEP = 10
 
 

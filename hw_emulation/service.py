@@ -192,8 +192,8 @@ class EmulatorService:
                     await self.bus.publish(keys.uwb(a), payload)
                     await self.bus.publish(keys.uwb(b), payload)
                     self.published["uwb"] += 1
-            # let the last beacons and estimates through
-            await self._pace(self.now + self.lead, wall0, t0, stop, final=True)
+            # let the last beacons and estimates through (agents hold back a fraction of a second)
+            await self._pace(self.now, wall0, t0, stop, final=True)
         finally:
             radio.cancel()
             watch.cancel()
@@ -211,12 +211,14 @@ class EmulatorService:
         ahead = (t - t0) / self.max_speed - (time.monotonic() - wall0)
         if ahead > 0:
             await asyncio.sleep(ahead)
-        deadline = time.monotonic() + 30.0
+        deadline = time.monotonic() + (5.0 if final else 30.0)
         while not stop.is_set():
             slow = min((self.agent_time.get(v, -np.inf) for v in self.ids), default=-np.inf)
             if slow >= t - self.lead or (not final and slow == -np.inf and t - t0 < self.lead):
                 break
             if time.monotonic() > deadline:
+                if final:
+                    break
                 log.warning("agents stalled at t=%.2f (slowest %.2f); continuing", t, slow)
                 break
             await asyncio.sleep(0.001)

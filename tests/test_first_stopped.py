@@ -41,7 +41,7 @@ def test_moving_wrong_heading_or_far_from_the_line() -> None:
     det = FirstStoppedDetector(_lanes(), GAP)
     cov = np.eye(2)
     p = np.array([-15.0, 1.75])
-    assert det.decide(p, cov, 0.0, 0.4, []).reason == "moving"
+    assert det.decide(p, cov, 0.0, 0.2, []).reason == "moving"
     assert not det.decide(p, cov, math.pi, 3.0, []).first           # heading south: not this approach
     assert not det.decide(np.array([-60.0, 1.75]), cov, 0.0, 3.0, []).first
 

@@ -113,6 +113,14 @@ def ned_offset(lat: float, lon: float, h: float, lat0: float, lon0: float, h0: f
     )
 
 
+def offset_llh(llh: np.ndarray, d_ned: np.ndarray) -> np.ndarray:
+    """The point ``d_ned`` [m] (NED, (3,)) away from ``llh`` (lat, lon [rad], h [m]): the inverse
+    of :func:`ned_offset` to first order, for offsets of up to a few kilometres."""
+    lat, lon, h = float(llh[0]), float(llh[1]), float(llh[2])
+    rm, rn = radii(lat)
+    return np.array([lat + d_ned[0] / (rm + h), lon + d_ned[1] / ((rn + h) * math.cos(lat)), h - d_ned[2]])
+
+
 def ned_to_ecef_dcm(lat: float, lon: float) -> np.ndarray:
     """Rotation C_n^e from local NED at (lat, lon) [rad] to ECEF, shape (3, 3)."""
     sl, cl = math.sin(lat), math.cos(lat)
