@@ -25,13 +25,17 @@ from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
 from .nav.kalman import Measurement, UpdateResult
 from .nav.measurements.gnss import gnss_position, gnss_velocity
-from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_line_measurement
-from .nav.measurements.v2v_range import range_measurement
+from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement
+from .nav.measurements.v2v_range import range_measurement, relative_position
 from .nav.rotation import euler_to_quat
 from .nav.state import NavState
 from .neighbours import NeighbourState
 
 METHODS = ("SP", "SL-SP", "CP", "SL-CP")
+#: residual error of a stop-line fix beyond the stop gap's spread: map and model [m]
+STOP_LINE_MAP_SIGMA = 0.03
+#: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
+FUSION_RULES = ("paper", "split-ci", "ci")
 
 
 @dataclass(frozen=True)
@@ -65,6 +69,14 @@ class FilterSettings:
     init_gyro_bias_sigma: float | None = None
     init_accel_bias_sigma: float | None = None
     stop_line_interval: float = 1.0  #: apply the stop-line fix at most this often [s]
+    #: ``paper``: R = σ² + uᵀP_j u, both estimates independent (the paper's eq. 26-28);
+    #: ``split-ci``: split covariance intersection (what came from own sensors and the UWB
+    #: noise independent; the neighbour's estimate and what came from it dependent);
+    #: ``ci``: covariance intersection (both estimates wholly dependent, UWB noise independent)
+    fusion: str = "split-ci"
+    #: node selection for the CI rules: fuse a range only if it is expected to reduce the
+    #: horizontal position variance by at least this fraction
+    min_gain: float = 0.01
     max_range: float = 150.0  #: physical gate on UWB ranges [m]
     #: GNSS receiver characteristics: correlated (multipath) error carried as three
     #: Gauss-Markov states, so that correlated fixes are not averaged as if independent;
@@ -100,16 +112,28 @@ class MethodFilter:
                              [max(bg0, 1e-6)] * 3, [max(ba0, 1e-4)] * 3]) ** 2
         self.spec = spec
         self.settings = settings
-        extra = ()
+        extra: tuple = ()
         if s.gnss_multipath_sigma:
             sm, tau = s.gnss_multipath_sigma, s.gnss_multipath_tau
             extra = tuple((0.0, sm, 2 * sm * sm / tau, tau) for _ in range(3))
+        self._mp = slice(0, len(extra))  #: GNSS multipath states, within ``filter.extra``
+        #: this stop's deviation of (d_s, d_l) from their means: random constants, reset at every
+        #: new stop, so that repeated stop-line fixes share their error instead of averaging it
+        self._sl: slice | None = None
+        if spec.stop_line and gap is not None:
+            self._sl = slice(len(extra), len(extra) + 2)
+            extra += ((0.0, gap.sigma_xb, 0.0), (0.0, gap.sigma_yb, 0.0))
         self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=0.1, extra_states=extra)
+        self._stop_id: float | None = None
+        if s.fusion not in FUSION_RULES:
+            raise ValueError(f"unknown fusion rule {s.fusion!r}; choose from {', '.join(FUSION_RULES)}")
+        if spec.ranges and s.fusion == "split-ci":
+            self.filter.track_independent()
         self.gap = gap
         self.origin = origin_llh
         self.heading_known = heading_known
         self.last_stop_line = -math.inf
-        self.counters = {"gnss": 0, "ranges": 0, "ranges_rejected": 0, "stop_line": 0}
+        self.counters = {"gnss": 0, "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "stop_line": 0}
         # INS displacement (NED, m) integrated from the nominal velocity, unaffected by updates:
         # places a delayed range at its own time (p(t) = p(now) - (D(now) - D(t)))
         self._disp = [0.0, 0.0, 0.0]
@@ -149,22 +173,47 @@ class MethodFilter:
         if s.gnss_multipath_sigma:
             # predicted = position + multipath state; the white part is what remains
             m = gnss_position(st, llh, np.eye(3) * s.gnss_white_sigma**2)
-            m = Measurement(m.z + self.filter.extra, self.filter.full_jacobian(m.H, np.eye(3)), m.R, m.name)
+            hx = np.zeros((3, len(self.filter.extra)))
+            hx[:, self._mp] = np.eye(3)
+            m = Measurement(m.z + hx @ self.filter.extra, self.filter.full_jacobian(m.H, hx), m.R, m.name)
         else:
             m = gnss_position(st, llh, np.diag(np.square(sigma_ned)))
         res = self.filter.update(m, s.gnss_gate)
         self.filter.update(gnss_velocity(self.filter.state, v_ned, np.eye(3) * sigma_v**2, np.zeros(3)))
         self.counters["gnss"] += int(res.accepted)
 
-    def stop_line(self, approach: StopLineApproach, along_only: bool = False) -> UpdateResult | None:
-        """Apply the stop-line fix (only for SL methods, at most once per interval)."""
-        if not self.spec.stop_line or self.gap is None or self.origin is None:
+    def stop_line(self, approach: StopLineApproach, along_only: bool = False,
+                  stop_id: float | None = None) -> UpdateResult | None:
+        """Apply the stop-line fix (only for SL methods, at most once per interval).
+
+        ``stop_id`` identifies the physical stop (e.g. the time it began): a new one resets the
+        stop-gap error states to their prior, since each stop draws its own d_s and d_l.
+        """
+        if not self.spec.stop_line or self.gap is None or self.origin is None or self._sl is None:
             return None
+        f = self.filter
+        if stop_id != self._stop_id:
+            self._stop_id = stop_id
+            self.last_stop_line = -math.inf
+            f.flush_covariance()
+            k = np.arange(f.extra_offset + self._sl.start, f.extra_offset + self._sl.stop)
+            var = np.array([self.gap.sigma_xb, self.gap.sigma_yb]) ** 2
+            for P in (f.P, f.P_ind):
+                if P is not None:
+                    P[k, :] = 0.0
+                    P[:, k] = 0.0
+                    P[k, k] = var
+            f.extra[self._sl] = 0.0
         if self.t - self.last_stop_line < self.settings.stop_line_interval:
             return None
         self.last_stop_line = self.t
-        res = self.filter.update(stop_line_measurement(self.filter.state, approach, self.gap, self.origin,
-                                                       along_only=along_only))
+        m = stop_line_measurement(f.state, approach, self.gap, self.origin, along_only=along_only)
+        # predicted fix = p - J ê, with J = ∂p/∂(d_e, d_l): the gap error is a state, not noise
+        _, J = stop_line_fix(approach, self.gap.m_xb + self.gap.l0, self.gap.m_yb)
+        hx = np.zeros((m.dim, len(f.extra)))
+        hx[:, self._sl] = -(approach.stop_line_normal() @ J)[None, :] if along_only else -J
+        m = Measurement(m.z + hx @ f.extra, f.full_jacobian(m.H, hx), np.eye(m.dim) * STOP_LINE_MAP_SIGMA**2, m.name)
+        res = f.update(m)
         self.counters["stop_line"] += int(res.accepted)
         return res
 
@@ -182,11 +231,22 @@ class MethodFilter:
             # a delayed range: move the neighbour by my displacement since t, which keeps the
             # relative geometry of time t while the Jacobian acts on my current error
             nb_llh = earth.offset_llh(nb_llh, self.displacement_since(t))
-        m = range_measurement(self.filter.state, measured, self.settings.sigma_uwb, nb_llh,
-                              neighbour.cov_ned, own_cov_ned=self.filter.position_cov,
-                              second_order=self.settings.second_order_ranges)
-        res = self.filter.update(m, self.settings.range_gate)
-        self.counters["ranges" if res.accepted else "ranges_rejected"] += 1
+        s = self.settings
+        m = range_measurement(self.filter.state, measured, s.sigma_uwb, nb_llh, neighbour.cov_ned,
+                              own_cov_ned=self.filter.position_cov, second_order=s.second_order_ranges)
+        if s.fusion == "paper":
+            res = self.filter.update(m, s.range_gate)
+        else:
+            # the neighbour's estimate is wholly dependent: it may contain our information, and
+            # its own-sensor errors (multipath) persist from one range to the next; the UWB noise
+            # (and the second-order term) is independent
+            d = relative_position(self.filter.state, np.zeros(3), nb_llh)
+            u = d / np.linalg.norm(d)
+            r_dep = max(float(u @ neighbour.cov_ned @ u), 0.0)
+            m_ind = Measurement(m.z, m.H, m.R - r_dep, m.name)
+            res = self.filter.update_split_ci(m_ind, np.array([[r_dep]]), own_independent=s.fusion == "split-ci",
+                                              gate_probability=s.range_gate, min_gain=s.min_gain)
+        self.counters["ranges_skipped" if res.skipped else "ranges" if res.accepted else "ranges_rejected"] += 1
         return res
 
     @property

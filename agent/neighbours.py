@@ -107,8 +107,7 @@ class NeighbourTable:
         llh = earth.offset_llh(e.llh, e.v_ned * age)
         a = abs(age)
         grow = a * a * self.sigma_v**2 + a**3 * self.accel_psd / 3.0
-        cov = e.cov + np.diag([grow, grow, grow])
-        return NeighbourState(vehicle, llh, cov, age)
+        return NeighbourState(vehicle, llh, e.cov + np.diag([grow, grow, grow]), age)
 
     def newest_time(self, vehicle: str) -> float | None:
         """Time [s] of the newest beacon of ``vehicle``, or None."""

@@ -286,4 +286,4 @@ class Agent:
                 f.last_stop_line = -math.inf  # a new claim fixes at once
             self.counters["decisions"] += 1
             if dec.first:
-                f.stop_line(self.cfg.lanes[dec.lane].approach, along_only=dec.along_only)
+                f.stop_line(self.cfg.lanes[dec.lane].approach, along_only=dec.along_only, stop_id=tr.since)

@@ -31,7 +31,8 @@ def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:
     return out
 
 
-def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS) -> AgentConfig:
+def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS,
+                 fusion: str = "split-ci") -> AgentConfig:
     """The configuration a vehicle computer would carry for this scenario's site and sensors."""
     specs = {v.id: v for v in scn.vehicles}
     if vehicle not in specs:
@@ -41,6 +42,7 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
     settings = FilterSettings(imu_noise_of(sp.imu), sigma_uwb=max(scn.uwb.sigma_los, 0.05),
                               init_gyro_bias_sigma=sp.imu.gyro_turn_on, init_accel_bias_sigma=sp.imu.accel_turn_on,
                               gnss_multipath_sigma=math.hypot(gm.multipath_h, scn.common_mode_sigma),
-                              gnss_multipath_tau=gm.multipath_tau_moving, gnss_white_sigma=max(gm.white_h, 0.1))
+                              gnss_multipath_tau=gm.multipath_tau_moving, gnss_white_sigma=max(gm.white_h, 0.1),
+                              fusion=fusion)
     gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
     return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh)

@@ -41,7 +41,8 @@ class RunResult:
     decisions: list[tuple[float, str, str, str]] = field(default_factory=list)  #: (t, vehicle, method, reason)
 
 
-def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS) -> RunResult:
+def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS,
+                  fusion: str = "split-ci") -> RunResult:
     scn = truth.scenario
     rng = np.random.default_rng(seed)
     sensors = emulate_vehicle_sensors(truth, rng)
@@ -57,7 +58,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
         g = sensors[vid].gnss
         f_b = sensors[vid].imu.dvel[:10].mean(axis=0) / dt[0]
         st0 = initial_state(g.llh[0], g.v_ned[0], f_b)
-        cfg = agent_config(scn, vid, methods)
+        cfg = agent_config(scn, vid, methods, fusion)
         gap, settings = cfg.gap, cfg.settings
         detectors[vid] = FirstStoppedDetector(lanes, gap)
         for m in methods:
@@ -122,7 +123,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
             for item in pending:
                 arrive, a, b, m, (seq, tb, llh, v, cov, claim_at_send) = item
                 if arrive <= tk:
-                    if tables[(b, m)].update(a, seq, tb, llh, v, cov, m, now=tk) and (b, m) in trackers:
+                    if tables[(b, m)].update(a, seq, tb, llh, v, cov, m, tk) and (b, m) in trackers:
                         trackers[(b, m)].observe_neighbour(a, tb, float(np.hypot(v[0], v[1])), claim_at_send)
                 else:
                     still.append(item)
@@ -154,7 +155,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                     f.last_stop_line = -math.inf
                     decisions.append((tk, key[0], key[1], dec.reason))
                 if dec.first:
-                    f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only)
+                    f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only, stop_id=tr.since)
         if (k + 1) % RECORD_STEP == 0:
             rec_t.append(tk)
             for (vid, m), f in filters.items():

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .error_model import ImuNoise, discretize_density, process_noise_density, system_matrix
+from .fusion import split_ci_update
 from .kalman import Measurement, UpdateResult, kalman_update, stack
 from .mechanization import mechanize_fast
 from .rotation import euler_to_quat, quat_to_euler, wrap_angle
@@ -109,6 +110,14 @@ class InsFilter:
         self._acc_dv_b = (0.0, 0.0, 0.0)
         self._acc_dth_b = (0.0, 0.0, 0.0)
         self._cov_state: NavState | None = None
+        #: independent part of P for split covariance intersection (None: not tracked); see
+        #: :meth:`track_independent`
+        self.P_ind: np.ndarray | None = None
+
+    def track_independent(self) -> None:
+        """Start tracking the independent part of P (everything so far is independent)."""
+        self.flush_covariance()
+        self.P_ind = self.P.copy()
 
     # ------------------------------------------------------------------ propagation
     def propagate(self, dtheta, dvel, dt: float) -> None:
@@ -175,6 +184,9 @@ class InsFilter:
         phi, qd = discretize_density(F, q, dt, self.discretization)
         P = phi @ self.P @ phi.T + qd
         self.P = 0.5 * (P + P.T)
+        if self.P_ind is not None:  # process noise is independent information loss
+            Pi = phi @ self.P_ind @ phi.T + qd
+            self.P_ind = 0.5 * (Pi + Pi.T)
         self._acc_dt = 0.0
         self._acc_dv_b = (0.0, 0.0, 0.0)
         self._acc_dth_b = (0.0, 0.0, 0.0)
@@ -200,14 +212,51 @@ class InsFilter:
             meas = Measurement(meas.z, H, meas.R, meas.name)
         dx, P, result = kalman_update(self.P, meas, gate_probability)
         if result.accepted:
-            self.state = remove_error(self.state, dx[:N_STATES])
-            if self.n_scale:
-                self.scale = self.scale - dx[N_STATES:self.extra_offset]
-            if self.n > self.extra_offset:
-                self.extra = self.extra - dx[self.extra_offset:]
+            if self.P_ind is not None:  # an own-sensor measurement: independent information
+                K = result.gain
+                IKH = -(K @ meas.H)
+                IKH[np.diag_indices(self.n)] += 1.0
+                Pi = IKH @ self.P_ind @ IKH.T + K @ meas.R @ K.T
+                self.P_ind = 0.5 * (Pi + Pi.T)
+            self._feedback(dx)
             self.P = P
         self.stats.count(result)
         return result
+
+    def update_split_ci(self, meas: Measurement, R_dep: np.ndarray, own_independent: bool = True,
+                        gate_probability: float | None = None, min_gain: float = 0.0) -> UpdateResult:
+        """Split covariance-intersection update (:mod:`agent.nav.fusion`) with closed-loop feedback.
+
+        ``meas.R`` is the independent measurement noise and ``R_dep`` the part that may be
+        correlated with this filter's estimate (e.g. a neighbour's cooperative information).
+        With ``own_independent`` False (plain CI) the whole prior counts as dependent.
+        ω minimises the horizontal position variance; ``min_gain`` skips updates expected to
+        reduce it by less than that fraction (node selection).
+        """
+        self.flush_covariance()
+        if meas.H.shape[1] < self.n:
+            H = np.zeros((meas.H.shape[0], self.n))
+            H[:, : meas.H.shape[1]] = meas.H
+            meas = Measurement(meas.z, H, meas.R, meas.name)
+        Pi = self.P_ind if (own_independent and self.P_ind is not None) else np.zeros_like(self.P)
+        dx, P, Pi_post, result = split_ci_update(self.P, Pi, meas, np.atleast_2d(R_dep), _HORIZONTAL,
+                                                 gate_probability, min_gain)
+        if result.accepted:
+            self._feedback(dx)
+            self.P = P
+            if self.P_ind is not None:
+                self.P_ind = Pi_post
+        if not result.skipped:
+            self.stats.count(result)
+        return result
+
+    def _feedback(self, dx: np.ndarray) -> None:
+        """Remove the estimated error from the nominal state (closed loop)."""
+        self.state = remove_error(self.state, dx[:N_STATES])
+        if self.n_scale:
+            self.scale = self.scale - dx[N_STATES:self.extra_offset]
+        if self.n > self.extra_offset:
+            self.extra = self.extra - dx[self.extra_offset:]
 
     def update_stacked(
         self, measurements: list[Measurement], gate_probability: float | None = None
@@ -230,12 +279,19 @@ class InsFilter:
         self.P[2, :] = 0.0
         self.P[:, 2] = 0.0
         self.P[2, 2] = sigma**2  # (works for augmented P too)
+        if self.P_ind is not None:
+            self.P_ind[2, :] = 0.0
+            self.P_ind[:, 2] = 0.0
+            self.P_ind[2, 2] = sigma**2
 
     @property
     def position_cov(self) -> np.ndarray:
         """NED position error covariance, shape (3, 3) [m²]."""
         self.flush_covariance()
         return self.P[POS, POS].copy()
+
+
+_HORIZONTAL = np.array([POS.start, POS.start + 1])
 
 
 def level_from_accel(f_b_mean: np.ndarray) -> tuple[float, float]:

@@ -49,6 +49,9 @@ class UpdateResult:
     dof: int
     accepted: bool
     name: str = ""
+    gain: np.ndarray | None = None  #: Kalman gain K, shape (n, m), when applied
+    omega: float | None = None  #: covariance-intersection weight, for CI updates
+    skipped: bool = False  #: not applied because its expected gain was too small (node selection)
 
 
 @lru_cache(maxsize=256)
@@ -120,4 +123,4 @@ def kalman_update(
     IKH[np.diag_indices(n)] += 1.0
     P_post = IKH @ P @ IKH.T + K @ R @ K.T
     P_post = 0.5 * (P_post + P_post.T)
-    return dx, P_post, UpdateResult(dx, nis, meas.dim, True, meas.name)
+    return dx, P_post, UpdateResult(dx, nis, meas.dim, True, meas.name, K)
