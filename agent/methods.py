@@ -82,8 +82,13 @@ class FilterSettings:
     #: Gauss-Markov states, so that correlated fixes are not averaged as if independent;
     #: None treats the reported sigma as white noise (the paper's filter)
     gnss_multipath_sigma: float | None = 3.0
-    gnss_multipath_tau: float = 60.0
+    gnss_multipath_tau: float = 60.0  #: while moving [s]
+    gnss_multipath_tau_static: float | None = None  #: while standing [s]; None: as moving
     gnss_white_sigma: float = 0.5
+    #: a slower error shared by nearby receivers (atmosphere, orbits), as three more
+    #: Gauss-Markov states; 0 leaves it out
+    gnss_common_sigma: float = 0.0
+    gnss_common_tau: float = 600.0
 
 
 def initial_state(llh: np.ndarray, v_ned: np.ndarray, f_b_mean: np.ndarray) -> NavState:
@@ -116,7 +121,12 @@ class MethodFilter:
         if s.gnss_multipath_sigma:
             sm, tau = s.gnss_multipath_sigma, s.gnss_multipath_tau
             extra = tuple((0.0, sm, 2 * sm * sm / tau, tau) for _ in range(3))
-        self._mp = slice(0, len(extra))  #: GNSS multipath states, within ``filter.extra``
+            if s.gnss_common_sigma > 0.0:
+                sc, tc = s.gnss_common_sigma, s.gnss_common_tau
+                extra += tuple((0.0, sc, 2 * sc * sc / tc, tc) for _ in range(3))
+        #: GNSS error states within ``filter.extra``: multipath (3), then common mode (3)
+        self._mp = slice(0, len(extra))
+        self._static: bool | None = None
         #: this stop's deviation of (d_s, d_l) from their means: random constants, reset at every
         #: new stop, so that repeated stop-line fixes share their error instead of averaging it
         self._sl: slice | None = None
@@ -125,6 +135,8 @@ class MethodFilter:
             extra += ((0.0, gap.sigma_xb, 0.0), (0.0, gap.sigma_yb, 0.0))
         self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=0.1, extra_states=extra)
         self._stop_id: float | None = None
+        if self._mp.stop:
+            self._init_from_fix_errors()
         if s.fusion not in FUSION_RULES:
             raise ValueError(f"unknown fusion rule {s.fusion!r}; choose from {', '.join(FUSION_RULES)}")
         if spec.ranges and s.fusion == "split-ci":
@@ -139,6 +151,19 @@ class MethodFilter:
         self._disp = [0.0, 0.0, 0.0]
         self._disp_hist: deque[tuple[float, float, float, float]] = deque(maxlen=64)
         self._disp_hist.append((t, 0.0, 0.0, 0.0))
+
+    def _init_from_fix_errors(self) -> None:
+        """The initial position comes from a GNSS fix, so its error *is* that fix's error:
+        δp = m + c + w with the multipath m and common-mode c states at -m, -c (estimate minus
+        truth). Give position the whole GNSS error budget and the matching correlations;
+        treating them as independent makes the filter overconfident from its first update."""
+        f, P = self.filter, self.filter.P  # still diagonal here
+        for i in range(3):
+            p = 6 + i
+            err = [f.extra_offset + k for k in range(i, self._mp.stop, 3)]  # this axis' error states
+            P[p, p] = self.settings.gnss_white_sigma**2 + sum(P[j, j] for j in err)
+            for j in err:
+                P[p, j] = P[j, p] = -P[j, j]
 
     @property
     def t(self) -> float:
@@ -172,9 +197,16 @@ class MethodFilter:
         s = self.settings
         if s.gnss_multipath_sigma:
             # predicted = position + multipath state; the white part is what remains
+            static = math.hypot(v_ned[0], v_ned[1]) < 0.5
+            if s.gnss_multipath_tau_static and static != self._static:
+                # a standing receiver sees the same reflections: its multipath decorrelates slowly
+                self._static = static
+                tau = s.gnss_multipath_tau_static if static else s.gnss_multipath_tau
+                for k in range(3):
+                    self.filter.set_gauss_markov(k, s.gnss_multipath_sigma, tau)
             m = gnss_position(st, llh, np.eye(3) * s.gnss_white_sigma**2)
             hx = np.zeros((3, len(self.filter.extra)))
-            hx[:, self._mp] = np.eye(3)
+            hx[:, self._mp] = np.tile(np.eye(3), (1, self._mp.stop // 3))
             m = Measurement(m.z + hx @ self.filter.extra, self.filter.full_jacobian(m.H, hx), m.R, m.name)
         else:
             m = gnss_position(st, llh, np.diag(np.square(sigma_ned)))

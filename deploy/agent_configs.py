@@ -41,8 +41,10 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
     gm = sp.gnss
     settings = FilterSettings(imu_noise_of(sp.imu), sigma_uwb=max(scn.uwb.sigma_los, 0.05),
                               init_gyro_bias_sigma=sp.imu.gyro_turn_on, init_accel_bias_sigma=sp.imu.accel_turn_on,
-                              gnss_multipath_sigma=math.hypot(gm.multipath_h, scn.common_mode_sigma),
-                              gnss_multipath_tau=gm.multipath_tau_moving, gnss_white_sigma=max(gm.white_h, 0.1),
+                              gnss_multipath_sigma=gm.multipath_h, gnss_multipath_tau=gm.multipath_tau_moving,
+                              gnss_multipath_tau_static=gm.multipath_tau_static,
+                              gnss_common_sigma=scn.common_mode_sigma, gnss_common_tau=scn.common_mode_tau,
+                              gnss_white_sigma=max(gm.white_h, 0.1),
                               fusion=fusion)
     gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
     return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh)

@@ -114,6 +114,14 @@ class InsFilter:
         #: :meth:`track_independent`
         self.P_ind: np.ndarray | None = None
 
+    def set_gauss_markov(self, k: int, sigma: float, tau: float) -> None:
+        """Change the steady-state σ and correlation time τ [s] of Gauss-Markov extra state ``k``
+        (index within ``extra_states``) from now on, e.g. a multipath τ that depends on motion."""
+        self.flush_covariance()
+        i = self.n_scale + k
+        self._aug_tau[i] = tau
+        self._aug_psd[i] = 2.0 * sigma * sigma / tau
+
     def track_independent(self) -> None:
         """Start tracking the independent part of P (everything so far is independent)."""
         self.flush_covariance()
