@@ -30,6 +30,7 @@ from .nav.measurements.v2v_range import range_measurement, relative_position
 from .nav.rotation import euler_to_quat
 from .nav.state import NavState
 from .neighbours import NeighbourState
+from .range_gate import RangeRateGate
 
 METHODS = ("SP", "SL-SP", "CP", "SL-CP")
 #: residual error of a stop-line fix beyond the stop gap's spread: map and model [m]
@@ -78,6 +79,9 @@ class FilterSettings:
     #: horizontal position variance by at least this fraction
     min_gain: float = 0.01
     max_range: float = 150.0  #: physical gate on UWB ranges [m]
+    #: RMS of the UWB NLOS bias (persistent over an episode, so fused as dependent noise by the
+    #: CI rules) [m]
+    uwb_nlos_sigma: float = 0.0
     #: GNSS receiver characteristics: correlated (multipath) error carried as three
     #: Gauss-Markov states, so that correlated fixes are not averaged as if independent;
     #: None treats the reported sigma as white noise (the paper's filter)
@@ -145,7 +149,9 @@ class MethodFilter:
         self.origin = origin_llh
         self.heading_known = heading_known
         self.last_stop_line = -math.inf
-        self.counters = {"gnss": 0, "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "stop_line": 0}
+        self.counters = {"gnss": 0, "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "ranges_gate_physical": 0,
+                         "ranges_gate_rate": 0, "ranges_gate_nis": 0, "stop_line": 0}
+        self.rate_gate = RangeRateGate()
         # INS displacement (NED, m) integrated from the nominal velocity, unaffected by updates:
         # places a delayed range at its own time (p(t) = p(now) - (D(now) - D(t)))
         self._disp = [0.0, 0.0, 0.0]
@@ -249,37 +255,51 @@ class MethodFilter:
         self.counters["stop_line"] += int(res.accepted)
         return res
 
-    def range(self, neighbour: NeighbourState, measured: float, t: float | None = None) -> UpdateResult | None:
-        """Fuse a UWB range [m] to a neighbour (CP methods; physical and NIS gates), measured at
-        sensor time ``t`` [s] (default: now; earlier for a range deferred until the neighbour's
-        beacon of that time arrived)."""
+    def range(self, neighbour: NeighbourState, measured: float, t: float | None = None) -> str | None:
+        """Fuse a UWB range [m] to a neighbour, measured at sensor time ``t`` [s] (default: now;
+        earlier for a range deferred until the neighbour's beacon of that time arrived).
+
+        Returns the outcome: ``"fused"``; ``"skipped"`` (node selection: too little expected
+        gain); ``"gate_physical"`` (outside (0, max_range)); ``"gate_rate"`` (a jump the
+        vehicles' motion cannot explain); ``"gate_nis"`` (χ² innovation gate); None for methods
+        without ranges.
+        """
         if not self.spec.ranges:
             return None
-        if not 0.0 < measured < self.settings.max_range:
-            self.counters["ranges_rejected"] += 1
-            return None
+        s = self.settings
+        t_meas = self.t if t is None else t
+        if not 0.0 < measured < s.max_range:
+            return self._count_range("gate_physical")
         nb_llh = neighbour.llh
-        if t is not None and t < self.t:
+        if t_meas < self.t:
             # a delayed range: move the neighbour by my displacement since t, which keeps the
             # relative geometry of time t while the Jacobian acts on my current error
-            nb_llh = earth.offset_llh(nb_llh, self.displacement_since(t))
-        s = self.settings
+            nb_llh = earth.offset_llh(nb_llh, self.displacement_since(t_meas))
+        d = relative_position(self.filter.state, np.zeros(3), nb_llh)
+        u = d / max(float(np.linalg.norm(d)), 1e-3)
+        if not self.rate_gate.check(neighbour.vehicle, t_meas, measured,
+                                    float(u @ (self.filter.state.v - neighbour.v_ned))):
+            return self._count_range("gate_rate")
         m = range_measurement(self.filter.state, measured, s.sigma_uwb, nb_llh, neighbour.cov_ned,
                               own_cov_ned=self.filter.position_cov, second_order=s.second_order_ranges)
         if s.fusion == "paper":
             res = self.filter.update(m, s.range_gate)
         else:
             # the neighbour's estimate is wholly dependent: it may contain our information, and
-            # its own-sensor errors (multipath) persist from one range to the next; the UWB noise
-            # (and the second-order term) is independent
-            d = relative_position(self.filter.state, np.zeros(3), nb_llh)
-            u = d / np.linalg.norm(d)
-            r_dep = max(float(u @ neighbour.cov_ned @ u), 0.0)
-            m_ind = Measurement(m.z, m.H, m.R - r_dep, m.name)
-            res = self.filter.update_split_ci(m_ind, np.array([[r_dep]]), own_independent=s.fusion == "split-ci",
+            # its own-sensor errors (multipath) persist from one range to the next; so does an
+            # NLOS bias. The UWB white noise (and the second-order term) is independent.
+            r_nb = max(float(u @ neighbour.cov_ned @ u), 0.0)
+            m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
+            r_dep = np.array([[r_nb + s.uwb_nlos_sigma**2]])
+            res = self.filter.update_split_ci(m_ind, r_dep, own_independent=s.fusion == "split-ci",
                                               gate_probability=s.range_gate, min_gain=s.min_gain)
-        self.counters["ranges_skipped" if res.skipped else "ranges" if res.accepted else "ranges_rejected"] += 1
-        return res
+        return self._count_range("skipped" if res.skipped else "fused" if res.accepted else "gate_nis")
+
+    def _count_range(self, outcome: str) -> str:
+        self.counters["ranges" if outcome == "fused" else f"ranges_{outcome}"] += 1
+        if outcome.startswith("gate"):
+            self.counters["ranges_rejected"] += 1
+        return outcome
 
     @property
     def position_cov(self) -> np.ndarray:

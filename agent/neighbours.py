@@ -26,6 +26,7 @@ class NeighbourState:
     llh: np.ndarray  #: (3,) lat, lon [rad], h [m]
     cov_ned: np.ndarray  #: (3, 3) [m²]
     age: float  #: [s] since the beacon's time
+    v_ned: np.ndarray = field(default_factory=lambda: np.zeros(3))  #: (3,) [m/s]
 
 
 @dataclass
@@ -107,7 +108,7 @@ class NeighbourTable:
         llh = earth.offset_llh(e.llh, e.v_ned * age)
         a = abs(age)
         grow = a * a * self.sigma_v**2 + a**3 * self.accel_psd / 3.0
-        return NeighbourState(vehicle, llh, e.cov + np.diag([grow, grow, grow]), age)
+        return NeighbourState(vehicle, llh, e.cov + np.diag([grow, grow, grow]), age, e.v_ned)
 
     def newest_time(self, vehicle: str) -> float | None:
         """Time [s] of the newest beacon of ``vehicle``, or None."""

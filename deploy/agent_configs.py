@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -46,5 +47,9 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
                               gnss_common_sigma=scn.common_mode_sigma, gnss_common_tau=scn.common_mode_tau,
                               gnss_white_sigma=max(gm.white_h, 0.1),
                               fusion=fusion)
+    u = scn.uwb
+    p_nlos = u.nlos_enter / (u.nlos_enter + u.nlos_exit) if u.nlos_enter > 0 else 0.0
+    nlos_ms = (u.nlos_bias_min**2 + u.nlos_bias_min * u.nlos_bias_max + u.nlos_bias_max**2) / 3.0
+    settings = dataclasses.replace(settings, uwb_nlos_sigma=math.sqrt(p_nlos * nlos_ms), max_range=u.max_range)
     gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
     return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh)

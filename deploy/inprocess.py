@@ -39,6 +39,8 @@ class RunResult:
     first: dict[tuple[str, str], np.ndarray]  #: detector decisions at the record times
     counters: dict[tuple[str, str], dict[str, int]] = field(default_factory=dict)
     decisions: list[tuple[float, str, str, str]] = field(default_factory=list)  #: (t, vehicle, method, reason)
+    #: method -> injected error kind ("clean", "nlos", "outlier") -> range outcome -> count
+    range_outcomes: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)
 
 
 def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS,
@@ -68,6 +70,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     trackers = {(vid, m): StopTracker(detectors[vid]) for vid in ids for m in methods if MethodSpec.of(m).stop_line}
 
     decisions: list[tuple[float, str, str, str]] = []
+    range_outcomes: dict[str, dict[str, dict[str, int]]] = {}
 
     def claim_of(vid: str, m: str) -> bool:
         tr = trackers.get((vid, m))
@@ -139,7 +142,10 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                         if MethodSpec.of(m).ranges:
                             nb = tables[(me, m)].at(other, tk)
                             if nb is not None:
-                                filters[(me, m)].range(nb, float(rr.range[r_i]))
+                                outcome = filters[(me, m)].range(nb, float(rr.range[r_i]))
+                                kind = "outlier" if rr.outlier[r_i] else "nlos" if rr.nlos[r_i] else "clean"
+                                tally = range_outcomes.setdefault(m, {}).setdefault(kind, {})
+                                tally[outcome] = tally.get(outcome, 0) + 1
         # first-stopped decisions and stop-line fixes
         if (k + 1) % dec_step == 0:
             for key, tr in trackers.items():
@@ -167,4 +173,4 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                 first[(vid, m)].append(claim_of(vid, m))
     return RunResult(np.array(rec_t), {k: np.array(v) for k, v in err.items()},
                      {k: np.array(v) for k, v in sig.items()}, {k: np.array(v) for k, v in first.items()},
-                     {k: dict(f.counters) for k, f in filters.items()}, decisions)
+                     {k: dict(f.counters) for k, f in filters.items()}, decisions, range_outcomes)

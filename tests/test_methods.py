@@ -52,10 +52,24 @@ def test_range_update_and_gates() -> None:
     f, _, _, true_llh = _stopped_filter("CP", offset_ne=(0.0, 0.0))
     rm, _ = earth.radii(ORIGIN[0])
     nb = NeighbourState("V2", true_llh + np.array([-7.0 / (rm + 50), 0.0, 0.0]), np.eye(3) * 0.01, 0.05)
-    res = f.range(nb, 7.0)
-    assert res.accepted and f.counters["ranges"] == 1
-    assert f.range(nb, 500.0) is None and f.counters["ranges_rejected"] == 1   # physical gate
-    res = f.range(nb, 37.0)                                                      # 30 m outlier: NIS gate
-    assert res is not None and not res.accepted and f.counters["ranges_rejected"] == 2
+    assert f.range(nb, 7.0) == "fused" and f.counters["ranges"] == 1
+    assert f.range(nb, 500.0) == "gate_physical"
+    assert f.range(nb, 37.0) == "gate_rate"  # a 30 m jump that two standing cars cannot make
+    assert f.counters["ranges_rejected"] == 2
+    fresh, _, _, _ = _stopped_filter("CP", offset_ne=(0.0, 0.0))
+    assert fresh.range(nb, 37.0) == "gate_nis"  # no range track yet: the χ² gate catches it
     sp, _, _, _ = _stopped_filter("SP")
     assert sp.range(nb, 7.0) is None
+
+
+def test_range_rate_gate_follows_motion_and_restarts() -> None:
+    from agent.range_gate import RangeRateGate
+
+    g = RangeRateGate()
+    assert g.check("B", 0.0, 20.0, -5.0)
+    assert g.check("B", 0.1, 19.5, -5.0)        # closing at 5 m/s: as predicted
+    assert not g.check("B", 0.2, 24.0, -5.0)    # 5 m jump
+    assert g.check("B", 0.2, 19.0, -5.0)
+    for k in range(10):                          # the geometry really changed: the track restarts
+        g.check("B", 0.3 + 0.1 * k, 40.0, 0.0)
+    assert g.check("B", 1.4, 40.0, 0.0) and g.check("B", 1.5, 40.0, 0.0)
