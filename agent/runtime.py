@@ -73,6 +73,7 @@ class Agent:
         self.decision_log: list[tuple[float, str, str]] = []
         self._pending_fix: GnssFix | None = None
         self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
+        self._subs: dict[str, Subscription] = {}
         self._imu_buffer: list[ImuBatch] = []
         self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
         self._beacon_seq = 0
@@ -86,6 +87,7 @@ class Agent:
             "uwb": self.bus.subscribe(keys.uwb(v), self.cfg.queue_size),
             "beacon": self.bus.subscribe(keys.radio_rx(v), self.cfg.queue_size),
         }
+        self._subs = subs
         self.bus.declare_alive(keys.alive("agent", v))
         self.bus.watch_alive(keys.ROOT + "/alive/agent/*", self._on_alive)
         async with asyncio.TaskGroup() as tg:
@@ -261,7 +263,9 @@ class Agent:
                 counters.update({f"{m}_{k}": v for k, v in tab.counters.items()})
             for m, f in self.filters.items():
                 counters.update({f"{m}_{k}": v for k, v in f.counters.items()})
-            status = {"t": t, "neighbours": len(next(iter(self.tables.values())).vehicles()) if self.tables else 0}
+            counters.update({f"queue_dropped_{k}": s.dropped for k, s in self._subs.items()})
+            status = {"t": t, "neighbours": len(set().union(*(tab.vehicles() for tab in self.tables.values()))),
+                      "first_stopped": [m for m in self.trackers if self.claim(m)]}
             await self.bus.publish(keys.diag(self.cfg.vehicle), encode(Diagnostics(self.cfg.vehicle, t, counters, status)))
 
     def claim(self, method: str) -> bool:

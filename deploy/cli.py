@@ -10,6 +10,8 @@ import logging
 import sys
 from pathlib import Path
 
+from agent.methods import FUSION_RULES
+
 from .datasets import DatasetError
 
 
@@ -21,6 +23,16 @@ def _outage_arg(text: str) -> tuple[float, float]:
     if length <= 0 or gap <= 0:
         raise argparse.ArgumentTypeError("outage length and GNSS-on time must be positive")
     return length, gap
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
+    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,7 +71,15 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--methods", nargs="+", default=None, help="methods (default: SP SL-SP CP SL-CP)")
     rn.add_argument("--speed", type=float, default=None, help="real-time factor (default: as fast as agents keep up)")
     rn.add_argument("--seed", type=int, default=0)
-    rn.add_argument("--out", type=Path, default=None, help="run directory (default runs/<scenario>-seed<S>)")
+    rn.add_argument("--out", type=Path, default=None,
+                    help="run directory (default runs/<scenario>-seed<S>, or runs/<scenario>-<N>seeds)")
+    rn.add_argument("--fusion", choices=FUSION_RULES, default="split-ci",
+                    help="how CP methods fuse ranges with beacons (default split-ci)")
+    rn.add_argument("--seeds", type=_positive_int, default=None, metavar="N",
+                    help="N seeded runs (seeds S..S+N-1) spread over the cores, with mean ± sd")
+    rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")
+    rp2 = sub.add_parser("report", help="rebuild the report of a run directory from its recording")
+    rp2.add_argument("run_dir", type=Path)
 
     sp = sub.add_parser("scenario", help="list or show emulation scenarios")
     ssub = sp.add_subparsers(dest="scenario_command", required=True)
@@ -161,16 +181,46 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from agent.methods import METHODS
+    from agent.methods import METHODS, MethodSpec
+    from hw_emulation.scenario import load_scenario
 
     from .launcher import run_fleet
 
     methods = tuple(args.methods) if args.methods else METHODS
-    out = args.out or Path("runs") / f"{args.scenario.replace('/', '_')}-seed{args.seed}"
-    print(f"slcp run {args.scenario}: {', '.join(methods)}; writing {out}")
-    m = run_fleet(args.scenario, methods, args.speed, args.seed, out, progress=lambda s: print("  " + s, flush=True))
+    for m in methods:
+        MethodSpec.of(m)  # ValueError -> clear CLI error
+    scn = load_scenario(args.scenario)
+    name = args.scenario.replace("/", "_").removesuffix(".toml")
+    if args.seeds:
+        from .study import run_study, study_markdown
+
+        out = args.out or Path("runs") / f"{name}-{args.seeds}seeds"
+        seeds = list(range(args.seed, args.seed + args.seeds))
+        print(f"slcp run {args.scenario}: {args.seeds} seeds, {', '.join(methods)}, fusion {args.fusion}; writing {out}")
+
+        def bar(done: int, total: int, seed: int) -> None:
+            k = int(30 * done / total)
+            print(f"  [{'#' * k}{'.' * (30 - k)}] {done}/{total} (seed {seed} done)", flush=True)
+
+        study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar)
+        text = study_markdown(scn, study)
+        (out / "report.md").write_text(text)
+        print(text)
+        return 0
+    out = args.out or Path("runs") / f"{name}-seed{args.seed}"
+    print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")
+    m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
+                  progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion)
     print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
     print((out / "report.md").read_text())
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from .launcher import rebuild_report
+
+    rebuild_report(args.run_dir)
+    print((args.run_dir / "report.md").read_text())
     return 0
 
 
@@ -270,6 +320,8 @@ def main(argv: list[str] | None = None) -> int:
             return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z))
         if args.command == "run":
             return _cmd_run(args)
+        if args.command == "report":
+            return _cmd_report(args)
     except (DatasetError, ValueError) as exc:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2

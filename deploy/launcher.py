@@ -35,14 +35,16 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.methods import METHODS
+from agent.methods import METHODS, MethodSpec
 from agent.nav import earth
 from hw_emulation.events import event_times, window_bounds
 from hw_emulation.scenario import load_scenario
 from hw_emulation.truth import build_truth
 from transport import keys
+
+from .detection import score_first_stopped
 from transport.codec import CodecError, decode
-from transport.messages import Estimate
+from transport.messages import Diagnostics, Estimate
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +60,10 @@ def _slcp(*args: str) -> list[str]:
 
 
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
-              seed: int = 0, out: Path = Path("runs/fleet"), progress=None) -> dict:
-    """Run the fleet and return the metrics (also written to ``out``)."""
+              seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = "split-ci") -> dict:
+    """Run the fleet and return the metrics (also written to ``out``).
+
+    ``progress`` (optional) is called every 2 s with a multi-line status text."""
     scn = load_scenario(scenario)
     out = Path(out)
     for sub in ("config", "logs", "recorded", "estimates"):
@@ -70,7 +74,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     configs = {}
     for vid in vehicles:
         p = out / "config" / f"agent-{vid}.toml"
-        p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n\n'
+        p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
+                     f'fusion = "{fusion}"\n\n'
                      f'[zenoh]\nmode = "peer"\nconnect = ["{endpoint}"]\n')
         configs[vid] = p
     wall0 = time.monotonic()
@@ -79,6 +84,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     truth = build_truth(scn)
     metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods)
     metrics["wall_s"] = wall
+    metrics["seed"] = seed
+    metrics["fusion"] = fusion
     metrics["processes"] = stats
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "report.md").write_text(report_markdown(scn, metrics))
@@ -96,6 +103,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
     est_sub = router.subscribe(keys.ROOT + "/estimate/**", 1_000_000)
     diag_sub = router.subscribe(keys.ROOT + "/diag/**", 100_000)
     latest_t: dict[str, float] = {}
+    diag: dict[str, tuple[float, dict, dict]] = {}  # source -> (wall time, counters, status)
 
     async def record(sub) -> None:
         while True:
@@ -113,6 +121,8 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 stats["recorded"] += 1
                 if isinstance(m, Estimate):
                     latest_t[m.vehicle] = max(latest_t.get(m.vehicle, 0.0), m.t)
+                elif isinstance(m, Diagnostics):
+                    diag[m.source] = (time.monotonic(), m.counters, m.status)
             rec_file.flush()
 
     tasks = [asyncio.create_task(record(est_sub)), asyncio.create_task(record(diag_sub))]
@@ -130,6 +140,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         emu = procs["emulator"] = subprocess.Popen(_slcp(*emu_args), stdout=lf, stderr=subprocess.STDOUT,
                                                    start_new_session=True)
         last = 0.0
+        prev_diag: dict = {}
         while emu.poll() is None:
             await asyncio.sleep(0.2)
             dead = [n for n, p in procs.items() if n != "emulator" and p.poll() is not None]
@@ -137,8 +148,8 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 raise RuntimeError(f"process(es) {dead} exited early; see {out / 'logs'}")
             if progress and time.monotonic() - last > 2.0:
                 last = time.monotonic()
-                progress("t=" + ", ".join(f"{v} {latest_t.get(v, 0.0):5.1f}s" for v in vehicles)
-                         + f" | recorded {stats['recorded']}")
+                progress(status_table(vehicles, latest_t, diag, prev_diag) + f"\nrecorded {stats['recorded']} messages")
+                prev_diag = dict(diag)
         await asyncio.sleep(0.5)  # last estimates in flight
     finally:
         _stop_all(procs)
@@ -150,6 +161,32 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         await router.close()
     stats["exit_codes"] = {n: p.returncode for n, p in procs.items()}
     return stats
+
+
+def status_table(vehicles: list[str], latest_t: dict[str, float], diag: dict, prev: dict) -> str:
+    """The live status: per vehicle its sensor time, neighbours heard, beacon rates sent and
+    received, first-stopped claim, ranges
+    fused/rejected, and the drops (stale beacons, late measurements, bad payloads, queue drops).
+    Rates are per second of sensor time between the last two diagnostics."""
+    rows = [f"{'vehicle':8s} {'t [s]':>7s} {'nbrs':>4s} {'bcn tx/s':>8s} {'bcn rx/s':>8s} {'first':>5s} "
+            f"{'ranges ok/rej':>13s} {'stale':>5s} {'late':>4s} {'bad':>4s} {'qdrop':>5s}"]
+    for v in vehicles:
+        _, c, st = diag.get(v, (None, {}, {}))
+        _, pc, p_st = prev.get(v, (None, {}, {}))
+        rate = {}
+        for k in ("beacons_tx", "beacons_rx"):  # per second of sensor time
+            dt = st.get("t", 0.0) - p_st.get("t", 0.0) if p_st else 0.0
+            rate[k] = f"{(c.get(k, 0) - pc.get(k, 0)) / dt:8.1f}" if dt > 0 else f"{'-':>8s}"
+        ok = sum(c.get(f"{m}_ranges", 0) for m in METHODS)
+        rej = sum(c.get(f"{m}_ranges_rejected", 0) for m in METHODS)
+        stale = sum(c.get(f"{m}_stale", 0) for m in METHODS)
+        late = c.get("seq_late_dropped", 0)
+        bad = c.get("codec_errors", 0) + sum(v2 for k2, v2 in c.items() if k2.startswith("rejected_"))
+        qdrop = sum(v2 for k2, v2 in c.items() if k2.startswith("queue_dropped_"))
+        first = ",".join(m for m in st.get("first_stopped", []))
+        rows.append(f"{v:8s} {latest_t.get(v, 0.0):7.1f} {st.get('neighbours', 0):4d} {rate['beacons_tx']} "
+                    f"{rate['beacons_rx']} {first or '-':>5s} {f'{ok}/{rej}':>13s} {stale:5d} {late:4d} {bad:4d} {qdrop:5d}")
+    return "\n".join(rows)
 
 
 def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:
@@ -182,9 +219,14 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
     """RMSE per window, vehicle and method from the recorded estimates; writes estimate CSVs."""
     est: dict[tuple[str, str], list[dict]] = {}
     diags: dict[str, dict] = {}
+    bad_lines = 0
     with open(path) as fh:
         for line in fh:
-            r = json.loads(line)
+            try:
+                r = json.loads(line)
+            except json.JSONDecodeError:  # e.g. a line cut short when a recorder was killed
+                bad_lines += 1
+                continue
             if r["type"] == "Estimate":
                 est.setdefault((r["vehicle"], r["method"]), []).append(r)
             elif r["type"] == "Diagnostics":
@@ -192,16 +234,17 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
     windows = window_bounds(truth)
     rows: dict = {w: {} for w in windows}
     series = {}
+    extra = {}
     for vid, vt in truth.vehicles.items():
         tr = vt.truth
         with open(out / "estimates" / f"{vid}.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["time_s", "method", "lat_deg", "lon_deg", "h_m", "vn_mps", "ve_mps", "vd_mps",
-                        "roll_deg", "pitch_deg", "yaw_deg", "sigma_n_m", "sigma_e_m", "first_stopped",
-                        "err_n_m", "err_e_m", "err_h_m", "err_along_m", "err_cross_m"])
+                        "roll_deg", "pitch_deg", "yaw_deg", "sigma_n_m", "sigma_e_m", "cov_ne_m2", "first_stopped",
+                        "err_n_m", "err_e_m", "err_h_m", "err_along_m", "err_cross_m", "nees_h"])
             for m in methods:
                 recs = sorted(est.get((vid, m), []), key=lambda r: r["t"])
-                ts, eh = [], []
+                ts, eh, nees, claim, truth_first = [], [], [], [], []
                 for r in recs:
                     k = min(int(np.searchsorted(tr.t, r["t"] - 1e-9)), len(tr.t) - 1)
                     e = earth.ned_offset(*r["llh"], *tr.llh[k])
@@ -209,14 +252,23 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
                     along = e[0] * math.cos(yaw) + e[1] * math.sin(yaw)
                     cross = -e[0] * math.sin(yaw) + e[1] * math.cos(yaw)
                     cov = np.array(r["cov_pos"])
+                    try:
+                        q = float(e[:2] @ np.linalg.solve(cov[:2, :2], e[:2]))
+                    except np.linalg.LinAlgError:
+                        q = math.inf
                     w.writerow([f"{r['t']:.3f}", m, f"{math.degrees(r['llh'][0]):.9f}", f"{math.degrees(r['llh'][1]):.9f}",
                                 f"{r['llh'][2]:.3f}", *(f"{x:.3f}" for x in r["v_ned"]),
                                 *(f"{math.degrees(x):.3f}" for x in r["rpy"]),
-                                f"{math.sqrt(cov[0][0]):.3f}", f"{math.sqrt(cov[1][1]):.3f}", int(r["first_stopped"]),
-                                f"{e[0]:.3f}", f"{e[1]:.3f}", f"{math.hypot(e[0], e[1]):.3f}", f"{along:.3f}", f"{cross:.3f}"])
+                                f"{math.sqrt(cov[0][0]):.3f}", f"{math.sqrt(cov[1][1]):.3f}", f"{cov[0][1]:.4f}",
+                                int(r["first_stopped"]), f"{e[0]:.3f}", f"{e[1]:.3f}", f"{math.hypot(e[0], e[1]):.3f}",
+                                f"{along:.3f}", f"{cross:.3f}", f"{q:.4f}"])
                     ts.append(r["t"])
                     eh.append((math.hypot(e[0], e[1]), along, cross))
+                    nees.append(q)
+                    claim.append(bool(r["first_stopped"]))
+                    truth_first.append(bool(vt.first_stopped[k]))
                 series[(vid, m)] = (np.array(ts), np.array(eh).reshape(-1, 3))
+                extra[(vid, m)] = (np.array(nees), np.array(claim, bool), np.array(truth_first, bool))
     try:
         from .plots import plot_run_errors, plot_scenario
 
@@ -230,16 +282,27 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
             sel = (ts >= a) & (ts <= b)
             if sel.any():
                 rms = np.sqrt(np.mean(eh[sel] ** 2, axis=0))
+                nees = extra[(vid, m)][0][sel]
                 rows[wname].setdefault(vid, {})[m] = {"rmse_m": float(rms[0]), "along_rmse_m": float(rms[1]),
-                                                      "cross_rmse_m": float(rms[2]), "n": int(sel.sum())}
+                                                      "cross_rmse_m": float(rms[2]), "n": int(sel.sum()),
+                                                      "nees_h": float(np.mean(nees))}
+    detection = {}
+    for (vid, m), (nees, claim, truth_first) in extra.items():
+        if MethodSpec.of(m).stop_line and (claim.any() or truth_first.any()):
+            detection.setdefault(vid, {})[m] = score_first_stopped(series[(vid, m)][0], truth_first, claim,
+                                                                   series[(vid, m)][1][:, 0])
     return {"scenario": truth.scenario.name, "events": event_times(truth), "windows": {k: list(v) for k, v in windows.items()},
-            "rmse": rows, "estimates": {f"{v}/{m}": len(s[0]) for (v, m), s in series.items()}, "diagnostics": diags}
+            "rmse": rows, "first_stopped": detection, "unreadable_lines": bad_lines,
+            "estimates": {f"{v}/{m}": len(s[0]) for (v, m), s in series.items()}, "diagnostics": diags}
 
 
 def report_markdown(scn, metrics: dict) -> str:
-    lines = [f"# slcp run: {scn.name}", "", scn.description, "",
-             "Horizontal RMSE [m] per window, vehicle and method (the paper's figure in brackets); "
-             "along-track / cross-track RMSE below each value.", ""]
+    """The run's report: paper-style RMSE tables with along/cross-track split and NEES, the
+    first-stopped detection scores, events and plots."""
+    fusion = metrics.get("fusion", "split-ci")
+    lines = [f"# slcp run: {scn.name} (seed {metrics.get('seed', '?')}, fusion `{fusion}`)", "", scn.description, "",
+             "Horizontal RMSE [m] per window, vehicle and method, the paper's figure in brackets. Below each value: "
+             "along-track / cross-track RMSE [m], and the mean horizontal NEES (2 for a consistent filter).", ""]
     for w, table in metrics["rmse"].items():
         lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
         for vid, cells in sorted(table.items()):
@@ -251,9 +314,48 @@ def report_markdown(scn, metrics: dict) -> str:
                     row.append("–")
                 else:
                     row.append(f"{c['rmse_m']:.2f}" + (f" [{p:.2f}]" if p is not None else "")
-                               + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}")
+                               + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}<br>NEES {c.get('nees_h', float('nan')):.1f}")
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
+        lines.append("")
+    det = metrics.get("first_stopped", {})
+    if det:
+        lines += ["## First-stopped detection", "",
+                  "Against the emulator's truth (a claim within 0.3 s of a true first-stopped interval counts as "
+                  "correct). SL RMSE: the stop-line method's horizontal error over the whole true interval "
+                  "(detection latency included) and over its claimed part.", "",
+                  "| vehicle | method | truly first [s] | claimed [s] | wrong [s] | precision | recall | latency [s] "
+                  "| SL RMSE whole / claimed [m] |", "|---" * 9 + "|"]
+        for vid, ms in sorted(det.items()):
+            for m, d in ms.items():
+                def f(x, fmt="{:.3f}"):
+                    return "–" if x is None else fmt.format(x)
+                lat = ", ".join("–" if x is None else f"{x:.1f}" for x in d["latency_s"]) or "–"
+                lines.append(f"| {vid} | {m} | {d['truth_s']:.1f} | {d['claimed_s']:.1f} | {d['wrong_s']:.1f} | "
+                             f"{f(d['precision'])} | {f(d['recall'])} | {lat} | "
+                             f"{f(d.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(d.get('sl_rmse_claimed_m'), '{:.2f}')} |")
         lines.append("")
     lines += ["## Events", "", ", ".join(f"{k} = {v:.1f} s" for k, v in metrics["events"].items()), "",
               "![errors](errors.png)", "", "![map](map.png)", ""]
     return "\n".join(lines)
+
+
+def rebuild_report(run_dir: Path) -> dict:
+    """Re-evaluate a single run directory from its recording (``slcp report``)."""
+    run_dir = Path(run_dir)
+    mpath = run_dir / "metrics.json"
+    rec = run_dir / "recorded" / "messages.jsonl"
+    if not mpath.is_file() or not rec.is_file():
+        raise ValueError(f"{run_dir}: not a run directory (needs metrics.json and recorded/messages.jsonl)")
+    try:
+        old = json.loads(mpath.read_text())
+        scn = load_scenario(old["scenario"])
+    except (json.JSONDecodeError, KeyError) as exc:
+        raise ValueError(f"{mpath}: unreadable metrics ({exc})") from None
+    (run_dir / "estimates").mkdir(exist_ok=True)
+    metrics = evaluate_recording(build_truth(scn), rec, run_dir, METHODS)
+    for k in ("wall_s", "seed", "fusion", "processes"):
+        if k in old:
+            metrics[k] = old[k]
+    mpath.write_text(json.dumps(metrics, indent=2))
+    (run_dir / "report.md").write_text(report_markdown(scn, metrics))
+    return metrics

@@ -7,6 +7,7 @@ Agent configuration file (TOML)::
     vehicle = "V1"                              # may also be given with --vehicle
     scenario = "paper-1"                        # site map and sensor characteristics
     methods = ["SP", "SL-SP", "CP", "SL-CP"]
+    fusion = "split-ci"                         # paper | split-ci | ci (how CP methods fuse ranges)
 
     [zenoh]
     mode = "peer"                               # peer | client | router
@@ -54,7 +55,7 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
 
 
 def load_agent_config(path: Path, vehicle: str | None):
-    from agent.methods import METHODS, MethodSpec
+    from agent.methods import FUSION_RULES, METHODS, MethodSpec
     from hw_emulation.scenario import load_scenario
 
     from .agent_configs import agent_config
@@ -77,8 +78,14 @@ def load_agent_config(path: Path, vehicle: str | None):
             MethodSpec.of(m)
         except ValueError as exc:
             raise ConfigError(f"{path}: agent.methods: {exc}") from None
+    fusion = a.get("fusion", "split-ci")
+    if fusion not in FUSION_RULES:
+        raise ConfigError(f"{path}: agent.fusion: must be one of {', '.join(FUSION_RULES)}, got {fusion!r}")
+    unknown = set(a) - {"vehicle", "scenario", "methods", "fusion"}
+    if unknown:
+        raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
     scn = load_scenario(a.get("scenario", "paper-1"))
-    return agent_config(scn, vid, tuple(methods)), zenoh_config(data.get("zenoh", {}), str(path))
+    return agent_config(scn, vid, tuple(methods), fusion), zenoh_config(data.get("zenoh", {}), str(path))
 
 
 def _install_signals(stop: asyncio.Event) -> None:

@@ -1,0 +1,143 @@
+"""``slcp run SCENARIO --seeds N``: N seeded fleet runs and their statistics.
+
+Each seed is a full fleet run (:func:`deploy.launcher.run_fleet`) in ``<out>/seed-<S>/``; up to
+``jobs`` run at once, each in its own worker process. The aggregate goes to ``<out>/study.json``
+and ``<out>/report.md``:
+
+- RMSE per window, vehicle and method: mean and standard deviation over the seeds, with the
+  along-track and cross-track means;
+- ANEES: the horizontal NEES (n = 2) averaged over every estimate of every seed, beside the
+  two-sided 95 % band of a consistent filter for N runs, ``χ²_{2N}(0.025, 0.975) / N``;
+- first-stopped detection pooled over the seeds: precision, recall and latency.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+
+from agent.methods import METHODS
+
+
+def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[float, float]:
+    """Two-sided χ² band of the ANEES of a consistent filter over ``n_runs`` runs."""
+    from scipy.stats import chi2
+
+    a = (1.0 - probability) / 2.0
+    return float(chi2.ppf(a, dim * n_runs) / n_runs), float(chi2.ppf(1.0 - a, dim * n_runs) / n_runs)
+
+
+def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str) -> dict:
+    import logging
+
+    from .launcher import run_fleet
+
+    logging.basicConfig(level=logging.WARNING)
+    return run_fleet(scenario, methods, None, seed, Path(out), None, fusion)
+
+
+def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHODS, out: Path = Path("runs/study"),
+              fusion: str = "split-ci", jobs: int | None = None, progress=None) -> dict:
+    """Run the seeds and aggregate; ``progress(done, total, seed)`` after each run."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(seeds)))
+    per_seed: dict[int, dict] = {}
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool:
+        futs = {pool.submit(_one, scenario, methods, s, str(out / f"seed-{s}"), fusion): s for s in seeds}
+        for fut in as_completed(futs):
+            per_seed[futs[fut]] = fut.result()
+            if progress:
+                progress(len(per_seed), len(seeds), futs[fut])
+    study = aggregate(out, per_seed)
+    study["fusion"] = fusion
+    (out / "study.json").write_text(json.dumps(study, indent=2))
+    return study
+
+
+def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
+    """Statistics over seeded runs (their metrics and estimate CSVs under ``out/seed-<S>``)."""
+    import csv
+
+    seeds = sorted(per_seed)
+    first = per_seed[seeds[0]]
+    rmse: dict = {}
+    for w in first["rmse"]:
+        for vid in sorted({v for s in seeds for v in per_seed[s]["rmse"].get(w, {})}):
+            for m in METHODS:
+                cells = [per_seed[s]["rmse"][w][vid][m] for s in seeds
+                         if m in per_seed[s]["rmse"].get(w, {}).get(vid, {})]
+                if not cells:
+                    continue
+                vals = np.array([c["rmse_m"] for c in cells])
+                rmse.setdefault(w, {}).setdefault(vid, {})[m] = {
+                    "mean_rmse_m": float(vals.mean()), "sd_rmse_m": float(vals.std(ddof=1)) if len(vals) > 1 else 0.0,
+                    "along_rmse_m": float(np.mean([c["along_rmse_m"] for c in cells])),
+                    "cross_rmse_m": float(np.mean([c["cross_rmse_m"] for c in cells])), "n_seeds": len(cells)}
+    nees: dict = {}
+    for s in seeds:
+        for path in sorted((out / f"seed-{s}" / "estimates").glob("*.csv")):
+            with open(path, newline="") as fh:
+                for row in csv.DictReader(fh):
+                    q = float(row["nees_h"])
+                    if np.isfinite(q):
+                        nees.setdefault((path.stem, row["method"]), []).append(q)
+    lo, hi = anees_band(len(seeds))
+    anees = {f"{v}/{m}": {"anees": float(np.mean(q)), "band": [lo, hi], "inside": bool(lo <= np.mean(q) <= hi)}
+             for (v, m), q in sorted(nees.items())}
+    det: dict = {}
+    for s in seeds:
+        for vid, ms in per_seed[s].get("first_stopped", {}).items():
+            for m, d in ms.items():
+                a = det.setdefault(f"{vid}/{m}", {"truth_s": 0.0, "claimed_s": 0.0, "wrong_s": 0.0, "covered_s": 0.0,
+                                                  "latency_s": []})
+                for k in ("truth_s", "claimed_s", "wrong_s", "covered_s"):
+                    a[k] += d[k]
+                a["latency_s"] += [x for x in d["latency_s"] if x is not None]
+    for a in det.values():
+        a["precision"] = 1.0 - a["wrong_s"] / a["claimed_s"] if a["claimed_s"] else None
+        a["recall"] = a["covered_s"] / a["truth_s"] if a["truth_s"] else None
+        a["mean_latency_s"] = float(np.mean(a["latency_s"])) if a["latency_s"] else None
+        del a["latency_s"]
+    return {"scenario": first["scenario"], "seeds": seeds, "rmse": rmse, "anees": anees, "first_stopped": det}
+
+
+def study_markdown(scn, study: dict) -> str:
+    n = len(study["seeds"])
+    lines = [f"# slcp study: {scn.name}, {n} seeds, fusion `{study.get('fusion', '?')}`", "",
+             "Horizontal RMSE [m]: mean ± sd over the seeds, the paper's figure in brackets; below, the mean "
+             "along-track / cross-track RMSE [m].", ""]
+    for w, table in study["rmse"].items():
+        lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
+        for vid, cells in table.items():
+            row = []
+            for m in METHODS:
+                c = cells.get(m)
+                p = scn.paper_table.get(w, {}).get(vid, {}).get(m)
+                row.append("–" if c is None else f"{c['mean_rmse_m']:.2f} ± {c['sd_rmse_m']:.2f}"
+                           + (f" [{p:.2f}]" if p is not None else "")
+                           + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}")
+            lines.append(f"| {vid} | " + " | ".join(row) + " |")
+        lines.append("")
+    if study["anees"]:
+        lo, hi = next(iter(study["anees"].values()))["band"]
+        lines += [f"## Consistency: horizontal ANEES (n = 2), 95 % band for {n} runs: {lo:.2f}–{hi:.2f}", "",
+                  "| vehicle/method | ANEES | inside |", "|---|---|---|"]
+        lines += [f"| {k} | {a['anees']:.2f} | {'yes' if a['inside'] else 'no'} |" for k, a in study["anees"].items()]
+        lines.append("")
+    if study["first_stopped"]:
+        lines += ["## First-stopped detection (pooled over the seeds)", "",
+                  "| vehicle/method | truly first [s] | claimed [s] | wrong [s] | precision | recall | mean latency [s] |",
+                  "|---|---|---|---|---|---|---|"]
+        for k, a in study["first_stopped"].items():
+            def f(x):
+                return "–" if x is None else f"{x:.3f}"
+            lines.append(f"| {k} | {a['truth_s']:.1f} | {a['claimed_s']:.1f} | {a['wrong_s']:.1f} | {f(a['precision'])} "
+                         f"| {f(a['recall'])} | {f(a['mean_latency_s'])} |")
+        lines.append("")
+    return "\n".join(lines)
