@@ -78,6 +78,11 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--seeds", type=_positive_int, default=None, metavar="N",
                     help="N seeded runs (seeds S..S+N-1) spread over the cores, with mean ± sd")
     rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")
+    bd = sub.add_parser("bound", help="posterior Cramér-Rao bound per vehicle and method on a scenario's truth")
+    bd.add_argument("scenario", help="shipped scenario name or .toml")
+    bd.add_argument("--json", action="store_true", help="print one JSON object")
+    bd.add_argument("--plot", type=Path, metavar="FILE.png", help="plot the bound over time")
+    bd.add_argument("--csv", type=Path, metavar="FILE.csv", help="write the bound over time")
     rp2 = sub.add_parser("report", help="rebuild the report of a run directory from its recording")
     rp2.add_argument("run_dir", type=Path)
 
@@ -216,6 +221,48 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bound(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from agent.methods import METHODS
+    from hw_emulation.events import window_bounds
+    from hw_emulation.scenario import load_scenario
+    from hw_emulation.truth import build_truth
+
+    from .bound import posterior_crlb
+
+    scn = load_scenario(args.scenario)
+    truth = build_truth(scn)
+    b = posterior_crlb(truth)
+    ids = sorted(truth.vehicles)
+    rows = []
+    for w, (a, c) in window_bounds(truth).items():
+        sel = (b.t >= a) & (b.t <= c)
+        for vid in ids:
+            rows.append({"window": w, "vehicle": vid,
+                         **{m: float(np.sqrt(np.mean(b.sigma_h(m, vid)[sel] ** 2))) for m in METHODS}})
+    if args.csv:
+        with open(args.csv, "w", newline="") as fh:
+            wr = csv.writer(fh)
+            wr.writerow(["time_s", "vehicle", *(f"{m}_sigma_h_m" for m in METHODS)])
+            for vid in ids:
+                cols = [b.sigma_h(m, vid) for m in METHODS]
+                for k, t in enumerate(b.t):
+                    wr.writerow([f"{t:.2f}", vid, *(f"{c[k]:.4f}" for c in cols)])
+    if args.plot:
+        from .plots import plot_bound
+
+        plot_bound(b, ids, METHODS, args.plot, f"{scn.name}: posterior CRLB, horizontal")
+    if args.json:
+        print(json.dumps({"scenario": scn.name, "rows": rows}))
+        return 0
+    print(f"{scn.name}: posterior CRLB on horizontal position [m], RMS over each window")
+    print(f"{'window':12s} {'vehicle':8s} " + " ".join(f"{m:>7s}" for m in METHODS))
+    for r in rows:
+        print(f"{r['window']:12s} {r['vehicle']:8s} " + " ".join(f"{r[m]:7.2f}" for m in METHODS))
+    return 0
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     from .launcher import rebuild_report
 
@@ -322,6 +369,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_run(args)
         if args.command == "report":
             return _cmd_report(args)
+        if args.command == "bound":
+            return _cmd_bound(args)
     except (DatasetError, ValueError) as exc:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2

@@ -45,7 +45,9 @@ def score_first_stopped(t: np.ndarray, truth_first: np.ndarray, claimed: np.ndar
     t = np.asarray(t, float)
     truth_first = np.asarray(truth_first, bool)
     claimed = np.asarray(claimed, bool)
-    dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    dt = float(np.median(steps)) if steps.size else 0.0
     near_truth = _dilate(truth_first, t, tolerance)
     out: dict = {
         "truth_s": float(truth_first.sum() * dt),

@@ -42,6 +42,7 @@ from hw_emulation.scenario import load_scenario
 from hw_emulation.truth import build_truth
 from transport import keys
 
+from .bound import posterior_crlb
 from .detection import score_first_stopped
 from transport.codec import CodecError, decode
 from transport.messages import Diagnostics, Estimate
@@ -99,7 +100,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
     procs: dict[str, subprocess.Popen] = {}
     logs = []
     stats: dict = {"exit_codes": {}, "recorded": 0, "codec_errors": 0}
-    rec_file = open(out / "recorded" / "messages.jsonl", "a")
+    rec_file = open(out / "recorded" / "messages.jsonl", "w")  # a new run starts a new recording
     est_sub = router.subscribe(keys.ROOT + "/estimate/**", 1_000_000)
     diag_sub = router.subscribe(keys.ROOT + "/diag/**", 100_000)
     latest_t: dict[str, float] = {}
@@ -232,9 +233,11 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
             elif r["type"] == "Diagnostics":
                 diags[r["source"]] = r["counters"]
     windows = window_bounds(truth)
+    bound = posterior_crlb(truth, tuple(methods))
     rows: dict = {w: {} for w in windows}
     series = {}
     extra = {}
+    sig_h = {}
     for vid, vt in truth.vehicles.items():
         tr = vt.truth
         with open(out / "estimates" / f"{vid}.csv", "w", newline="") as fh:
@@ -269,11 +272,12 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
                     truth_first.append(bool(vt.first_stopped[k]))
                 series[(vid, m)] = (np.array(ts), np.array(eh).reshape(-1, 3))
                 extra[(vid, m)] = (np.array(nees), np.array(claim, bool), np.array(truth_first, bool))
+                sig_h[(vid, m)] = np.sqrt([r["cov_pos"][0][0] + r["cov_pos"][1][1] for r in recs])
     try:
         from .plots import plot_run_errors, plot_scenario
 
         plot_run_errors(series, windows, methods, out / "errors.png",
-                        f"{truth.scenario.name}: horizontal error per vehicle and method")
+                        f"{truth.scenario.name}: horizontal error per vehicle and method", sig_h, bound)
         plot_scenario(truth, out / "map.png", event_times(truth))
     except ImportError:  # pragma: no cover - matplotlib is a dependency
         log.warning("matplotlib unavailable: no plots")
@@ -283,9 +287,12 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
             if sel.any():
                 rms = np.sqrt(np.mean(eh[sel] ** 2, axis=0))
                 nees = extra[(vid, m)][0][sel]
+                lim = bound.at(m, vid, ts[sel])
                 rows[wname].setdefault(vid, {})[m] = {"rmse_m": float(rms[0]), "along_rmse_m": float(rms[1]),
                                                       "cross_rmse_m": float(rms[2]), "n": int(sel.sum()),
-                                                      "nees_h": float(np.mean(nees))}
+                                                      "nees_h": float(np.mean(nees)),
+                                                      "bound_rms_m": float(np.sqrt(np.mean(lim**2))),
+                                                      "sigma_below_bound": float(np.mean(sig_h[(vid, m)][sel] < lim * 0.99))}
     detection = {}
     for (vid, m), (nees, claim, truth_first) in extra.items():
         if MethodSpec.of(m).stop_line and (claim.any() or truth_first.any()):
@@ -302,7 +309,9 @@ def report_markdown(scn, metrics: dict) -> str:
     fusion = metrics.get("fusion", "split-ci")
     lines = [f"# slcp run: {scn.name} (seed {metrics.get('seed', '?')}, fusion `{fusion}`)", "", scn.description, "",
              "Horizontal RMSE [m] per window, vehicle and method, the paper's figure in brackets. Below each value: "
-             "along-track / cross-track RMSE [m], and the mean horizontal NEES (2 for a consistent filter).", ""]
+             "along-track / cross-track RMSE [m]; the mean horizontal NEES (2 for a consistent filter); the "
+             "posterior Cramér-Rao bound (RMS over the window) and the share of time the reported σ is below it "
+             "(an unbiased filter whose σ is below the bound is overconfident).", ""]
     for w, table in metrics["rmse"].items():
         lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
         for vid, cells in sorted(table.items()):
@@ -314,7 +323,8 @@ def report_markdown(scn, metrics: dict) -> str:
                     row.append("–")
                 else:
                     row.append(f"{c['rmse_m']:.2f}" + (f" [{p:.2f}]" if p is not None else "")
-                               + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}<br>NEES {c.get('nees_h', float('nan')):.1f}")
+                               + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}<br>NEES {c.get('nees_h', float('nan')):.1f}"
+                               + f"<br>bound {c.get('bound_rms_m', float('nan')):.2f}, σ<bound {100 * c.get('sigma_below_bound', 0):.0f} %")
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
     det = metrics.get("first_stopped", {})
@@ -341,16 +351,30 @@ def report_markdown(scn, metrics: dict) -> str:
 
 def rebuild_report(run_dir: Path) -> dict:
     """Re-evaluate a single run directory from its recording (``slcp report``)."""
+    import tomllib
+
     run_dir = Path(run_dir)
     mpath = run_dir / "metrics.json"
     rec = run_dir / "recorded" / "messages.jsonl"
-    if not mpath.is_file() or not rec.is_file():
-        raise ValueError(f"{run_dir}: not a run directory (needs metrics.json and recorded/messages.jsonl)")
-    try:
-        old = json.loads(mpath.read_text())
-        scn = load_scenario(old["scenario"])
-    except (json.JSONDecodeError, KeyError) as exc:
-        raise ValueError(f"{mpath}: unreadable metrics ({exc})") from None
+    if not rec.is_file():
+        raise ValueError(f"{run_dir}: not a run directory (no recorded/messages.jsonl)")
+    old: dict = {}
+    if mpath.is_file():
+        try:
+            old = json.loads(mpath.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{mpath}: unreadable metrics ({exc})") from None
+    name = old.get("scenario")
+    for cfg in sorted((run_dir / "config").glob("agent-*.toml")) if name is None else ():
+        try:  # a run that stopped before its evaluation: the agents' configs name the scenario
+            agent = tomllib.loads(cfg.read_text()).get("agent", {})
+        except (OSError, tomllib.TOMLDecodeError):
+            continue
+        name, old["fusion"] = agent.get("scenario"), agent.get("fusion", "split-ci")
+        break
+    if not isinstance(name, str):
+        raise ValueError(f"{run_dir}: cannot tell the scenario (no metrics.json or config/agent-*.toml)")
+    scn = load_scenario(name)
     (run_dir / "estimates").mkdir(exist_ok=True)
     metrics = evaluate_recording(build_truth(scn), rec, run_dir, METHODS)
     for k in ("wall_s", "seed", "fusion", "processes"):

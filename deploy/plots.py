@@ -85,9 +85,12 @@ def plot_scenario(truth, path: Path, events: dict[str, float] | None = None) -> 
     plt.close(fig)
 
 
-def plot_run_errors(series: dict, windows: dict, methods, path: Path, title: str) -> None:
+def plot_run_errors(series: dict, windows: dict, methods, path: Path, title: str, sigma: dict | None = None,
+                    bound=None) -> None:
     """Horizontal error over time per vehicle (rows) and method (colours), like the paper's
-    Fig. 9/11; evaluation windows shaded."""
+    Fig. 9/11; evaluation windows shaded. Optional: each method's reported horizontal σ
+    (``sigma[(vehicle, method)]``, dotted) and the posterior CRLB (:class:`deploy.bound.Bound`,
+    dashed)."""
     vehicles = sorted({v for v, _ in series})
     fig, axes = plt.subplots(len(vehicles), 1, figsize=(10, 2.6 * len(vehicles)), sharex=True, squeeze=False)
     colours = {"SP": "tab:gray", "SL-SP": "tab:red", "CP": "tab:blue", "SL-CP": "tab:green"}
@@ -98,8 +101,32 @@ def plot_run_errors(series: dict, windows: dict, methods, path: Path, title: str
             ts, eh = series.get((vid, m), (None, None))
             if ts is not None and len(ts):
                 ax.plot(ts, eh[:, 0], lw=0.9, color=colours.get(m), label=m)
+                if sigma is not None and (vid, m) in sigma:
+                    ax.plot(ts, sigma[(vid, m)], lw=0.7, ls=":", color=colours.get(m))
+                if bound is not None and (m, vid) in bound.cov:
+                    ax.plot(bound.t, bound.sigma_h(m, vid), lw=0.8, ls="--", color=colours.get(m), alpha=0.7)
         ax.set_ylabel(f"{vid} error [m]")
         ax.set_yscale("symlog", linthresh=0.5)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", ncol=len(methods), fontsize=8,
+                      title="solid: error, dotted: reported σ, dashed: bound" if bound is not None else None,
+                      title_fontsize=7)
+    axes[-1, 0].set_xlabel("time [s]")
+    axes[0, 0].set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_bound(bound, vehicles, methods, path: Path, title: str) -> None:
+    """The posterior CRLB over time per vehicle (rows) and method (colours)."""
+    fig, axes = plt.subplots(len(vehicles), 1, figsize=(10, 2.2 * len(vehicles)), sharex=True, squeeze=False)
+    colours = {"SP": "tab:gray", "SL-SP": "tab:red", "CP": "tab:blue", "SL-CP": "tab:green"}
+    for ax, vid in zip(axes[:, 0], vehicles):
+        for m in methods:
+            ax.plot(bound.t, bound.sigma_h(m, vid), lw=0.9, color=colours.get(m), label=m)
+        ax.set_ylabel(f"{vid} σ [m]")
+        ax.set_yscale("log")
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="upper right", ncol=len(methods), fontsize=8)
     axes[-1, 0].set_xlabel("time [s]")

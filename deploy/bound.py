@@ -1,0 +1,175 @@
+"""The physical limit: posterior Cramér-Rao bound (PCRLB) on every vehicle's horizontal position.
+
+Tichavský, Muravchik & Nehorai (1998): for a linear-Gaussian model the PCRLB recursion is the
+Kalman covariance recursion with the measurement Jacobians taken at the *true* states, so the
+bound is computed as a covariance-only filter on the joint state of all vehicles, on the
+scenario's true trajectories:
+
+- per vehicle: horizontal position and velocity (constant velocity driven by the IMU's velocity
+  random walk; the true acceleration is a known input and does not change the bound), GNSS
+  multipath (2, Gauss-Markov with the receiver's moving/static τ following the true motion), and
+  the stop gap errors (d_s, d_l) of the current stop (2, random constants drawn at each stop);
+- shared by all vehicles: the GNSS common-mode error (2, Gauss-Markov).
+
+Information, at the GNSS rate: GNSS position (white noise on top of multipath + common mode) and
+velocity; for a vehicle that is truly first stopped, the stop-line fix (its error is the stop
+gap error state, so repeated fixes share it); for every pair, UWB ranges at the UWB rate with
+information ``(p/σ²) [uuᵀ, −uuᵀ; −uuᵀ, uuᵀ]``, where ``p`` is the probability that the range
+is measured *and* the neighbour's beacon arrives. Everything the bound leaves out (IMU biases and
+attitude, NLOS, outliers, GNSS outages) only adds error, so the bound stays a lower bound.
+
+The four methods use subsets of the information: SP (GNSS), SL-SP (+ stop line), CP
+(+ ranges), SL-CP (all). The cooperative bounds process the whole fleet's information jointly (a
+bound for any distributed scheme); the others bound each vehicle on its own data. Pure numpy;
+no I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.methods import METHODS, STOP_LINE_MAP_SIGMA, MethodSpec
+from agent.nav import earth
+from agent.nav.measurements.stop_line import stop_line_fix
+from hw_emulation.truth import ScenarioTruth
+
+from .agent_configs import approach_lanes
+
+_NV = 8  # per vehicle: p (2), v (2), multipath (2), stop gap (2)
+
+
+@dataclass(frozen=True)
+class Bound:
+    """Bound per method and vehicle at times ``t``."""
+
+    t: np.ndarray  #: (n,) [s]
+    cov: dict[tuple[str, str], np.ndarray]  #: (method, vehicle) -> (n, 2, 2) horizontal covariance [m²]
+
+    def sigma_h(self, method: str, vehicle: str) -> np.ndarray:
+        """Horizontal bound ``sqrt(P_nn + P_ee)`` [m], shape (n,)."""
+        c = self.cov[(method, vehicle)]
+        return np.sqrt(c[:, 0, 0] + c[:, 1, 1])
+
+    def at(self, method: str, vehicle: str, t: np.ndarray) -> np.ndarray:
+        """Horizontal bound at times ``t`` (the latest bound step not after each time)."""
+        k = np.clip(np.searchsorted(self.t, np.asarray(t, float) + 1e-9) - 1, 0, len(self.t) - 1)
+        return self.sigma_h(method, vehicle)[k]
+
+
+def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rate: float | None = None) -> Bound:
+    """The bound for ``methods`` on the scenario's truth, stepping at ``rate`` Hz (default: GNSS)."""
+    scn = truth.scenario
+    specs = {v.id: v for v in scn.vehicles}
+    ids = sorted(truth.vehicles)
+    rate = rate or max(specs[v].gnss.rate for v in ids)
+    t0 = float(truth.vehicles[ids[0]].truth.t[0])
+    t1 = float(truth.vehicles[ids[0]].truth.t[-1])
+    ts = np.arange(t0, t1 + 1e-9, 1.0 / rate)
+    # truth at the bound steps: map-frame positions, stop flags, lanes
+    pos, moving, first, lane = {}, {}, {}, {}
+    o = scn.origin_llh
+    for vid in ids:
+        tr = truth.vehicles[vid]
+        k = np.clip(np.searchsorted(tr.truth.t, ts - 1e-9), 0, len(tr.truth.t) - 1)
+        llh = tr.truth.llh[k]
+        rm, rn = earth.radii(o[0])
+        pos[vid] = np.column_stack([(llh[:, 0] - o[0]) * (rm + o[2]), (llh[:, 1] - o[1]) * (rn + o[2]) * np.cos(o[0])])
+        moving[vid] = ~tr.stopped[k]
+        first[vid] = tr.first_stopped[k]
+        lane[vid] = tr.segment[k]
+    lanes = approach_lanes(scn)
+    out = {}
+    for m in methods:
+        spec = MethodSpec.of(m)
+        if spec.ranges:  # the fleet's information, processed jointly: a bound for any distributed scheme
+            covs = _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, spec.stop_line, True)
+        else:  # a vehicle on its own (the common-mode error is not learned from the others)
+            covs = {}
+            for vid in ids:
+                covs.update(_run(scn, specs, [vid], ts, pos, moving, first, lane, lanes, spec.stop_line, False))
+        for vid in ids:
+            out[(m, vid)] = covs[vid]
+    return Bound(ts, out)
+
+
+def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use_ranges: bool) -> dict:
+    n_v = len(ids)
+    n = _NV * n_v + 2
+    ic = slice(_NV * n_v, n)  # common mode
+    P = np.zeros((n, n))
+    for i, vid in enumerate(ids):
+        b = _NV * i
+        g = specs[vid].gnss
+        P[b:b + 2, b:b + 2] = np.eye(2) * 100.0**2
+        P[b + 2:b + 4, b + 2:b + 4] = np.eye(2) * 10.0**2
+        P[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * g.multipath_h**2
+        sg = specs[vid]
+        P[b + 6:b + 8, b + 6:b + 8] = np.diag([sg.stop_gap[1] ** 2, sg.lateral[1] ** 2])
+    P[ic, ic] = np.eye(2) * scn.common_mode_sigma**2
+    uwb, radio = scn.uwb, scn.radio
+    p_radio = 1.0 - radio.expected_loss()
+    ranges_per_step = uwb.rate / (1.0 / (ts[1] - ts[0])) if len(ts) > 1 else 1.0
+    out = {vid: np.zeros((len(ts), 2, 2)) for vid in ids}
+    was_first = {vid: False for vid in ids}
+    for k, t in enumerate(ts):
+        if k > 0:
+            dt = ts[k] - ts[k - 1]
+            F = np.eye(n)
+            Q = np.zeros((n, n))
+            for i, vid in enumerate(ids):
+                b = _NV * i
+                g, imu = specs[vid].gnss, specs[vid].imu
+                F[b:b + 2, b + 2:b + 4] = np.eye(2) * dt
+                q = imu.vrw**2
+                Q[b:b + 4, b:b + 4] = np.kron(np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]) * q, np.eye(2))
+                tau = g.multipath_tau_moving if moving[vid][k] else g.multipath_tau_static
+                a = np.exp(-dt / tau)
+                F[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * a
+                Q[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * g.multipath_h**2 * (1 - a * a)
+            a = np.exp(-dt / scn.common_mode_tau)
+            F[ic, ic] = np.eye(2) * a
+            Q[ic, ic] = np.eye(2) * scn.common_mode_sigma**2 * (1 - a * a)
+            P = F @ P @ F.T + Q
+        info = np.zeros((n, n))
+        for i, vid in enumerate(ids):
+            b = _NV * i
+            g = specs[vid].gnss
+            # GNSS position: z = p + multipath + common + white (rows on p, m, c)
+            cols = np.r_[b:b + 2, b + 4:b + 6, ic]
+            info[np.ix_(cols, cols)] += np.kron(np.ones((3, 3)), np.eye(2)) / max(g.white_h, 0.05) ** 2
+            info[b + 2:b + 4, b + 2:b + 4] += np.eye(2) / max(g.velocity_white, 0.02) ** 2
+            if use_sl and first[vid][k] and str(lane[vid][k]) in lanes:
+                sg = specs[vid]
+                if not was_first[vid]:  # a new stop draws new gap errors
+                    s = slice(b + 6, b + 8)
+                    P[s, :] = 0.0
+                    P[:, s] = 0.0
+                    P[s, s] = np.diag([sg.stop_gap[1] ** 2, sg.lateral[1] ** 2])
+                _, J = stop_line_fix(lanes[str(lane[vid][k])].approach, sg.stop_gap[0] + sg.l0, sg.lateral[0])
+                Hs = np.hstack([np.eye(2), -J])  # on (p, gap errors)
+                cols = np.r_[b:b + 2, b + 6:b + 8]
+                info[np.ix_(cols, cols)] += Hs.T @ Hs / STOP_LINE_MAP_SIGMA**2
+            was_first[vid] = bool(first[vid][k])
+        if use_ranges and n_v > 1:
+            pk = np.array([pos[v][k] for v in ids])
+            ii, jj = np.triu_indices(n_v, 1)
+            d = pk[ii] - pk[jj]
+            rho = np.hypot(d[:, 0], d[:, 1])
+            p = uwb.success_probability(rho) * p_radio * (rho <= radio.max_range) * (rho > 0.5)
+            w = p * ranges_per_step / max(uwb.sigma_los, 0.01) ** 2
+            for a, c, dd, r, wk in zip(ii, jj, d, rho, w):
+                if wk <= 0.0:
+                    continue
+                uu = wk * np.outer(dd, dd) / (r * r)
+                A, C = _NV * a, _NV * c
+                info[A:A + 2, A:A + 2] += uu
+                info[C:C + 2, C:C + 2] += uu
+                info[A:A + 2, C:C + 2] -= uu
+                info[C:C + 2, A:A + 2] -= uu
+        P = np.linalg.inv(np.linalg.inv(P) + info)
+        P = 0.5 * (P + P.T)
+        for i, vid in enumerate(ids):
+            out[vid][k] = P[_NV * i:_NV * i + 2, _NV * i:_NV * i + 2]
+    return out
