@@ -8,8 +8,9 @@ fix, so the decision is conservative:
 2. associated to approach lanes: heading within ``heading_tol`` of the lane, laterally inside the
    lane up to ``k_sigma`` position σ, and behind the stop line by no more than
    ``l0 + m_xb + 3 σ_xb + k_sigma σ_along + margin``;
-3. no stopped neighbour within ``neighbour_range`` (beacon distance, widened by my σ) in those
-   lanes that is not clearly behind (its distance to the stop line must exceed mine by
+3. no stopped neighbour within ``neighbour_range`` (beacon distance, widened by my σ) inside
+   one of those lanes (laterally, and not past its stop line, gates widened by both σ) that is
+   not clearly behind (its distance to the stop line must exceed mine by
    ``behind_margin``), and no such neighbour claiming to be first, *unless* it stopped clearly
    after me (``order_tol``): in a queue the leader stops before its followers, so a neighbour
    that came to rest after me is behind me or in another lane. A neighbour first heard already
@@ -63,6 +64,7 @@ class NeighbourView:
     claims_first: bool = False
     #: sensor time [s] at which it came to rest; -inf if first heard at rest, None if moving
     stopped_since: float | None = None
+    cov_ne: np.ndarray | None = None  #: (2, 2) [m²] its beacon's horizontal covariance
 
 
 @dataclass(frozen=True)
@@ -128,7 +130,15 @@ class FirstStoppedDetector:
                     and nb.stopped_since > stopped_since + self.s.order_tol):
                 continue  # came to rest after me: behind me in my lane, or in another lane
             for lid, behind in cands:
-                nb_behind, nb_right = self._geometry(self.lanes[lid], nb.ne)
+                lane = self.lanes[lid]
+                nb_behind, nb_right = self._geometry(lane, nb.ne)
+                # only a neighbour inside this lane and not past its stop line can be ahead of me
+                c = cov_ne + (nb.cov_ne if nb.cov_ne is not None else 0.0)
+                n_s, n_r = lane.approach.stop_line_normal(), lane.approach.left_lane_line.right_normal
+                tol_a = self.s.k_sigma * math.sqrt(max(float(n_s @ c @ n_s), 0.0)) + self.s.margin
+                tol_l = self.s.k_sigma * math.sqrt(max(float(n_r @ c @ n_r), 0.0))
+                if not (-tol_l <= nb_right <= lane.width + tol_l and nb_behind >= -tol_a):
+                    continue
                 if nb.claims_first or nb_behind < behind + self.s.behind_margin:
                     return Decision(False, None, False, f"neighbour {nb.vehicle} may be ahead", nb.vehicle)
         lid = min(cands, key=lambda c: c[1])[0]
@@ -179,9 +189,11 @@ class StopTracker:
         self._nb.pop(vehicle, None)
 
     def decide(self, t: float, ne: np.ndarray, cov_ne: np.ndarray, yaw: float, speed: float,
-               neighbour_ne: dict[str, np.ndarray]) -> tuple[Decision, bool]:
+               neighbour_ne: dict[str, np.ndarray],
+               neighbour_cov: dict[str, np.ndarray] | None = None) -> tuple[Decision, bool]:
         """Decide at sensor time ``t`` [s]; ``neighbour_ne`` maps each neighbour heard to its beacon
-        position (map NED [m]). Returns the decision and whether the claim changed."""
+        position (map NED [m], (2,)), ``neighbour_cov`` to its horizontal covariance ((2, 2) [m²]).
+        Returns the decision and whether the claim changed."""
         if speed < self.s.stop_speed:
             if self.since is None:
                 self.since, self.vetoed = t, None
@@ -198,7 +210,8 @@ class StopTracker:
         for v, p in neighbour_ne.items():
             st = self._nb.get(v)
             if st is not None:
-                nbs.append(NeighbourView(v, p, st.stopped_since is not None, st.claims_first, st.stopped_since))
+                nbs.append(NeighbourView(v, p, st.stopped_since is not None, st.claims_first, st.stopped_since,
+                                         (neighbour_cov or {}).get(v)))
         if speed >= self.s.stop_speed:
             still = 0.0  # a claim ends as soon as the vehicle moves (the stop itself has hysteresis)
         dec = self.detector.decide(ne, cov_ne, yaw, still, nbs, self.since)

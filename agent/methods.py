@@ -77,7 +77,7 @@ class FilterSettings:
     fusion: str = "split-ci"
     #: node selection for the CI rules: fuse a range only if it is expected to reduce the
     #: horizontal position variance by at least this fraction
-    min_gain: float = 0.001
+    min_gain: float = 1e-4
     max_range: float = 150.0  #: physical gate on UWB ranges [m]
     #: RMS of the UWB NLOS bias (persistent over an episode, so fused as dependent noise by the
     #: CI rules) [m]

@@ -281,8 +281,9 @@ class Agent:
             tab = self.tables[m]
             nb_ne = {o: np.array(pymap3d.geodetic2ned(*tab.entries[o].llh, *self.cfg.origin_llh, deg=False)[:2])
                      for o in tab.vehicles()}
+            nb_cov = {o: tab.entries[o].cov[:2, :2] for o in tab.vehicles()}
             dec, changed = tr.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
-                                     float(np.hypot(st.v[0], st.v[1])), nb_ne)
+                                     float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)
             if changed:
                 self.decision_log.append((t, m, dec.reason))
                 log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,

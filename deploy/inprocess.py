@@ -39,6 +39,8 @@ class RunResult:
     first: dict[tuple[str, str], np.ndarray]  #: detector decisions at the record times
     counters: dict[tuple[str, str], dict[str, int]] = field(default_factory=dict)
     decisions: list[tuple[float, str, str, str]] = field(default_factory=list)  #: (t, vehicle, method, reason)
+    #: (vehicle, method) -> signed along-track error [m] (truth heading)
+    along: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     #: method -> injected error kind ("clean", "nlos", "outlier") -> range outcome -> count
     range_outcomes: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)
 
@@ -94,6 +96,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     imu = {vid: (sensors[vid].imu.dtheta.tolist(), sensors[vid].imu.dvel.tolist()) for vid in ids}
     dts = dt.tolist()
     rec_t, err, sig, first = [], {k: [] for k in filters}, {k: [] for k in filters}, {k: [] for k in filters}
+    along: dict[tuple[str, str], list[float]] = {k: [] for k in filters}
 
     for k in range(len(dts)):
         tk = float(t[k + 1])
@@ -155,8 +158,9 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                 tab = tables[key]
                 nb_ne = {o: np.array(pymap3d.geodetic2ned(*tab.entries[o].llh, *scn.origin_llh, deg=False)[:2])
                          for o in tab.vehicles()}
+                nb_cov = {o: tab.entries[o].cov[:2, :2] for o in tab.vehicles()}
                 dec, changed = tr.decide(tk, ne, f.filter.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
-                                         float(np.hypot(st.v[0], st.v[1])), nb_ne)
+                                         float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)
                 if changed:
                     f.last_stop_line = -math.inf
                     decisions.append((tk, key[0], key[1], dec.reason))
@@ -169,8 +173,11 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                 e = earth.ned_offset(s.lat, s.lon, s.h, *truth.vehicles[vid].truth.llh[k + 1])
                 p = f.filter.position_cov
                 err[(vid, m)].append(math.hypot(e[0], e[1]))
+                yaw = truth.vehicles[vid].truth.euler[k + 1, 2]
+                along[(vid, m)].append(e[0] * math.cos(yaw) + e[1] * math.sin(yaw))
                 sig[(vid, m)].append(math.sqrt(p[0, 0] + p[1, 1]))
                 first[(vid, m)].append(claim_of(vid, m))
     return RunResult(np.array(rec_t), {k: np.array(v) for k, v in err.items()},
                      {k: np.array(v) for k, v in sig.items()}, {k: np.array(v) for k, v in first.items()},
-                     {k: dict(f.counters) for k, f in filters.items()}, decisions, range_outcomes)
+                     {k: dict(f.counters) for k, f in filters.items()}, decisions=decisions,
+                     range_outcomes=range_outcomes, along={k: np.array(v) for k, v in along.items()})

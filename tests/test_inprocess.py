@@ -31,9 +31,19 @@ def test_no_false_first_stopped_claims_and_stop_line_accuracy(run) -> None:
                 claimed_any.append(vid)
                 print(f"{name} {vid} {m}: latency {sc['latency_s']} s, recall {sc['recall']:.3f}, SL-SP RMSE "
                       f"while claimed {sc['sl_rmse_claimed_m']:.2f} m, whole stop {sc['sl_rmse_truth_first_m']:.2f} m")
-                # measured: paper-1 V1 0.14, paper-2 V0 0.06, V2 0.39 (lane ambiguous: along-only fix)
-                assert sc["sl_rmse_claimed_m"] < 0.5
                 assert sc["recall"] > 0.95 and all(abs(x) < 1.0 for x in sc["latency_s"])
+                claimed = r.first[(vid, m)]
+                sp = float(np.sqrt(np.mean(r.err[(vid, "SP")][claimed] ** 2)))
+                ambiguous = (name, vid) == ("paper-2", "V2")  # two eastbound lanes, lateral σ ~1.7 m
+                # the error while first is one draw of this stop's gap deviation: bound it at 3σ
+                spec = next(v for v in truth.scenario.vehicles if v.id == vid)
+                s_xb, s_yb = spec.stop_gap[1], spec.lateral[1]
+                if ambiguous:  # along-track row only: the cross-track error stays at GNSS level
+                    along = float(np.sqrt(np.mean(r.along[(vid, "SL-SP")][claimed] ** 2)))
+                    print(f"  along-track only: SL-SP {along:.2f} m (SP horizontal {sp:.2f} m)")
+                    assert along < 3 * s_xb  # measured 0.32 m
+                else:  # measured: paper-1 V1 0.14 m, paper-2 V0 0.06 m
+                    assert sc["sl_rmse_claimed_m"] < 3 * np.hypot(s_xb, s_yb) < sp
     expected = {"paper-1": {"V1"}, "paper-2": {"V0", "V2"}}[name]
     assert set(claimed_any) == expected
 

@@ -1,0 +1,74 @@
+"""The posterior CRLB: closed forms on a synthetic fleet, ordering of the methods, and the CLI."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from deploy.bound import _run
+from hw_emulation.sensors.gnss import GnssModel
+from hw_emulation.sensors.imu import ImuModel
+from hw_emulation.sensors.radio import RadioModel
+from hw_emulation.sensors.uwb import UwbModel
+
+
+def _fleet(n: int, gnss: GnssModel, common: float = 1e-6, uwb: UwbModel | None = None):
+    specs = {f"V{i}": SimpleNamespace(gnss=gnss, imu=ImuModel(), stop_gap=(1.5, 0.2), lateral=(1.75, 0.1), l0=2.5)
+             for i in range(n)}
+    scn = SimpleNamespace(uwb=uwb or UwbModel(), radio=RadioModel(loss=0.0, ge_p_good_to_bad=0.0),
+                          common_mode_sigma=common, common_mode_tau=600.0)
+    return scn, specs
+
+
+def test_gnss_only_matches_batch_least_squares() -> None:
+    """One vehicle, white GNSS position and velocity noise, (almost) no process noise: the
+    recursion's final bound equals the batch least-squares covariance of p(T) = p0 + v T."""
+    g = GnssModel(white_h=0.5, multipath_h=1e-6, velocity_white=0.05)
+    scn, specs = _fleet(1, g)
+    specs["V0"].imu = ImuModel(vrw=1e-7)
+    ts = np.arange(0.0, 20.0, 0.2)
+    k = len(ts)
+    pos = {"V0": np.zeros((k, 2))}
+    still = {"V0": np.zeros(k, bool)}
+    cov = _run(scn, specs, ["V0"], ts, pos, still, still, {"V0": np.array(["x"] * k)}, {}, False, False)["V0"]
+    # batch, one axis: unknowns (p0, v); rows p0 + v t_k (σ 0.5) and v (σ 0.05); priors 100 m, 10 m/s
+    A = np.vstack([np.column_stack([np.ones(k), ts]), np.column_stack([np.zeros(k), np.ones(k)])])
+    w = np.r_[np.full(k, 1 / 0.5**2), np.full(k, 1 / 0.05**2)]
+    info = A.T @ (A * w[:, None]) + np.diag([1 / 100.0**2, 1 / 10.0**2])
+    end = np.array([1.0, ts[-1]])
+    expected = end @ np.linalg.solve(info, end)
+    assert cov[-1, 0, 0] == pytest.approx(expected, rel=0.01)
+    assert cov[-1, 1, 1] == pytest.approx(expected, rel=0.01)
+    assert cov[-1, 0, 1] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_range_adds_information_along_the_line_only() -> None:
+    g = GnssModel(white_h=0.5, multipath_h=2.0, velocity_white=0.05)
+    scn, specs = _fleet(2, g)
+    ts = np.arange(0.0, 10.0, 0.2)
+    k = len(ts)
+    pos = {"V0": np.zeros((k, 2)), "V1": np.tile([7.0, 0.0], (k, 1))}  # V1 7 m north of V0
+    still = {v: np.zeros(k, bool) for v in pos}
+    lanes = {v: np.array(["x"] * k) for v in pos}
+    ids = ["V0", "V1"]
+    solo = _run(scn, specs, ids, ts, pos, still, still, lanes, {}, False, False)["V0"][-1]
+    coop = _run(scn, specs, ids, ts, pos, still, still, lanes, {}, False, True)["V0"][-1]
+    # two equal vehicles and a perfect range along north: the north variance of each halves
+    assert coop[0, 0] == pytest.approx(solo[0, 0] / 2, rel=0.05)
+    assert coop[1, 1] == pytest.approx(solo[1, 1], rel=1e-6)
+
+
+@pytest.mark.timeout(120)
+def test_methods_are_ordered_and_the_cli_prints_them(capsys) -> None:
+    from deploy.cli import main
+
+    assert main(["bound", "paper-1", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    for r in rows:
+        assert r["SL-CP"] <= r["CP"] + 1e-9 <= r["SP"] + 2e-9
+        assert r["SL-CP"] <= r["SL-SP"] + 1e-9 <= r["SP"] + 2e-9
+    v1 = next(r for r in rows if r["vehicle"] == "V1")
+    assert v1["SL-SP"] < 0.5 < v1["SP"]  # the first stopped vehicle's stop line

@@ -1,0 +1,37 @@
+"""Multi-seed study aggregation: mean ± sd, ANEES band, pooled detection (synthetic runs)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deploy.study import aggregate, anees_band
+
+
+def test_anees_band_matches_the_chi_square_table() -> None:
+    assert anees_band(25) == pytest.approx((1.29, 2.86), abs=0.01)
+    assert anees_band(50) == pytest.approx((1.48, 2.59), abs=0.01)
+
+
+def test_aggregate_over_seeds(tmp_path) -> None:
+    per_seed = {}
+    for s, (rmse, nees) in enumerate([(1.0, 1.5), (3.0, 2.5)]):
+        d = tmp_path / f"seed-{s}" / "estimates"
+        d.mkdir(parents=True)
+        (d / "V1.csv").write_text("time_s,method,nees_h\n" + "".join(f"{0.1 * k:.1f},SP,{nees}\n" for k in range(10)))
+        per_seed[s] = {
+            "scenario": "x",
+            "rmse": {"w": {"V1": {"SP": {"rmse_m": rmse, "along_rmse_m": rmse / 2, "cross_rmse_m": rmse / 3}}}},
+            "first_stopped": {"V1": {"SL-SP": {"truth_s": 10.0, "claimed_s": 9.0, "wrong_s": 0.5 * s,
+                                               "covered_s": 9.0 - 0.5 * s, "latency_s": [0.2 + s]}}},
+        }
+    st = aggregate(tmp_path, per_seed)
+    c = st["rmse"]["w"]["V1"]["SP"]
+    assert c["mean_rmse_m"] == pytest.approx(2.0) and c["sd_rmse_m"] == pytest.approx(np.sqrt(2.0))
+    assert st["anees"]["V1/SP"]["anees"] == pytest.approx(2.0)
+    assert st["anees"]["V1/SP"]["inside"] is True  # 2 runs: band 0.24-5.57
+    lo, hi = anees_band(2)
+    assert st["anees"]["V1/SP"]["band"] == [lo, hi]
+    d = st["first_stopped"]["V1/SL-SP"]
+    assert d["precision"] == pytest.approx(1 - 0.5 / 18) and d["recall"] == pytest.approx(17.5 / 20)
+    assert d["mean_latency_s"] == pytest.approx(0.7)
