@@ -189,8 +189,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from agent.methods import METHODS, MethodSpec
     from hw_emulation.scenario import load_scenario
 
-    from .launcher import run_fleet
+    from .launcher import interrupt_on_termination, run_fleet
 
+    interrupt_on_termination()
     methods = tuple(args.methods) if args.methods else METHODS
     for m in methods:
         MethodSpec.of(m)  # ValueError -> clear CLI error

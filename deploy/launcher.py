@@ -190,6 +190,18 @@ def status_table(vehicles: list[str], latest_t: dict[str, float], diag: dict, pr
     return "\n".join(rows)
 
 
+def interrupt_on_termination() -> None:
+    """Make SIGTERM and SIGHUP behave like Ctrl-C (KeyboardInterrupt) in this process, so that a
+    launcher killed politely still stops its children (the default handlers exit at once,
+    skipping every ``finally``)."""
+
+    def handler(signum, frame):  # noqa: ARG001 - signal handler signature
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, handler)
+
+
 def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:
     for p in procs.values():
         if p.poll() is None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+import signal
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -35,9 +36,10 @@ def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[fl
 def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str) -> dict:
     import logging
 
-    from .launcher import run_fleet
+    from .launcher import interrupt_on_termination, run_fleet
 
     logging.basicConfig(level=logging.WARNING)
+    interrupt_on_termination()
     return run_fleet(scenario, methods, None, seed, Path(out), None, fusion)
 
 
@@ -48,12 +50,21 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     out.mkdir(parents=True, exist_ok=True)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(seeds)))
     per_seed: dict[int, dict] = {}
-    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool:
+    pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"))
+    try:
         futs = {pool.submit(_one, scenario, methods, s, str(out / f"seed-{s}"), fusion): s for s in seeds}
         for fut in as_completed(futs):
             per_seed[futs[fut]] = fut.result()
             if progress:
                 progress(len(per_seed), len(seeds), futs[fut])
+    except BaseException:
+        # interrupted: each worker stops its own fleet (SIGTERM -> its cleanup), then the pool goes
+        for proc in list(getattr(pool, "_processes", {}).values()):
+            if proc.is_alive():
+                os.kill(proc.pid, signal.SIGTERM)
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
     study = aggregate(out, per_seed)
     study["fusion"] = fusion
     (out / "study.json").write_text(json.dumps(study, indent=2))

@@ -5,6 +5,7 @@ and no process is left behind."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 
 import pytest
@@ -46,3 +47,30 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
     # no process left behind
     ps = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True)
     assert ps.stdout.strip() == ""
+
+
+@pytest.mark.timeout(120)
+def test_sigterm_to_the_launcher_stops_every_child(tmp_path) -> None:
+    import signal
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--out", str(out)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # wait until the agents and the emulator run
+            ps = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()
+            if len(ps) >= 4:
+                break
+            time.sleep(0.2)
+        assert len(ps) >= 4, "the fleet did not start"
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=30) != 0
+        time.sleep(0.5)
+        left = subprocess.run(["pgrep", "-af", str(out)], capture_output=True, text=True).stdout.strip()
+        assert left == "", left
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
