@@ -128,6 +128,8 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
     _install_signals(stop)
     bus = ZenohBus(zcfg)
     try:
+        emu = EmulatorService(truth, bus, seed=seed, speed=speed)
+        emu.prepare()  # subscribed before the agents start publishing
         alive: set[str] = set()
         bus.watch_alive(keys.ROOT + "/alive/agent/*",
                         lambda k, up: alive.add(k.rsplit("/", 1)[-1]) if up else alive.discard(k.rsplit("/", 1)[-1]))
@@ -139,7 +141,6 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
         if missing:
             log.warning("starting without agents %s", sorted(missing))
         await asyncio.sleep(0.3)  # let the agents' subscriptions propagate
-        emu = EmulatorService(truth, bus, seed=seed, speed=speed)
         await emu.run(stop)
         log.info("emulator done: published %s, radio %s", emu.published, emu.radio_stats)
     finally:

@@ -69,6 +69,7 @@ class EmulatorService:
         self._ge_bad: dict[tuple[str, str], bool] = {}
         self.now = float(next(iter(self.truth.vehicles.values())).truth.t[0])
         self.done = asyncio.Event()
+        self._subs: tuple | None = None
 
     # ----------------------------------------------------------------- radio
     def _positions(self, t: float) -> dict[str, np.ndarray]:
@@ -123,13 +124,13 @@ class EmulatorService:
             self.radio_stats.delivered += 1
 
     async def _radio_loop(self) -> None:
-        sub = self.bus.subscribe(keys.ROOT + "/radio/tx/*", 65536)
+        sub = self._subs[0]
         while True:
             _, payload = await sub.get()
             self._radio_send(payload)
 
     async def _watch_agents(self) -> None:
-        sub = self.bus.subscribe(keys.ROOT + "/estimate/**", 65536)
+        sub = self._subs[1]
         while True:
             _, payload = await sub.get()
             try:
@@ -158,8 +159,17 @@ class EmulatorService:
         ev.sort(key=lambda e: (e[0], e[1]))
         return ev
 
+    def prepare(self) -> None:
+        """Subscribe to the agents' beacons and estimates. Call it before waiting for the agents,
+        so that no early estimate is missed (pacing waits for them); :meth:`run` calls it if
+        needed."""
+        if self._subs is None:
+            self._subs = (self.bus.subscribe(keys.ROOT + "/radio/tx/*", 65536),
+                          self.bus.subscribe(keys.ROOT + "/estimate/**", 65536))
+
     async def run(self, stop: asyncio.Event | None = None) -> None:
         stop = stop or asyncio.Event()
+        self.prepare()
         radio = asyncio.create_task(self._radio_loop(), name="radio")
         watch = asyncio.create_task(self._watch_agents(), name="agent-watch")
         self.bus.declare_alive(keys.alive("emulator", "main"))
