@@ -35,3 +35,36 @@ def test_aggregate_over_seeds(tmp_path) -> None:
     d = st["first_stopped"]["V1/SL-SP"]
     assert d["precision"] == pytest.approx(1 - 0.5 / 18) and d["recall"] == pytest.approx(17.5 / 20)
     assert d["mean_latency_s"] == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize("argv", [["run", "--seeds", "0"], ["run", "--fusion", "bogus"], ["run", "--jobs", "x"],
+                                  ["bound"], ["report"]])
+def test_bad_run_arguments_exit_2(argv, capsys) -> None:
+    from deploy.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+
+
+def test_report_of_a_directory_that_is_not_a_run(tmp_path, capsys) -> None:
+    from deploy.cli import main
+
+    assert main(["report", str(tmp_path)]) == 2
+    assert "not a run directory" in capsys.readouterr().err
+    (tmp_path / "recorded").mkdir()
+    (tmp_path / "recorded" / "messages.jsonl").write_text("")
+    assert main(["report", str(tmp_path)]) == 2
+    assert "cannot tell the scenario" in capsys.readouterr().err
+
+
+def test_agent_config_rejects_an_unknown_fusion_rule(tmp_path) -> None:
+    from deploy.processes import ConfigError, load_agent_config
+
+    p = tmp_path / "a.toml"
+    p.write_text('[agent]\nvehicle = "V1"\nscenario = "paper-1"\nfusion = "magic"\n')
+    with pytest.raises(ConfigError, match="agent.fusion"):
+        load_agent_config(p, None)
+    p.write_text('[agent]\nvehicle = "V1"\nscenario = "paper-1"\nfusoin = "ci"\n')
+    with pytest.raises(ConfigError, match="agent.fusoin: unknown field"):
+        load_agent_config(p, None)
