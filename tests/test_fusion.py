@@ -71,3 +71,17 @@ def test_split_ci_is_consistent_for_unknown_correlation_where_the_kalman_rule_is
         nees_kf.append(rk @ np.linalg.solve(Pk, rk))
     assert np.mean(nees_ci) <= 2.0 * 1.05
     assert np.mean(nees_kf) > 2.0 * 1.5
+
+
+@pytest.mark.parametrize("m", [1, 2])
+def test_precomputed_trace_equals_the_explicit_posterior(m: int) -> None:
+    from agent.nav.fusion import _trace_fn
+
+    rng = np.random.default_rng(4)
+    Pd, Pi = _spd(rng, 6), _spd(rng, 6, 0.5)
+    H, Rd, Ri = rng.normal(size=(m, 6)), _spd(rng, m, 0.7), _spd(rng, m, 0.1)
+    f = _trace_fn(Pd, Pi, H, Rd, Ri, IDX)
+    for w in (0.05, 0.3, 0.7, 0.95):
+        P1, R1 = Pd / w + Pi, Rd / (1 - w) + Ri
+        _, P_post, _ = kalman_update(P1, Measurement(np.zeros(m), H, R1))
+        assert f(w) == pytest.approx(np.trace(P_post[np.ix_(IDX, IDX)]), rel=1e-9)

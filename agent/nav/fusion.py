@@ -31,15 +31,37 @@ from .kalman import Measurement, UpdateResult, kalman_update
 OMEGA_MIN, OMEGA_MAX = 1e-3, 1.0 - 1e-3
 
 
+def _trace_fn(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri: np.ndarray, idx: np.ndarray):
+    """The posterior variance over the states ``idx`` as a function of ω, precomputed.
+
+    With a = P_d Hᵀ and b = P_i Hᵀ: P₁Hᵀ = a/ω + b, H P₁ Hᵀ = H a/ω + H b, and the posterior
+    trace is tr(P₁[idx]) − tr(A S⁻¹ Aᵀ) with A = (a/ω + b)[idx], S = H P₁ Hᵀ + R₁(ω).
+    """
+    a, b = Pd @ H.T, Pi @ H.T
+    Ha, Hb = H @ a, H @ b
+    tr_d = float(np.trace(Pd[np.ix_(idx, idx)]))
+    tr_i = float(np.trace(Pi[np.ix_(idx, idx)]))
+    ai, bi = a[idx], b[idx]
+    if H.shape[0] == 1:  # scalar measurement: plain floats
+        aa, ab, bb = float(ai[:, 0] @ ai[:, 0]), float(ai[:, 0] @ bi[:, 0]), float(bi[:, 0] @ bi[:, 0])
+        ha, hb, rd, ri = float(Ha[0, 0]), float(Hb[0, 0]), float(Rd[0, 0]), float(Ri[0, 0])
+
+        def f(w: float) -> float:
+            s = ha / w + hb + rd / (1.0 - w) + ri
+            return tr_d / w + tr_i - (aa / (w * w) + 2.0 * ab / w + bb) / s
+        return f
+
+    def g(w: float) -> float:
+        A = ai / w + bi
+        S = Ha / w + Hb + Rd / (1.0 - w) + Ri
+        return tr_d / w + tr_i - float(np.trace(A @ np.linalg.solve(S, A.T)))
+    return g
+
+
 def _posterior_trace(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri: np.ndarray,
                      idx: np.ndarray, omega: float) -> float:
     """Trace of the posterior covariance over the states ``idx`` for a given ω."""
-    P1 = Pd / omega + Pi
-    R1 = Rd / (1.0 - omega) + Ri
-    PHt = P1 @ H.T
-    S = H @ PHt + R1
-    A = PHt[idx]
-    return float(np.trace(P1[np.ix_(idx, idx)]) - np.trace(A @ np.linalg.solve(S, A.T)))
+    return _trace_fn(Pd, Pi, H, Rd, Ri, idx)(omega)
 
 
 def best_omega(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri: np.ndarray,
@@ -56,15 +78,17 @@ def best_omega(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri
     idx : ndarray of int
         States whose variance is minimised (e.g. north and east position).
     """
+    return _best(Pd, Rd, _trace_fn(Pd, Pi, H, Rd, Ri, idx))
+
+
+def _best(Pd: np.ndarray, Rd: np.ndarray, f) -> float:
     from scipy.optimize import minimize_scalar  # deferred: scipy.optimize is slow to import
 
     if not np.any(Rd):
         return OMEGA_MAX  # nothing dependent on the measurement side: keep the prior whole
     if not np.any(Pd):
         return OMEGA_MIN  # nothing dependent on our side: keep the measurement whole
-    res = minimize_scalar(lambda w: _posterior_trace(Pd, Pi, H, Rd, Ri, idx, w),
-                          bounds=(OMEGA_MIN, OMEGA_MAX), method="bounded", options={"xatol": 1e-3})
-    return float(res.x)
+    return float(minimize_scalar(f, bounds=(OMEGA_MIN, OMEGA_MAX), method="bounded", options={"xatol": 1e-3}).x)
 
 
 def split_ci_update(P: np.ndarray, P_ind: np.ndarray, meas: Measurement, R_dep: np.ndarray, idx: np.ndarray,
@@ -99,10 +123,11 @@ def split_ci_update(P: np.ndarray, P_ind: np.ndarray, meas: Measurement, R_dep: 
     """
     Pd = P - P_ind
     Pd = 0.5 * (Pd + Pd.T)
-    omega = best_omega(Pd, P_ind, meas.H, R_dep, meas.R, idx)
+    f = _trace_fn(Pd, P_ind, meas.H, R_dep, meas.R, idx)
+    omega = _best(Pd, R_dep, f)
     if min_gain > 0.0:
         prior = float(np.trace(P[np.ix_(idx, idx)]))
-        if prior - _posterior_trace(Pd, P_ind, meas.H, R_dep, meas.R, idx, omega) < min_gain * prior:
+        if prior - f(omega) < min_gain * prior:
             n = P.shape[0]
             return np.zeros(n), P, P_ind, UpdateResult(np.zeros(n), float("nan"), meas.dim, False, meas.name,
                                                        None, omega, skipped=True)
