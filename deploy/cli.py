@@ -83,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--json", action="store_true", help="print one JSON object")
     bd.add_argument("--plot", type=Path, metavar="FILE.png", help="plot the bound over time")
     bd.add_argument("--csv", type=Path, metavar="FILE.csv", help="write the bound over time")
-    rp2 = sub.add_parser("report", help="rebuild the report of a run directory from its recording")
+    rp2 = sub.add_parser("report", help="rebuild the report of a run (from its recording) or a study (from its seeds)")
     rp2.add_argument("run_dir", type=Path)
 
     sp = sub.add_parser("scenario", help="list or show emulation scenarios")
@@ -267,7 +267,15 @@ def _cmd_bound(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     from .launcher import rebuild_report
 
-    rebuild_report(args.run_dir)
+    if any(args.run_dir.glob("seed-*")):  # a study: re-aggregate its seeds
+        from hw_emulation.scenario import load_scenario
+
+        from .study import rebuild_study, study_markdown
+
+        study = rebuild_study(args.run_dir)
+        (args.run_dir / "report.md").write_text(study_markdown(load_scenario(study["scenario"]), study))
+    else:
+        rebuild_report(args.run_dir)
     print((args.run_dir / "report.md").read_text())
     return 0
 

@@ -106,15 +106,22 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
         for vid, ms in per_seed[s].get("first_stopped", {}).items():
             for m, d in ms.items():
                 a = det.setdefault(f"{vid}/{m}", {"truth_s": 0.0, "claimed_s": 0.0, "wrong_s": 0.0, "covered_s": 0.0,
-                                                  "latency_s": []})
+                                                  "latency_s": [], "_se_truth": 0.0, "_se_claimed": 0.0})
                 for k in ("truth_s", "claimed_s", "wrong_s", "covered_s"):
                     a[k] += d[k]
                 a["latency_s"] += [x for x in d["latency_s"] if x is not None]
+                # squared error integrals, for RMS values pooled over the seeds
+                a["_se_truth"] += (d.get("sl_rmse_truth_first_m") or 0.0) ** 2 * d["truth_s"]
+                a["_se_claimed"] += (d.get("sl_rmse_claimed_m") or 0.0) ** 2 * d["covered_s"]
     for a in det.values():
         a["precision"] = 1.0 - a["wrong_s"] / a["claimed_s"] if a["claimed_s"] else None
         a["recall"] = a["covered_s"] / a["truth_s"] if a["truth_s"] else None
         a["mean_latency_s"] = float(np.mean(a["latency_s"])) if a["latency_s"] else None
-        del a["latency_s"]
+        a["max_latency_s"] = float(np.max(a["latency_s"])) if a["latency_s"] else None
+        a["sl_rmse_truth_first_m"] = float(np.sqrt(a["_se_truth"] / a["truth_s"])) if a["truth_s"] else None
+        a["sl_rmse_claimed_m"] = float(np.sqrt(a["_se_claimed"] / a["covered_s"])) if a["covered_s"] else None
+        for k in ("latency_s", "_se_truth", "_se_claimed"):
+            del a[k]
     return {"scenario": first["scenario"], "seeds": seeds, "rmse": rmse, "anees": anees, "first_stopped": det}
 
 
@@ -143,12 +150,33 @@ def study_markdown(scn, study: dict) -> str:
         lines.append("")
     if study["first_stopped"]:
         lines += ["## First-stopped detection (pooled over the seeds)", "",
-                  "| vehicle/method | truly first [s] | claimed [s] | wrong [s] | precision | recall | mean latency [s] |",
-                  "|---|---|---|---|---|---|---|"]
+                  "SL RMSE: the stop-line method's horizontal error while the vehicle is truly first stopped, "
+                  "over the whole time (detection latency included) and over the claimed part, RMS over the seeds.", "",
+                  "| vehicle/method | truly first [s] | claimed [s] | wrong [s] | precision | recall "
+                  "| latency mean / max [s] | SL RMSE whole / claimed [m] |", "|---|---|---|---|---|---|---|---|"]
         for k, a in study["first_stopped"].items():
-            def f(x):
-                return "–" if x is None else f"{x:.3f}"
+            def f(x, fmt="{:.3f}"):
+                return "–" if x is None else fmt.format(x)
             lines.append(f"| {k} | {a['truth_s']:.1f} | {a['claimed_s']:.1f} | {a['wrong_s']:.1f} | {f(a['precision'])} "
-                         f"| {f(a['recall'])} | {f(a['mean_latency_s'])} |")
+                         f"| {f(a['recall'])} | {f(a['mean_latency_s'], '{:.2f}')} / {f(a.get('max_latency_s'), '{:.2f}')} "
+                         f"| {f(a.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(a.get('sl_rmse_claimed_m'), '{:.2f}')} |")
         lines.append("")
     return "\n".join(lines)
+
+
+def rebuild_study(out: Path) -> dict:
+    """Re-aggregate a study directory from its seeds' metrics (``slcp report``)."""
+    out = Path(out)
+    old = json.loads((out / "study.json").read_text()) if (out / "study.json").is_file() else {}
+    per_seed = {}
+    for d in sorted(out.glob("seed-*")):
+        try:
+            per_seed[int(d.name.split("-", 1)[1])] = json.loads((d / "metrics.json").read_text())
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"{d}: no readable metrics.json ({exc}); run `slcp report {d}` first") from None
+    if not per_seed:
+        raise ValueError(f"{out}: no seed-* runs")
+    study = aggregate(out, per_seed)
+    study["fusion"] = old.get("fusion", next(iter(per_seed.values())).get("fusion", "?"))
+    (out / "study.json").write_text(json.dumps(study, indent=2))
+    return study
