@@ -144,7 +144,10 @@ class MethodFilter:
         if s.fusion not in FUSION_RULES:
             raise ValueError(f"unknown fusion rule {s.fusion!r}; choose from {', '.join(FUSION_RULES)}")
         if spec.ranges and s.fusion == "split-ci":
-            self.filter.track_independent()
+            # the common-mode GNSS error is shared with the neighbours: what we know of it is
+            # not independent of their estimates
+            cm = tuple(range(3, self._mp.stop)) if self._mp.stop > 3 else ()
+            self.filter.track_independent(self._common_mode_part(), shared=cm)
         self.gap = gap
         self.origin = origin_llh
         self.heading_known = heading_known
@@ -170,6 +173,19 @@ class MethodFilter:
             P[p, p] = self.settings.gnss_white_sigma**2 + sum(P[j, j] for j in err)
             for j in err:
                 P[p, j] = P[j, p] = -P[j, j]
+
+    def _common_mode_part(self) -> np.ndarray | None:
+        """The initial covariance's common-mode share: δp = m + c + w puts +σ_c² on position,
+        −σ_c² between position and the c states, σ_c² on c."""
+        f = self.filter
+        if self._mp.stop <= 3:
+            return None
+        D = np.zeros_like(f.P)
+        for i in range(3):
+            p, c = 6 + i, f.extra_offset + 3 + i
+            var = f.P[c, c]
+            D[p, p], D[c, c], D[p, c], D[c, p] = var, var, -var, -var
+        return D
 
     @property
     def t(self) -> float:

@@ -113,6 +113,7 @@ class InsFilter:
         #: independent part of P for split covariance intersection (None: not tracked); see
         #: :meth:`track_independent`
         self.P_ind: np.ndarray | None = None
+        self._shared = np.zeros(0, int)
 
     def set_gauss_markov(self, k: int, sigma: float, tau: float) -> None:
         """Change the steady-state σ and correlation time τ [s] of Gauss-Markov extra state ``k``
@@ -122,10 +123,21 @@ class InsFilter:
         self._aug_tau[i] = tau
         self._aug_psd[i] = 2.0 * sigma * sigma / tau
 
-    def track_independent(self) -> None:
-        """Start tracking the independent part of P (everything so far is independent)."""
+    def track_independent(self, dependent: np.ndarray | None = None, shared: tuple[int, ...] = ()) -> None:
+        """Start tracking the independent part of P.
+
+        Parameters
+        ----------
+        dependent : ndarray, shape (n, n), optional
+            The part of the current P that is *not* independent of other vehicles' estimates
+            (default: none of it).
+        shared : tuple of int
+            Indices (within ``extra_states``) of states whose error other vehicles share, e.g. a
+            common-mode GNSS error: their process noise counts as dependent from now on.
+        """
         self.flush_covariance()
-        self.P_ind = self.P.copy()
+        self.P_ind = self.P - (dependent if dependent is not None else 0.0)
+        self._shared = np.array([self.n_scale + N_STATES + k for k in shared], int)
 
     # ------------------------------------------------------------------ propagation
     def propagate(self, dtheta, dvel, dt: float) -> None:
@@ -192,7 +204,11 @@ class InsFilter:
         phi, qd = discretize_density(F, q, dt, self.discretization)
         P = phi @ self.P @ phi.T + qd
         self.P = 0.5 * (P + P.T)
-        if self.P_ind is not None:  # process noise is independent information loss
+        if self.P_ind is not None:  # process noise is independent information loss...
+            if self._shared.size:  # ...except that of errors other vehicles share
+                qd = qd.copy()
+                qd[self._shared, :] = 0.0
+                qd[:, self._shared] = 0.0
             Pi = phi @ self.P_ind @ phi.T + qd
             self.P_ind = 0.5 * (Pi + Pi.T)
         self._acc_dt = 0.0
