@@ -27,6 +27,7 @@ from .nav.kalman import Measurement, UpdateResult
 from .nav.measurements.gnss import gnss_position, gnss_velocity
 from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement
 from .nav.measurements.v2v_range import range_measurement, relative_position
+from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat
 from .nav.state import NavState
 from .neighbours import NeighbourState
@@ -75,6 +76,9 @@ class FilterSettings:
     #: noise independent; the neighbour's estimate and what came from it dependent);
     #: ``ci``: covariance intersection (both estimates wholly dependent, UWB noise independent)
     fusion: str = "split-ci"
+    #: zero-velocity updates while the IMU shows rest and GNSS is absent (all methods alike) [m/s];
+    #: None switches them off
+    zupt_sigma: float | None = 0.02
     #: node selection for the CI rules: fuse a range only if it is expected to reduce the
     #: horizontal position variance by at least this fraction
     min_gain: float = 1e-4
@@ -235,6 +239,14 @@ class MethodFilter:
         res = self.filter.update(m, s.gnss_gate)
         self.filter.update(gnss_velocity(self.filter.state, v_ned, np.eye(3) * sigma_v**2, np.zeros(3)))
         self.counters["gnss"] += int(res.accepted)
+
+    def zupt(self) -> UpdateResult | None:
+        """Zero-velocity update (the caller decides that the vehicle is at rest)."""
+        if self.settings.zupt_sigma is None:
+            return None
+        res = self.filter.update(zero_velocity(self.filter.state, self.settings.zupt_sigma))
+        self.counters["zupt"] = self.counters.get("zupt", 0) + int(res.accepted)
+        return res
 
     def stop_line(self, approach: StopLineApproach, along_only: bool = False,
                   stop_id: float | None = None) -> UpdateResult | None:

@@ -26,6 +26,7 @@ from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch,
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
 from .methods import FilterSettings, MethodFilter, MethodSpec, initial_state
 from .nav.measurements.stop_line import StopGapModel
+from .nav.motion import StationarityMonitor, ZuptGate
 from .nav.rotation import quat_to_euler
 from .neighbours import NeighbourTable
 from .sequencer import Apply, Propagate, Sequencer
@@ -74,6 +75,8 @@ class Agent:
         self._pending_fix: GnssFix | None = None
         self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
         self._subs: dict[str, Subscription] = {}
+        self.rest = StationarityMonitor()
+        self.zupt_gate = ZuptGate()
         self._imu_buffer: list[ImuBatch] = []
         self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
         self._beacon_seq = 0
@@ -175,6 +178,7 @@ class Agent:
                 self.counters["before_init"] += 1
                 return
             self._init(self._pending_fix, msg)
+        ref = next(iter(self.filters.values()))
         for k in range(len(msg.t)):
             for step in self.seq.imu(float(msg.t[k]), msg.dtheta[k], msg.dvel[k], float(msg.dt[k])):
                 if isinstance(step, Propagate):
@@ -182,6 +186,11 @@ class Agent:
                         f.propagate(step.dtheta, step.dvel, step.dt)
                 else:
                     self._apply(step)
+            self.rest.push(msg.dtheta[k], msg.dvel[k], float(msg.dt[k]), ref.filter.state.dcm)
+            v = ref.filter.state.v
+            if self.zupt_gate.due(float(msg.t[k]), self.rest, math.hypot(v[0], v[1])):
+                for f in self.filters.values():
+                    f.zupt()
             await self._timers(float(msg.t[k]))
         if self._deferred:
             self._fuse_ranges()
@@ -207,6 +216,7 @@ class Agent:
     def _apply(self, step: Apply) -> None:
         msg = step.payload
         if step.kind == "gnss":
+            self.zupt_gate.gnss(step.t)
             for f in self.filters.values():
                 f.gnss(msg.llh, msg.v_ned, msg.sigma_ned, msg.sigma_v)
         elif step.kind == "uwb":

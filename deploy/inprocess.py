@@ -17,6 +17,7 @@ import pymap3d
 from agent.first_stopped import FirstStoppedDetector, StopTracker
 from agent.methods import METHODS, MethodFilter, MethodSpec, initial_state
 from agent.nav import earth
+from agent.nav.motion import StationarityMonitor, ZuptGate
 from agent.nav.rotation import quat_to_euler
 from agent.neighbours import NeighbourTable
 from hw_emulation.emulate import emulate_uwb, emulate_vehicle_sensors
@@ -71,6 +72,8 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     tables = {(vid, m): NeighbourTable() for vid in ids for m in methods}
     trackers = {(vid, m): StopTracker(detectors[vid]) for vid in ids for m in methods if MethodSpec.of(m).stop_line}
 
+    rest = {vid: StationarityMonitor() for vid in ids}
+    zupt_gate = {vid: ZuptGate() for vid in ids}
     decisions: list[tuple[float, str, str, str]] = []
     range_outcomes: dict[str, dict[str, dict[str, int]]] = {}
 
@@ -108,9 +111,15 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
             while gnss_i[vid] < len(g.t) and g.t[gnss_i[vid]] <= tk + 1e-6:
                 i = gnss_i[vid]
                 if g.t[i] > t[0] + 1e-6:
+                    zupt_gate[vid].gnss(float(g.t[i]))
                     for m in methods:
                         filters[(vid, m)].gnss(g.llh[i], g.v_ned[i], g.sigma_ned[i], g.sigma_v)
                 gnss_i[vid] += 1
+            rest[vid].push(th, dv, dts[k], filters[(vid, methods[0])].filter.state.dcm)
+            v = filters[(vid, methods[0])].filter.state.v
+            if zupt_gate[vid].due(tk, rest[vid], math.hypot(v[0], v[1])):
+                for m in methods:
+                    filters[(vid, m)].zupt()
         # beacons: send at the schedule, deliver after the radio latency
         if (k + 1) % step == 0:
             j = (k + 1) // step - 1

@@ -102,3 +102,28 @@ def test_a_claim_ends_as_soon_as_the_vehicle_moves_and_neighbour_noise_does_not_
     assert tr._nb["B"].stopped_since == -np.inf  # first heard at rest, never "restarted" by noise
     dec, changed = tr.decide(2.2, b, cov, 0.0, 0.15, {})
     assert not dec.first and changed
+
+
+def test_imu_rest_is_told_from_constant_acceleration_and_turning() -> None:
+    from agent.nav.motion import StationarityMonitor, ZuptGate
+
+    g = np.array([0.0, 0.0, -9.81])  # specific force at rest, level FRD
+    dt = 0.01
+    rng = np.random.default_rng(0)
+
+    def feed(f_b, w_b):
+        m = StationarityMonitor()
+        for _ in range(60):
+            m.push(w_b * dt + rng.normal(0, 1e-5, 3), f_b * dt + rng.normal(0, 5e-5, 3), dt, np.eye(3))
+        return m
+
+    rest = feed(g, np.zeros(3))
+    assert rest.stationary
+    assert not feed(g + [1.0, 0.0, 0.0], np.zeros(3)).stationary        # steady 1 m/s² forward
+    assert not feed(g, np.array([0.0, 0.0, np.radians(5.0)])).stationary  # turning at 5 °/s
+    gate = ZuptGate()
+    gate.gnss(10.0)
+    assert not gate.due(10.2, rest, 0.05)    # GNSS still arriving: Doppler does the job
+    assert not gate.due(11.0, rest, 5.0)     # the INS says "moving": cruising looks like rest
+    assert gate.due(11.0, rest, 0.3)
+    assert not gate.due(11.05, rest, 0.3)    # at most every 0.1 s

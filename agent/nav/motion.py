@@ -52,3 +52,75 @@ class StationaryDetector:
     def window_mean_gyro(self, gyro: np.ndarray, k: int) -> np.ndarray:
         """Mean angular rate over the trailing window ending at sample ``k``, shape (3,)."""
         return gyro[max(0, k - self.window + 1): k + 1].mean(axis=0)
+
+
+class StationarityMonitor:
+    """Streaming stationarity test on IMU increments (causal, pure).
+
+    Over a trailing window of ``window`` samples the vehicle is at rest when the mean angular
+    rate is below ``gyro_mean`` [rad/s], the specific-force magnitude varies by less than
+    ``accel_std`` [m/s²], and the mean *horizontal* specific force in the navigation frame is
+    below ``horizontal_accel`` [m/s²]. The last test is what tells rest from a constant
+    acceleration (whose specific force is as steady as gravity alone).
+    """
+
+    def __init__(self, window: int = 50, gyro_mean: float = np.radians(0.5), accel_std: float = 0.1,
+                 horizontal_accel: float = 0.25) -> None:
+        from collections import deque
+
+        self.window = window
+        self.gyro_mean = gyro_mean
+        self.accel_std = accel_std
+        self.horizontal_accel = horizontal_accel
+        self._w: deque[float] = deque(maxlen=window)
+        self._f: deque[float] = deque(maxlen=window)
+        self._fn: deque[tuple[float, float]] = deque(maxlen=window)
+
+    def push(self, dtheta: np.ndarray, dvel: np.ndarray, dt: float, c_bn: np.ndarray) -> None:
+        """Add one IMU interval (increments [rad], [m/s] over ``dt`` s, body-to-NED DCM ``c_bn``);
+        :attr:`stationary` tells whether the window shows rest."""
+        w = np.asarray(dtheta, float) / dt
+        f = np.asarray(dvel, float) / dt
+        fn = c_bn @ f
+        self._w.append(float(np.linalg.norm(w)))
+        self._f.append(float(np.linalg.norm(f)))
+        self._fn.append((float(fn[0]), float(fn[1])))
+
+    @property
+    def stationary(self) -> bool:
+        if len(self._w) < self.window:
+            return False
+        fn = np.mean(np.array(self._fn), axis=0)
+        return (float(np.mean(self._w)) < self.gyro_mean and float(np.std(self._f)) < self.accel_std
+                and float(np.hypot(fn[0], fn[1])) < self.horizontal_accel)
+
+
+class ZuptGate:
+    """When a vehicle filter should apply a zero-velocity update.
+
+    GNSS Doppler already pins the velocity while fixes arrive, so ZUPT is for stops without
+    GNSS: no fix came for ``gnss_gap`` s, the IMU window shows rest, and the filter's own speed
+    is below ``max_speed`` [m/s]. The last condition matters: to an IMU without vibration,
+    cruising at constant speed looks like rest, but the INS velocity still says "moving" (it
+    integrated the deceleration of a real stop). At most once per ``interval`` s.
+    """
+
+    def __init__(self, gnss_gap: float = 0.5, max_speed: float = 1.0, interval: float = 0.1) -> None:
+        self.gnss_gap = gnss_gap
+        self.max_speed = max_speed
+        self.interval = interval
+        self._gnss_t = -np.inf
+        self._last = -np.inf
+
+    def gnss(self, t: float) -> None:
+        """A GNSS fix arrived for time ``t`` [s]."""
+        self._gnss_t = max(self._gnss_t, t)
+
+    def due(self, t: float, monitor: StationarityMonitor, filter_speed: float) -> bool:
+        """Whether to apply ZUPT at time ``t`` [s], given the filter's horizontal speed [m/s]
+        (the IMU window is evaluated only if needed)."""
+        if (t - self._last < self.interval or t - self._gnss_t < self.gnss_gap
+                or filter_speed >= self.max_speed or not monitor.stationary):
+            return False
+        self._last = t
+        return True
