@@ -58,11 +58,15 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
             if progress:
                 progress(len(per_seed), len(seeds), futs[fut])
     except BaseException:
-        # interrupted: each worker stops its own fleet (SIGTERM -> its cleanup), then the pool goes
-        for proc in list(getattr(pool, "_processes", {}).values()):
+        # interrupted: no new seed starts, then each worker stops its own fleet (SIGTERM -> its
+        # cleanup) and the workers are joined
+        procs = list(getattr(pool, "_processes", {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:
             if proc.is_alive():
                 os.kill(proc.pid, signal.SIGTERM)
-        pool.shutdown(wait=True, cancel_futures=True)
+        for proc in procs:
+            proc.join(timeout=30)
         raise
     pool.shutdown(wait=True)
     study = aggregate(out, per_seed)
