@@ -49,14 +49,15 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
     assert ps.stdout.strip() == ""
 
 
-@pytest.mark.timeout(120)
-def test_sigterm_to_the_launcher_stops_every_child(tmp_path) -> None:
+@pytest.mark.timeout(150)
+@pytest.mark.parametrize("extra", [[], ["--seeds", "3", "--jobs", "1"]], ids=["run", "study"])
+def test_sigterm_to_the_launcher_stops_every_child(tmp_path, extra) -> None:
     import signal
     import sys
     import time
 
     out = tmp_path / "run"
-    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--out", str(out)],
+    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--out", str(out), *extra],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
@@ -67,7 +68,7 @@ def test_sigterm_to_the_launcher_stops_every_child(tmp_path) -> None:
             time.sleep(0.2)
         assert len(ps) >= 4, "the fleet did not start"
         p.send_signal(signal.SIGTERM)
-        assert p.wait(timeout=30) != 0
+        assert p.wait(timeout=60) != 0
         time.sleep(0.5)
         left = subprocess.run(["pgrep", "-af", str(out)], capture_output=True, text=True).stdout.strip()
         assert left == "", left
