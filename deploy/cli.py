@@ -83,6 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--json", action="store_true", help="print one JSON object")
     bd.add_argument("--plot", type=Path, metavar="FILE.png", help="plot the bound over time")
     bd.add_argument("--csv", type=Path, metavar="FILE.csv", help="write the bound over time")
+    bn = sub.add_parser("bench", help="per-step costs of an agent and the replay real-time factor")
+    bn.add_argument("--drive", type=Path, default=Path("../shared/data/rtklibexplorer_drive_0708"),
+                    help="rtklibexplorer drive for the replay factor (skipped if absent)")
+    bn.add_argument("--quick", action="store_true", help="fewer repetitions")
+    bn.add_argument("--json", action="store_true", help="print one JSON object")
     rp2 = sub.add_parser("report", help="rebuild the report of a run (from its recording) or a study (from its seeds)")
     rp2.add_argument("run_dir", type=Path)
 
@@ -264,6 +269,30 @@ def _cmd_bound(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import os
+    import platform
+
+    from .bench import micro_benchmarks, replay_factor
+
+    out = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
+           "steps": micro_benchmarks(args.quick), "replay": replay_factor(args.drive)}
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    print(f"slcp bench on {out['machine']['cpus']} CPUs, Python {out['machine']['python']}")
+    for k, v in out["steps"].items():
+        unit = "" if k.endswith(("_bytes", "_share")) else " µs"
+        print(f"  {k:28s} {v:10.2f}{unit}")
+    r = out["replay"]
+    if r is None:
+        print(f"  replay: {args.drive} not found")
+    else:
+        print(f"  replay real-time factor     {r['realtime_factor']:10.1f}x  ({r['imu_span_s']:.1f} s of data in "
+              f"{r['wall_s']:.2f} s; outage RMS {r['outage_h_rms_m']:.2f} m)")
+    return 0
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     from .launcher import rebuild_report
 
@@ -380,6 +409,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_report(args)
         if args.command == "bound":
             return _cmd_bound(args)
+        if args.command == "bench":
+            return _cmd_bench(args)
     except (DatasetError, ValueError) as exc:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2

@@ -68,3 +68,18 @@ def test_agent_config_rejects_an_unknown_fusion_rule(tmp_path) -> None:
     p.write_text('[agent]\nvehicle = "V1"\nscenario = "paper-1"\nfusoin = "ci"\n')
     with pytest.raises(ConfigError, match="agent.fusoin: unknown field"):
         load_agent_config(p, None)
+
+
+@pytest.mark.timeout(120)
+def test_bench_prints_every_figure(capsys) -> None:
+    """The benchmark runs and reports each step cost (figures are printed, not asserted)."""
+    import json
+
+    from deploy.cli import main
+
+    assert main(["bench", "--quick", "--json", "--drive", "/nonexistent"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for k in ("mechanisation_us", "imu_step_us", "covariance_step_us", "gnss_update_us", "range_update_split_ci_us",
+              "stop_line_update_us", "beacon_encode_us", "beacon_decode_us"):
+        assert out["steps"][k] > 0.0
+    assert out["replay"] is None

@@ -1,0 +1,107 @@
+"""``slcp bench``: what a vehicle costs, measured on this machine (benchmarks print figures; they
+are not timed tests).
+
+Per-step costs in microseconds (median of repeated timings of a batch): the strapdown step alone,
+the filter's IMU step (mechanisation plus its share of the 10 Hz covariance propagation), one
+covariance propagation, a GNSS update (position and velocity), a UWB range update with split
+CI, a stop-line fix, and beacon encode/decode. Then the real-time factor of the SP replay of
+the shared real drive, if it is there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _time_us(fn, n: int, repeats: int = 5) -> float:
+    """Median over ``repeats`` of the mean time of ``n`` calls [µs]."""
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(n):
+            fn()
+        out.append((time.perf_counter() - t0) / n * 1e6)
+    return statistics.median(out)
+
+
+def micro_benchmarks(quick: bool = False) -> dict[str, float]:
+    """Step costs [µs] of the pieces of an agent, on paper-1's V1 at its stop."""
+    from agent.methods import MethodFilter, MethodSpec, initial_state
+    from agent.nav import earth
+    from agent.nav.mechanization import mechanize_fast
+    from agent.neighbours import NeighbourState
+    from hw_emulation.scenario import load_scenario
+    from hw_emulation.truth import build_truth
+    from transport.codec import decode, encode
+    from transport.messages import Beacon
+
+    from .agent_configs import agent_config
+
+    scale = 0.2 if quick else 1.0
+    n = lambda k: max(10, int(k * scale))  # noqa: E731 - a local shorthand
+    scn = load_scenario("paper-1")
+    truth = build_truth(scn)
+    cfg = agent_config(scn, "V1")
+    tr = truth.vehicles["V1"].truth
+    k = int(np.searchsorted(tr.t, 30.0))  # standing at the stop line
+    st0 = initial_state(tr.llh[k], np.zeros(3), np.array([0.0, 0.0, -9.8]))
+    dth, dv, dt = tr.dtheta[k], tr.dvel[k], float(tr.t[k + 1] - tr.t[k])
+
+    def fresh(method: str) -> MethodFilter:
+        return MethodFilter(MethodSpec.of(method), st0.copy(), np.array([3.0, 3.0, 5.0]), cfg.settings,
+                            float(tr.t[k]), cfg.gap, cfg.origin_llh)
+
+    out: dict[str, float] = {}
+    th_t, dv_t = tuple(dth), tuple(dv)
+    out["mechanisation_us"] = _time_us(lambda: mechanize_fast(st0, th_t, dv_t, dt, None, None), n(5000))
+    f = fresh("SL-CP")
+    out["imu_step_us"] = _time_us(lambda: f.propagate(th_t, dv_t, dt), n(5000))
+    f = fresh("SL-CP")
+
+    def cov_step():
+        f.filter._acc_dt = 0.1  # one 0.1 s covariance step on the current state
+        f.filter.flush_covariance()
+    out["covariance_step_us"] = _time_us(cov_step, n(500))
+    llh, v = tr.llh[k].copy(), np.zeros(3)
+    sig = np.array([3.0, 3.0, 5.0])
+    out["gnss_update_us"] = _time_us(lambda: f.gnss(llh, v, sig, 0.05), n(500))
+    rm, _ = earth.radii(float(tr.llh[k][0]))
+    nb = NeighbourState("V2", tr.llh[k] + np.array([-7.0 / rm, 0.0, 0.0]), np.eye(3) * 4.0, 0.05)
+    f.settings = dataclasses.replace(cfg.settings, min_gain=0.0)  # always fuse: time the whole update
+    out["range_update_split_ci_us"] = _time_us(lambda: f.range(nb, 7.0), n(500))
+    lane = cfg.lanes["NB_in"].approach
+
+    def sl():
+        f.last_stop_line = -math.inf
+        f.stop_line(lane, stop_id=1.0)
+    out["stop_line_update_us"] = _time_us(sl, n(500))
+    b = Beacon("V1", 1, "SL-CP", 30.0, tr.llh[k], v, np.eye(3))
+    payload = encode(b)
+    out["beacon_encode_us"] = _time_us(lambda: encode(b), n(5000))
+    out["beacon_decode_us"] = _time_us(lambda: decode(payload), n(5000))
+    out["beacon_bytes"] = float(len(payload))
+    # one vehicle running the four methods: 100 Hz IMU steps, 5 Hz GNSS, 10 Hz ranges to 2
+    # neighbours for the two CP methods, 1 Hz stop-line fix for the SL methods
+    per_s = (4 * 100 * out["imu_step_us"] + 4 * 5 * out["gnss_update_us"]
+             + 2 * 2 * 10 * out["range_update_split_ci_us"] + 2 * out["stop_line_update_us"])
+    out["four_methods_cpu_share"] = per_s / 1e6
+    return out
+
+
+def replay_factor(path: Path) -> dict | None:
+    """Real-time factor and accuracy of the SP replay of the rtklibexplorer drive (None if absent)."""
+    from .datasets.rtklib import load_drive
+    from .replay import ReplayConfig, run_replay
+
+    if not Path(path).is_dir():
+        return None
+    res = run_replay(load_drive(path), ReplayConfig())
+    m = res.metrics
+    return {k: m[k] for k in ("realtime_factor", "imu_span_s", "wall_s", "outage_h_rms_m", "outage_h_end_mean_m",
+                              "outage_h_max_m")}
