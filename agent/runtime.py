@@ -236,8 +236,14 @@ class Agent:
             newest = tab.newest_time(other)
             if final or (newest is not None and newest >= t) or f.t - t >= self.cfg.range_defer:
                 nb = tab.at(other, t)
-                if nb is not None:
+                if nb is None:
+                    continue
+                try:
                     f.range(nb, r, t)
+                except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+                    # an unusable range (e.g. both estimates at one point): counted, dropped
+                    self.counters["rejected_range"] = self.counters.get("rejected_range", 0) + 1
+                    log.debug("%s: range to %s dropped: %s", self.cfg.vehicle, other, exc)
             else:
                 keep.append(item)
         self._deferred = keep

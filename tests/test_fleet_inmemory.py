@@ -70,3 +70,26 @@ def test_fleet_on_the_in_memory_bus() -> None:
     rmse = float(np.sqrt(np.mean(np.square(errs))))
     print(f"V1 SL-SP RMSE while first over the bus: {rmse:.2f} m ({len(errs)} estimates)")
     assert rmse < 0.6
+
+
+def test_an_unusable_range_is_counted_and_the_agent_goes_on() -> None:
+    """A range whose fusion raises (here: the neighbour's beacon at our own position) is dropped and
+    counted; it must not stay queued and break every later IMU batch."""
+    from agent.neighbours import NeighbourState
+
+    scn = load_scenario("paper-1")
+    agent = Agent(agent_config(scn, "V1"), InMemoryNetwork().bus())
+
+    class Boom:
+        spec = type("S", (), {"ranges": True})()
+        t = 10.0
+
+        def range(self, *a):
+            raise ValueError("vehicles coincide: range direction undefined")
+
+    agent.filters = {"CP": Boom()}
+    agent.tables["CP"].update("V2", 1, 10.0, np.array([0.7, 2.0, 50.0]), np.zeros(3), np.eye(3), "CP", 10.0)
+    agent._deferred = [(10.0, "CP", "V2", 7.0)]
+    agent._fuse_ranges()
+    assert agent._deferred == [] and agent.counters["rejected_range"] == 1
+    assert isinstance(agent.tables["CP"].at("V2", 10.0), NeighbourState)
