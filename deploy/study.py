@@ -94,6 +94,10 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
                     "mean_rmse_m": float(vals.mean()), "sd_rmse_m": float(vals.std(ddof=1)) if len(vals) > 1 else 0.0,
                     "along_rmse_m": float(np.mean([c["along_rmse_m"] for c in cells])),
                     "cross_rmse_m": float(np.mean([c["cross_rmse_m"] for c in cells])), "n_seeds": len(cells)}
+                if all("bound_rms_m" in c for c in cells):
+                    cell = rmse[w][vid][m]
+                    cell["bound_rms_m"] = float(np.mean([c["bound_rms_m"] for c in cells]))
+                    cell["sigma_below_bound"] = float(np.mean([c["sigma_below_bound"] for c in cells]))
     nees: dict = {}
     for s in seeds:
         for path in sorted((out / f"seed-{s}" / "estimates").glob("*.csv")):
@@ -133,7 +137,8 @@ def study_markdown(scn, study: dict) -> str:
     n = len(study["seeds"])
     lines = [f"# slcp study: {scn.name}, {n} seeds, fusion `{study.get('fusion', '?')}`", "",
              "Horizontal RMSE [m]: mean ± sd over the seeds, the paper's figure in brackets; below, the mean "
-             "along-track / cross-track RMSE [m].", ""]
+             "along-track / cross-track RMSE [m], the posterior CRLB (RMS over the window, mean over the seeds) and "
+             "the share of estimates whose reported σ is below it.", ""]
     for w, table in study["rmse"].items():
         lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
         for vid, cells in table.items():
@@ -143,7 +148,9 @@ def study_markdown(scn, study: dict) -> str:
                 p = scn.paper_table.get(w, {}).get(vid, {}).get(m)
                 row.append("–" if c is None else f"{c['mean_rmse_m']:.2f} ± {c['sd_rmse_m']:.2f}"
                            + (f" [{p:.2f}]" if p is not None else "")
-                           + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}")
+                           + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}"
+                           + (f"<br>bound {c['bound_rms_m']:.2f}, σ<bound {100 * c['sigma_below_bound']:.0f} %"
+                              if "bound_rms_m" in c else ""))
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
     if study["anees"]:
