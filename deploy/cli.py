@@ -333,8 +333,16 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
         claims = r.first[(vid, "SL-SP")]
         detect[vid] = {"true_first_s": float(true_first.sum() / 10), "claimed_s": float(claims.sum() / 10),
                        "claimed_while_not_first_s": float((claims & ~true_first).sum() / 10)}
+    ranges = {}
+    for m, kinds in r.range_outcomes.items():
+        for kind, outcomes in kinds.items():
+            n = sum(outcomes.values())
+            rej = sum(v for k, v in outcomes.items() if k.startswith("gate"))
+            ranges.setdefault(m, {})[kind] = {"n": n, "rejected": rej, "rejected_share": rej / n if n else None,
+                                              "outcomes": outcomes}
     if args.json:
-        print(json.dumps({"scenario": scn.name, "seed": args.seed, "rows": rows, "first_stopped": detect}))
+        print(json.dumps({"scenario": scn.name, "seed": args.seed, "rows": rows, "first_stopped": detect,
+                          "ranges": ranges}))
         return 0
     print(f"{scn.name}, sensor seed {args.seed}: horizontal RMSE [m] (paper in brackets)")
     print(f"{'window':12s} {'vehicle':8s} " + " ".join(f"{m:>14s}" for m in METHODS))
@@ -345,6 +353,9 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
             v = row[meth]
             cells.append(f"{v:6.2f}" + (f" [{p:5.2f}]" if p is not None else "        ") if v is not None else "     -")
         print(f"{row['window']:12s} {row['vehicle']:8s} " + " ".join(f"{c:>14s}" for c in cells))
+    for m, kinds in ranges.items():
+        print(f"{m} ranges rejected by the gates, per injected error: " + "; ".join(
+            f"{kind} {d['rejected']}/{d['n']} ({100 * d['rejected_share']:.1f} %)" for kind, d in sorted(kinds.items()) if d["n"]))
     print("first-stopped detection (SL-SP filter, seconds): " + "; ".join(
         f"{v}: truth {d['true_first_s']:.1f}, claimed {d['claimed_s']:.1f}, wrongly {d['claimed_while_not_first_s']:.1f}"
         for v, d in detect.items()))
