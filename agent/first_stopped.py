@@ -199,7 +199,6 @@ class StopTracker:
                 self.since, self.vetoed = t, None
         elif speed >= 2.0 * self.s.stop_speed:
             self.since, self.vetoed = None, None
-        still = t - self.since if self.since is not None else 0.0
         if self.vetoed is not None:
             # a vehicle that stopped behind a leader stays off the stop line when the leader leaves
             dec = Decision(False, None, False, f"stopped behind {self.vetoed}")
@@ -212,8 +211,8 @@ class StopTracker:
             if st is not None:
                 nbs.append(NeighbourView(v, p, st.stopped_since is not None, st.claims_first, st.stopped_since,
                                          (neighbour_cov or {}).get(v)))
-        if speed >= self.s.stop_speed:
-            still = 0.0  # a claim ends as soon as the vehicle moves (the stop itself has hysteresis)
+        # a claim ends as soon as the vehicle moves (the stop itself has hysteresis)
+        still = t - self.since if self.since is not None and speed < self.s.stop_speed else 0.0
         dec = self.detector.decide(ne, cov_ne, yaw, still, nbs, self.since)
         if dec.vetoed_by is not None:
             self.vetoed = dec.vetoed_by
