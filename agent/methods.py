@@ -19,7 +19,9 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+import pymap3d
 
+from .first_stopped import ApproachLane, Decision, StopTracker
 from .nav import earth
 from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
@@ -28,9 +30,9 @@ from .nav.measurements.gnss import gnss_position, gnss_velocity
 from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement
 from .nav.measurements.v2v_range import range_measurement, relative_position
 from .nav.measurements.vehicle import zero_velocity
-from .nav.rotation import euler_to_quat
+from .nav.rotation import euler_to_quat, quat_to_euler
 from .nav.state import NavState
-from .neighbours import NeighbourState
+from .neighbours import NeighbourState, NeighbourTable
 from .range_gate import RangeRateGate
 
 METHODS = ("SP", "SL-SP", "CP", "SL-CP")
@@ -338,3 +340,23 @@ class MethodFilter:
         """``(llh, v_ned, cov_pos)`` to broadcast."""
         st = self.filter.state
         return st.llh.copy(), st.v.copy(), self.filter.position_cov
+
+
+def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTable,
+                       lanes: dict[str, ApproachLane], origin_llh: tuple[float, float, float],
+                       t: float) -> tuple[Decision, bool]:
+    """One first-stopped decision for filter ``f`` at sensor time ``t`` [s] from its own estimate,
+    the map (``lanes``, frame at ``origin_llh``) and the neighbours' beacons in ``table``; a claim
+    applies the stop-line fix (a new claim at once). Returns the decision and whether it changed."""
+    st = f.filter.state
+    ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
+    nb_ne = {o: np.array(pymap3d.geodetic2ned(*table.entries[o].llh, *origin_llh, deg=False)[:2])
+             for o in table.vehicles()}
+    nb_cov = {o: table.entries[o].cov[:2, :2] for o in table.vehicles()}
+    dec, changed = tracker.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
+                                  float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)
+    if changed:
+        f.last_stop_line = -math.inf
+    if dec.first:
+        f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only, stop_id=tracker.since)
+    return dec, changed

@@ -16,7 +16,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import pymap3d
 
 from transport import keys
 from transport.bus import Bus, Subscription
@@ -24,7 +23,7 @@ from transport.codec import CodecError, decode, encode
 from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
 
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
-from .methods import FilterSettings, MethodFilter, MethodSpec, initial_state
+from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from .nav.measurements.stop_line import StopGapModel
 from .nav.motion import StationarityMonitor, ZuptGate
 from .nav.rotation import quat_to_euler
@@ -291,20 +290,10 @@ class Agent:
 
     def _decide(self, t: float) -> None:
         for m, tr in self.trackers.items():
-            f = self.filters[m]
-            st = f.filter.state
-            ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *self.cfg.origin_llh, deg=False)[:2])
-            tab = self.tables[m]
-            nb_ne = {o: np.array(pymap3d.geodetic2ned(*tab.entries[o].llh, *self.cfg.origin_llh, deg=False)[:2])
-                     for o in tab.vehicles()}
-            nb_cov = {o: tab.entries[o].cov[:2, :2] for o in tab.vehicles()}
-            dec, changed = tr.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
-                                     float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)
+            dec, changed = first_stopped_step(tr, self.filters[m], self.tables[m], self.cfg.lanes,
+                                              self.cfg.origin_llh, t)
             if changed:
                 self.decision_log.append((t, m, dec.reason))
                 log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,
                          "first stopped" if dec.first else "not first", t, dec.reason)
-                f.last_stop_line = -math.inf  # a new claim fixes at once
             self.counters["decisions"] += 1
-            if dec.first:
-                f.stop_line(self.cfg.lanes[dec.lane].approach, along_only=dec.along_only, stop_id=tr.since)

@@ -12,13 +12,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import pymap3d
 
 from agent.first_stopped import FirstStoppedDetector, StopTracker
-from agent.methods import METHODS, MethodFilter, MethodSpec, initial_state
+from agent.methods import METHODS, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from agent.nav import earth
 from agent.nav.motion import StationarityMonitor, ZuptGate
-from agent.nav.rotation import quat_to_euler
 from agent.neighbours import NeighbourTable
 from hw_emulation.emulate import emulate_uwb, emulate_vehicle_sensors
 from hw_emulation.sensors.radio import simulate_link
@@ -161,20 +159,9 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
         # first-stopped decisions and stop-line fixes
         if (k + 1) % dec_step == 0:
             for key, tr in trackers.items():
-                f = filters[key]
-                st = f.filter.state
-                ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *scn.origin_llh, deg=False)[:2])
-                tab = tables[key]
-                nb_ne = {o: np.array(pymap3d.geodetic2ned(*tab.entries[o].llh, *scn.origin_llh, deg=False)[:2])
-                         for o in tab.vehicles()}
-                nb_cov = {o: tab.entries[o].cov[:2, :2] for o in tab.vehicles()}
-                dec, changed = tr.decide(tk, ne, f.filter.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
-                                         float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)
+                dec, changed = first_stopped_step(tr, filters[key], tables[key], lanes, scn.origin_llh, tk)
                 if changed:
-                    f.last_stop_line = -math.inf
                     decisions.append((tk, key[0], key[1], dec.reason))
-                if dec.first:
-                    f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only, stop_id=tr.since)
         if (k + 1) % RECORD_STEP == 0:
             rec_t.append(tk)
             for (vid, m), f in filters.items():
