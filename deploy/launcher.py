@@ -21,6 +21,7 @@ Run directory::
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import csv
 import json
 import logging
@@ -30,6 +31,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -131,15 +133,13 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         for vid in vehicles:
             lf = open(out / "logs" / f"agent-{vid}.log", "w")
             logs.append(lf)
-            procs[f"agent-{vid}"] = subprocess.Popen(_slcp("-v", "agent", "--vehicle", vid, "--config", str(configs[vid])),
-                                                     stdout=lf, stderr=subprocess.STDOUT, start_new_session=True)
+            _spawn(procs, f"agent-{vid}", _slcp("-v", "agent", "--vehicle", vid, "--config", str(configs[vid])), lf)
         lf = open(out / "logs" / "emulator.log", "w")
         logs.append(lf)
         emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint]
         if speed:
             emu_args += ["--speed", str(speed)]
-        emu = procs["emulator"] = subprocess.Popen(_slcp(*emu_args), stdout=lf, stderr=subprocess.STDOUT,
-                                                   start_new_session=True)
+        emu = _spawn(procs, "emulator", _slcp(*emu_args), lf)
         last = 0.0
         prev_diag: dict = {}
         while emu.poll() is None:
@@ -200,6 +200,37 @@ def interrupt_on_termination() -> None:
 
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, handler)
+
+
+@contextlib.contextmanager
+def _termination_deferred():
+    """Hold SIGINT/SIGTERM/SIGHUP back for the duration of the block and re-raise the first one as
+    KeyboardInterrupt afterwards. A signal that arrived while ``Popen`` waited for the child's
+    ``exec`` would otherwise abandon a child that exists but is not yet in the process table we
+    clean up. Outside the main thread (where handlers cannot be set) the block runs unguarded."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    sigs = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    old = {s: signal.getsignal(s) for s in sigs}
+    for s in sigs:
+        signal.signal(s, lambda signum, frame: pending.append(signum))
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        if pending:
+            raise KeyboardInterrupt(f"signal {pending[0]}")
+
+
+def _spawn(procs: dict[str, subprocess.Popen], name: str, args: list[str], log) -> subprocess.Popen:
+    """Start ``args`` in its own session with output to ``log`` and enter it in ``procs`` before
+    any termination signal can interrupt (see `_termination_deferred`)."""
+    with _termination_deferred():
+        p = procs[name] = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    return p
 
 
 def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:

@@ -50,8 +50,11 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
 
 
 @pytest.mark.timeout(150)
-@pytest.mark.parametrize("extra", [[], ["--seeds", "3", "--jobs", "1"]], ids=["run", "study"])
-def test_sigterm_to_the_launcher_stops_every_child(tmp_path, extra) -> None:
+@pytest.mark.parametrize(("extra", "up"), [([], 2), ([], 4), (["--seeds", "3", "--jobs", "1"], 4)],
+                         ids=["run-while-starting", "run", "study"])
+def test_sigterm_to_the_launcher_stops_every_child(tmp_path, extra, up) -> None:
+    """SIGTERM once ``up`` processes name the run directory: 2 = the launcher and its first agent
+    (the signal lands while the other children are being started), 4 = the launcher and every agent."""
     import signal
     import sys
     import time
@@ -61,12 +64,12 @@ def test_sigterm_to_the_launcher_stops_every_child(tmp_path, extra) -> None:
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:  # wait until the agents and the emulator run
+        while time.monotonic() < deadline:
             ps = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()
-            if len(ps) >= 4:
+            if len(ps) >= up:
                 break
-            time.sleep(0.2)
-        assert len(ps) >= 4, "the fleet did not start"
+            time.sleep(0.05)
+        assert len(ps) >= up, "the fleet did not start"
         p.send_signal(signal.SIGTERM)
         assert p.wait(timeout=60) != 0
         time.sleep(0.5)
@@ -75,3 +78,33 @@ def test_sigterm_to_the_launcher_stops_every_child(tmp_path, extra) -> None:
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
+
+
+def test_a_termination_signal_while_a_child_starts_still_leaves_it_to_be_stopped(monkeypatch) -> None:
+    """The signal arrives inside ``Popen`` (after the fork): the child must still be entered in the
+    process table, and the interruption must come after that."""
+    import signal
+    import sys
+
+    from deploy import launcher
+
+    real_popen = subprocess.Popen
+
+    def popen_then_signal(*args, **kwargs):
+        p = real_popen(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)  # as if the launcher were killed at this instant
+        return p
+
+    monkeypatch.setattr(launcher.subprocess, "Popen", popen_then_signal)
+    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
+    procs: dict = {}
+    try:
+        launcher.interrupt_on_termination()
+        with pytest.raises(KeyboardInterrupt):
+            launcher._spawn(procs, "sleeper", [sys.executable, "-c", "import time; time.sleep(60)"], subprocess.DEVNULL)
+        assert "sleeper" in procs and procs["sleeper"].poll() is None
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+        launcher._stop_all(procs, grace=5.0)
+    assert procs["sleeper"].returncode is not None
