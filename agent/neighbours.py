@@ -4,8 +4,8 @@ Pure logic (no I/O). A range measured at time ``t`` needs the neighbour's positi
 the beacon is extrapolated with its velocity and its covariance inflated with the age
 (``P(t) = P + (age² σ_v² + age³ q_a / 3) I_h``, a constant-velocity model with white
 acceleration of density ``q_a``). Beacons older than ``max_age`` are never fused; neighbours not
-heard for ``timeout`` are dropped. Duplicates and out-of-order beacons (sequence not newer) are
-counted and ignored.
+heard for ``timeout`` are dropped. Duplicates, replays and out-of-order beacons (generation time
+not newer than the last stored) are counted and ignored.
 """
 
 from __future__ import annotations
@@ -68,9 +68,10 @@ class NeighbourTable:
 
     def update(self, vehicle: str, seq: int, t: float, llh: np.ndarray, v_ned: np.ndarray,
                cov_pos: np.ndarray, method: str, now: float) -> bool:
-        """Store a beacon; returns False (and counts) for a duplicate or out-of-order one."""
+        """Store a beacon; returns False (and counts) for a duplicate, replayed or out-of-order one
+        (generation time ``t`` not newer than the last stored)."""
         old = self.entries.get(vehicle)
-        if old is not None and (seq <= old.seq or t < old.t):
+        if old is not None and t <= old.t:  # by generation time: a restarted sender restarts seq
             self.counters["duplicate_or_old"] += 1
             return False
         e = _Entry(seq, float(t), np.asarray(llh, float), np.asarray(v_ned, float),

@@ -14,6 +14,7 @@ import asyncio
 import logging
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +30,9 @@ from .nav.motion import StationarityMonitor, ZuptGate
 from .nav.rotation import quat_to_euler
 from .neighbours import NeighbourTable
 from .sequencer import Apply, Propagate, Sequencer
+
+if TYPE_CHECKING:  # the shell's security objects (transport.security); typing only
+    from transport.security import BeaconSigner, TrustStore
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +57,15 @@ class AgentConfig:
     #: a UWB range waits up to this long (filter time) for the neighbour's beacon of its time,
     #: then is fused with the nearest beacon (or counted stale) [s]
     range_defer: float = 1.0
+    #: signs this agent's beacons (None: unsigned)
+    signer: "BeaconSigner | None" = None
+    #: when set, only beacons signed by a key of this store for the sending vehicle are accepted
+    trust: "TrustStore | None" = None
+    #: a beacon generated more than this before the agent's filter time is refused as stale, and
+    #: one more than ``max_beacon_future`` after it as from the future [s]. (Fusion itself uses a
+    #: beacon only within 0.3 s of the range time, see :class:`agent.neighbours.NeighbourTable`.)
+    max_beacon_age: float = 1.0
+    max_beacon_future: float = 2.0
 
 
 class Agent:
@@ -124,7 +137,7 @@ class Agent:
                 await self.handle(msg)
             except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
                 # a well-formed but unusable message (e.g. a range to ourselves): count, go on
-                self.counters[f"rejected_{type(msg).__name__}"] = self.counters.get(f"rejected_{type(msg).__name__}", 0) + 1
+                self._count(f"rejected_{type(msg).__name__}")
                 log.debug("%s: rejected %s: %s", self.cfg.vehicle, type(msg).__name__, exc)
 
     # ----------------------------------------------------------------- messages
@@ -160,9 +173,14 @@ class Agent:
                 self.counters["not_for_me"] += 1
                 return
             self.counters["beacons_rx"] += 1
+            refused = self._refuse_beacon(msg)
+            if refused:
+                self._count(f"beacon_{refused}")
+                return
             now = self.seq.t if self.seq.t is not None else msg.t
-            self.tables[msg.method].update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos,
-                                           msg.method, now)
+            if not self.tables[msg.method].update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos,
+                                                  msg.method, now):
+                return  # a duplicate or replay (not newer than the last accepted); counted by the table
             if self._deferred:
                 self._fuse_ranges()
             if msg.method in self.trackers:
@@ -170,6 +188,23 @@ class Agent:
                                                             msg.first_stopped)
         else:
             self.counters["not_for_me"] += 1
+
+    def _refuse_beacon(self, msg: Beacon) -> str | None:
+        """Why a beacon is refused (signature, then freshness against the filter time), or None."""
+        if self.cfg.trust is not None:
+            outcome = self.cfg.trust.verify(msg)
+            if outcome != "ok":
+                return outcome
+        now = self.seq.t
+        if now is not None:
+            if now - msg.t > self.cfg.max_beacon_age:
+                return "stale"
+            if msg.t - now > self.cfg.max_beacon_future:
+                return "future"
+        return None
+
+    def _count(self, name: str, n: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + n
 
     async def _imu(self, msg: ImuBatch) -> None:
         if not self.filters:
@@ -241,7 +276,7 @@ class Agent:
                     f.range(nb, r, t)
                 except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
                     # an unusable range (e.g. both estimates at one point): counted, dropped
-                    self.counters["rejected_range"] = self.counters.get("rejected_range", 0) + 1
+                    self._count("rejected_range")
                     log.debug("%s: range to %s dropped: %s", self.cfg.vehicle, other, exc)
             else:
                 keep.append(item)
@@ -260,6 +295,8 @@ class Agent:
                     llh, v, cov = f.beacon()
                     b = Beacon(self.cfg.vehicle, self._beacon_seq, m, t, llh, v, cov,
                                first_stopped=self.claim(m))
+                    if self.cfg.signer is not None:
+                        b = self.cfg.signer.sign(b)
                     await self.bus.publish(keys.radio_tx(self.cfg.vehicle), encode(b))
                     self.counters["beacons_tx"] += 1
         if self._next["estimate"] is not None and t >= self._next["estimate"]:
@@ -289,6 +326,11 @@ class Agent:
         return tr is not None and tr.claim
 
     def _decide(self, t: float) -> None:
+        for tab in self.tables.values():  # neighbours not heard for the table's timeout are gone
+            for other in tab.expire(t):
+                log.info("%s: neighbour %s not heard for %.1f s, dropped", self.cfg.vehicle, other, tab.timeout)
+                for tr in self.trackers.values():
+                    tr.forget(other)
         for m, tr in self.trackers.items():
             dec, changed = first_stopped_step(tr, self.filters[m], self.tables[m], self.cfg.lanes,
                                               self.cfg.origin_llh, t)

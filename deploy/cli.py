@@ -78,6 +78,19 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--seeds", type=_positive_int, default=None, metavar="N",
                     help="N seeded runs (seeds S..S+N-1) spread over the cores, with mean ± sd")
     rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")
+    rn.add_argument("--no-sign", action="store_true",
+                    help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
+    ky = sub.add_parser("keys", help="create or list a fleet's CA, vehicle keys and certificates")
+    ksub = ky.add_subparsers(dest="keys_command", required=True)
+    kc = ksub.add_parser("create", help="create a fleet CA (if absent) and a key + certificate per vehicle and the router")
+    kc.add_argument("dir", type=Path, help="fleet directory (ca.crt, <vehicle>.crt/.key, router.crt/.key)")
+    kc.add_argument("vehicles", nargs="+", help="vehicle ids")
+    kc.add_argument("--router-host", action="append", default=None,
+                    help="host name or address in the router certificate (repeatable; default 127.0.0.1, localhost)")
+    kc.add_argument("--days", type=_positive_int, default=365, help="certificate validity [days] (default 365)")
+    kc.add_argument("--force", action="store_true", help="replace existing CA, keys and certificates")
+    kl = ksub.add_parser("list", help="check a fleet directory and list its certificates and key ids")
+    kl.add_argument("dir", type=Path)
     bd = sub.add_parser("bound", help="posterior Cramér-Rao bound per vehicle and method on a scenario's truth")
     bd.add_argument("scenario", help="shipped scenario name or .toml")
     bd.add_argument("--json", action="store_true", help="print one JSON object")
@@ -213,7 +226,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             k = int(30 * done / total)
             print(f"  [{'#' * k}{'.' * (30 - k)}] {done}/{total} (seed {seed} done)", flush=True)
 
-        study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar)
+        study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign)
         text = study_markdown(scn, study)
         (out / "report.md").write_text(text)
         print(text)
@@ -221,9 +234,26 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / f"{name}-seed{args.seed}"
     print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")
     m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
-                  progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion)
+                  progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign)
     print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
     print((out / "report.md").read_text())
+    return 0
+
+
+def _cmd_keys(args: argparse.Namespace) -> int:
+    from transport.security import TrustStore, create_fleet
+
+    if args.keys_command == "create":
+        hosts = tuple(args.router_host) if args.router_host else ("127.0.0.1", "localhost")
+        written = create_fleet(args.dir, args.vehicles, hosts, args.days, overwrite=args.force)
+        for p in written:
+            print(f"wrote {p}")
+        if not written:
+            print(f"{args.dir}: every certificate exists already (use --force to replace)")
+    store = TrustStore.from_dir(args.dir)
+    print(f"{args.dir}: fleet CA {store.ca.subject.rfc4514_string()}, valid to {store.ca.not_valid_after_utc:%Y-%m-%d}")
+    for vid, kid in store.key_ids().items():
+        print(f"  {vid:16s} key id {kid.hex()}")
     return 0
 
 
@@ -422,6 +452,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_bound(args)
         if args.command == "bench":
             return _cmd_bench(args)
+        if args.command == "keys":
+            return _cmd_keys(args)
     except (DatasetError, ValueError) as exc:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2

@@ -10,6 +10,7 @@ evaluates the recording against the truth and writes the run directory.
 Run directory::
 
     config/agent-<vehicle>.toml      the agents' configurations
+    keys/                            fleet CA, per-vehicle keys and certificates (beacon signing)
     logs/<process>.log               each process's log
     recorded/messages.jsonl          every recorded message, one JSON object per line
     estimates/<vehicle>.csv          time, method, lat, lon, h, velocity, attitude, sigma, errors
@@ -47,6 +48,7 @@ from transport import keys
 from .bound import posterior_crlb
 from .detection import score_first_stopped
 from transport.codec import CodecError, decode
+from transport.security import create_fleet
 from transport.messages import Diagnostics, Estimate
 
 log = logging.getLogger(__name__)
@@ -63,10 +65,13 @@ def _slcp(*args: str) -> list[str]:
 
 
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
-              seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = "split-ci") -> dict:
+              seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = "split-ci",
+              sign: bool = True) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
-    ``progress`` (optional) is called every 2 s with a multi-line status text."""
+    ``progress`` (optional) is called every 2 s with a multi-line status text. With ``sign``
+    a fleet CA and per-vehicle keys are created in ``out/keys`` and every beacon is signed and
+    verified."""
     scn = load_scenario(scenario)
     out = Path(out)
     for sub in ("config", "logs", "recorded", "estimates"):
@@ -75,10 +80,14 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     endpoint = f"tcp/127.0.0.1:{port}"
     vehicles = [v.id for v in scn.vehicles]
     configs = {}
+    security = ""
+    if sign:
+        create_fleet(out / "keys", vehicles, overwrite=True)
+        security = '[security]\ntrust_dir = "../keys"\n\n'
     for vid in vehicles:
         p = out / "config" / f"agent-{vid}.toml"
         p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
-                     f'fusion = "{fusion}"\n\n'
+                     f'fusion = "{fusion}"\n\n{security}'
                      f'[zenoh]\nmode = "peer"\nconnect = ["{endpoint}"]\n')
         configs[vid] = p
     wall0 = time.monotonic()

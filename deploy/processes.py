@@ -9,6 +9,11 @@ Agent configuration file (TOML)::
     methods = ["SP", "SL-SP", "CP", "SL-CP"]
     fusion = "split-ci"                         # paper | split-ci | ci (how CP methods fuse ranges)
 
+    [security]                                  # optional; without it beacons are neither signed nor checked
+    trust_dir = "keys"                          # ca.crt + vehicle certificates (``slcp keys create``);
+                                                # relative paths are relative to this file
+    key = "keys/V1.key"                         # this vehicle's private key (default <trust_dir>/<vehicle>.key)
+
     [zenoh]
     mode = "peer"                               # peer | client | router
     connect = ["tcp/127.0.0.1:7447"]
@@ -20,6 +25,7 @@ Agent configuration file (TOML)::
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import signal
 import tomllib
@@ -84,8 +90,43 @@ def load_agent_config(path: Path, vehicle: str | None):
     unknown = set(a) - {"vehicle", "scenario", "methods", "fusion"}
     if unknown:
         raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
+    unknown = set(data) - {"agent", "security", "zenoh"}
+    if unknown:
+        raise ConfigError(f"{path}: [{sorted(unknown)[0]}]: unknown section (known: agent, security, zenoh)")
     scn = load_scenario(a.get("scenario", "paper-1"))
-    return agent_config(scn, vid, tuple(methods), fusion), zenoh_config(data.get("zenoh", {}), str(path))
+    try:
+        cfg = agent_config(scn, vid, tuple(methods), fusion)
+    except ValueError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    if "security" in data:
+        cfg = dataclasses.replace(cfg, **security_config(data["security"], Path(path), vid))
+    return cfg, zenoh_config(data.get("zenoh", {}), str(path))
+
+
+def security_config(d: dict, path: Path, vehicle: str) -> dict:
+    """The signer and trust store of a ``[security]`` section (paths relative to the file)."""
+    from transport.security import BeaconSigner, SecurityError, TrustStore
+
+    if not isinstance(d, dict):
+        raise ConfigError(f"{path}: [security]: must be a table")
+    unknown = set(d) - {"trust_dir", "key"}
+    if unknown:
+        raise ConfigError(f"{path}: security.{sorted(unknown)[0]}: unknown field (known: key, trust_dir)")
+    for k in ("trust_dir", "key"):
+        if k in d and (not isinstance(d[k], str) or not d[k]):
+            raise ConfigError(f"{path}: security.{k}: must be a non-empty path string")
+    if "trust_dir" not in d:
+        raise ConfigError(f"{path}: security.trust_dir: missing")
+    trust_dir = path.parent / d["trust_dir"]
+    key = path.parent / d["key"] if "key" in d else trust_dir / f"{vehicle}.key"
+    try:
+        trust = TrustStore.from_dir(trust_dir)
+        signer = BeaconSigner.from_file(vehicle, key)
+    except SecurityError as exc:
+        raise ConfigError(f"{path}: security: {exc}") from None
+    if vehicle not in trust.vehicles():
+        raise ConfigError(f"{path}: security: no certificate for {vehicle} in {trust_dir}")
+    return {"signer": signer, "trust": trust}
 
 
 def _install_signals(stop: asyncio.Event) -> None:

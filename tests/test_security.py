@@ -1,0 +1,175 @@
+"""Signed beacons: sign/verify round trips over the codec, and every way a beacon is refused
+(unsigned, tampered, unknown key, another vehicle's key, malformed, replayed, stale), at the trust
+store and at a running agent."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.runtime import Agent
+from deploy.agent_configs import agent_config
+from deploy.processes import ConfigError, load_agent_config
+from hw_emulation.scenario import load_scenario
+from transport.bus import InMemoryNetwork
+from transport.codec import decode, encode
+from transport.messages import Beacon
+from transport.security import AUTH_LEN, BeaconSigner, SecurityError, TrustStore, create_fleet
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("fleet")
+    create_fleet(d, ["V0", "V1", "V2"])
+    return d
+
+
+def beacon(vehicle: str = "V1", seq: int = 7, t: float = 100.0, method: str = "CP") -> Beacon:
+    return Beacon(vehicle, seq, method, t, np.array([0.7, 2.0, 50.0]), np.array([5.0, 0.0, 0.0]),
+                  np.diag([1.0, 2.0, 4.0]), first_stopped=True)
+
+
+def test_a_signed_beacon_survives_the_wire_and_verifies(fleet) -> None:
+    signer = BeaconSigner.from_file("V1", fleet / "V1.key")
+    store = TrustStore.from_dir(fleet)
+    b = decode(encode(signer.sign(beacon())))
+    assert len(b.auth) == AUTH_LEN and b.auth[:8] == signer.key_id
+    assert store.verify(b) == "ok"
+    assert store.vehicles() == ["V0", "V1", "V2", "router"]
+
+
+def test_every_forgery_is_refused_with_its_reason(fleet, tmp_path) -> None:
+    store = TrustStore.from_dir(fleet)
+    signed = BeaconSigner.from_file("V1", fleet / "V1.key").sign(beacon())
+    assert store.verify(beacon()) == "unsigned"
+    # any signed field changed after signing
+    for change in ({"llh": signed.llh + [1e-7, 0, 0]}, {"t": 100.2}, {"seq": 8}, {"first_stopped": False},
+                   {"cov_pos": signed.cov_pos * 0.01}, {"method": "SL-CP"}):
+        assert store.verify(dataclasses.replace(signed, **change)) == "bad_signature", change
+    # V1's valid signature presented as V2's beacon
+    assert store.verify(dataclasses.replace(signed, vehicle="V2")) == "wrong_vehicle"
+    # V2 cannot sign for V1 with its own key either
+    v2 = BeaconSigner.from_file("V2", fleet / "V2.key")
+    with pytest.raises(ValueError, match="asked to sign a beacon of V1"):
+        v2.sign(beacon("V1"))
+    forged = dataclasses.replace(v2.sign(beacon("V2")), vehicle="V1")
+    assert store.verify(forged) == "wrong_vehicle"
+    # a key of another fleet
+    other = tmp_path / "other"
+    create_fleet(other, ["V1"])
+    assert store.verify(BeaconSigner.from_file("V1", other / "V1.key").sign(beacon())) == "unknown_key"
+    # malformed auth blocks
+    assert store.verify(dataclasses.replace(signed, auth=signed.auth[:-1])) == "malformed_auth"
+    assert store.verify(dataclasses.replace(signed, auth=signed.auth[:8] + bytes(64))) == "bad_signature"
+    flipped = bytearray(signed.auth)
+    flipped[20] ^= 1
+    assert store.verify(dataclasses.replace(signed, auth=bytes(flipped))) == "bad_signature"
+
+
+def test_a_certificate_not_issued_by_the_fleet_ca_is_refused(fleet, tmp_path) -> None:
+    other = tmp_path / "other"
+    create_fleet(other, ["V9"])
+    mixed = tmp_path / "mixed"
+    shutil.copytree(fleet, mixed)
+    shutil.copy(other / "V9.crt", mixed / "V9.crt")
+    with pytest.raises(SecurityError, match="V9.*not signed by the fleet CA"):
+        TrustStore.from_dir(mixed)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SecurityError, match="ca.crt: cannot read"):
+        TrustStore.from_dir(tmp_path / "empty")
+    (tmp_path / "bad.key").write_text("not a key")
+    with pytest.raises(SecurityError, match="not an unencrypted PEM private key"):
+        BeaconSigner.from_file("V1", tmp_path / "bad.key")
+
+
+def test_create_fleet_keeps_existing_keys_and_adds_vehicles(fleet, tmp_path) -> None:
+    d = tmp_path / "f"
+    create_fleet(d, ["V0"])
+    before = (d / "V0.key").read_bytes(), (d / "ca.crt").read_bytes()
+    written = create_fleet(d, ["V0", "V5"])
+    assert sorted(p.name for p in written) == ["V5.crt", "V5.key"]
+    assert ((d / "V0.key").read_bytes(), (d / "ca.crt").read_bytes()) == before
+    assert (d / "V5.key").stat().st_mode & 0o077 == 0  # private keys are private
+    assert "V5" in TrustStore.from_dir(d).vehicles()
+    with pytest.raises(SecurityError, match="reserved"):
+        create_fleet(d, ["router"])
+
+
+def _agent(fleet: Path, vehicle: str = "V0") -> Agent:
+    scn = load_scenario("paper-1")
+    cfg = dataclasses.replace(agent_config(scn, vehicle), trust=TrustStore.from_dir(fleet),
+                              signer=BeaconSigner.from_file(vehicle, fleet / f"{vehicle}.key"))
+    return Agent(cfg, InMemoryNetwork().bus())
+
+
+def test_an_agent_accepts_signed_beacons_and_counts_every_refusal(fleet, tmp_path) -> None:
+    agent = _agent(fleet)
+    agent.seq.t = 100.0  # the agent's filter time
+    v1 = BeaconSigner.from_file("V1", fleet / "V1.key")
+    create_fleet(tmp_path / "other", ["V1"])
+    intruder = BeaconSigner.from_file("V1", tmp_path / "other" / "V1.key")
+    good = v1.sign(beacon(t=99.9))
+    cases = [
+        (good, None),
+        (good, "CP_duplicate_or_old"),  # replayed as it was
+        (v1.sign(beacon(seq=3, t=99.8)), "CP_duplicate_or_old"),  # an older one replayed later
+        (beacon(t=100.0), "beacon_unsigned"),
+        (dataclasses.replace(v1.sign(beacon(t=100.0)), llh=np.array([0.7, 2.0, 60.0])), "beacon_bad_signature"),
+        (dataclasses.replace(v1.sign(beacon(t=100.0)), vehicle="V2"), "beacon_wrong_vehicle"),
+        (intruder.sign(beacon(t=100.0)), "beacon_unknown_key"),
+        (v1.sign(beacon(seq=9, t=98.5)), "beacon_stale"),  # generated 1.5 s before the filter time
+        (v1.sign(beacon(seq=9, t=103.0)), "beacon_future"),
+    ]
+    for b, counter in cases:
+        before = dict(agent.counters) | {f"CP_{k}": v for k, v in agent.tables["CP"].counters.items()}
+        asyncio.run(agent.handle(decode(encode(b))))
+        after = dict(agent.counters) | {f"CP_{k}": v for k, v in agent.tables["CP"].counters.items()}
+        changed = {k for k in after if after[k] != before.get(k, 0)} - {"beacons_rx"}
+        if counter is None:
+            assert changed == {"CP_beacons"}, changed
+        else:
+            assert changed == {counter}, (counter, changed)
+    assert agent.tables["CP"].newest_time("V1") == pytest.approx(99.9)  # only the good one stored
+    assert agent.tables["CP"].counters["beacons"] == 1
+
+
+def test_an_agent_signs_what_it_sends(fleet) -> None:
+    agent = _agent(fleet, "V2")
+    sent: list[bytes] = []
+
+    class Bus:
+        async def publish(self, key, payload):
+            sent.append(payload)
+
+    agent.bus = Bus()
+    agent.filters = {"CP": type("F", (), {"spec": type("S", (), {"ranges": True, "stop_line": False})(),
+                                          "beacon": lambda self: (np.array([0.7, 2.0, 5.0]), np.zeros(3), np.eye(3))})()}
+    agent._next["beacon"] = 10.0
+    asyncio.run(agent._timers(10.0))
+    store = TrustStore.from_dir(fleet)
+    assert len(sent) == 1 and store.verify(decode(sent[0])) == "ok"
+
+
+def test_security_section_errors_name_the_field(fleet, tmp_path) -> None:
+    def cfg(text: str) -> Path:
+        p = tmp_path / "agent.toml"
+        p.write_text('[agent]\nvehicle = "V1"\n' + text)
+        return p
+
+    good, _ = load_agent_config(cfg(f'[security]\ntrust_dir = "{fleet}"\n'), None)
+    assert good.signer is not None and good.signer.vehicle == "V1" and good.trust is not None
+    for text, msg in [('[security]\nkey = "x.key"\n', "security.trust_dir: missing"),
+                      (f'[security]\ntrust_dir = "{fleet}"\nkeyfile = "x"\n', "security.keyfile: unknown field"),
+                      (f'[security]\ntrust_dir = "{fleet}"\nkey = "missing.key"\n', "missing.key: cannot read"),
+                      (f'[security]\ntrust_dir = "{tmp_path}"\n', "ca.crt: cannot read"),
+                      ('[securty]\ntrust_dir = "x"\n', r"\[securty\]: unknown section")]:
+        with pytest.raises(ConfigError, match=msg):
+            load_agent_config(cfg(text), None)
+    create_fleet(tmp_path / "small", ["V0"])
+    with pytest.raises(ConfigError, match="no certificate for V1"):
+        load_agent_config(cfg(f'[security]\ntrust_dir = "{tmp_path / "small"}"\nkey = "{fleet / "V1.key"}"\n'), None)

@@ -1,0 +1,254 @@
+"""Signed beacons and the fleet's trust store (ECDSA P-256 with SHA-256, as IEEE 1609.2).
+
+A fleet has one certificate authority (CA). Every vehicle holds a private key and an X.509
+certificate whose common name (CN) is its vehicle id, signed by the CA; the infrastructure router
+holds one too (its CN is ``router``, with the host names and addresses it serves as subject
+alternative names). The same files serve two purposes:
+
+* beacon signatures (this module): the sender signs the beacon's canonical encoding;
+* Zenoh mutual TLS and the router's access control list (``deploy/zenoh/``), where the
+  certificate's CN says which vehicle a connection speaks for.
+
+Files of a fleet directory (``slcp keys create DIR V0 V1 ...``)::
+
+    ca.crt  ca.key               the fleet CA (keep ca.key off the vehicles)
+    <vehicle>.crt <vehicle>.key  per vehicle (the key is PKCS#8 PEM, mode 0600)
+    router.crt router.key        the infrastructure router
+
+Wire form of ``Beacon.auth``: 72 bytes, ``key_id`` (8 bytes: the first 8 bytes of the SHA-256 of
+the signer's DER SubjectPublicKeyInfo, like 1609.2's HashedId8) followed by the signature
+``r || s`` (2 x 32 bytes, big-endian). The signed bytes are the beacon encoded with an empty
+``auth``; the beacon's ``t`` (generation time) and ``seq`` are therefore covered, and receivers
+reject replayed and stale beacons on them (``agent.runtime``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import hashlib
+import ipaddress
+import logging
+import os
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric.utils import decode_dss_signature, encode_dss_signature
+from cryptography.x509.oid import NameOID
+
+from .codec import encode
+from .keys import check_name
+from .messages import Beacon
+
+log = logging.getLogger(__name__)
+
+KEY_ID_LEN = 8
+SIG_LEN = 64
+AUTH_LEN = KEY_ID_LEN + SIG_LEN
+_CURVE = ec.SECP256R1()
+_ALG = ec.ECDSA(hashes.SHA256())
+
+#: verification outcomes other than "ok"; receivers count each as ``beacon_<outcome>``
+REJECTIONS = ("unsigned", "malformed_auth", "unknown_key", "wrong_vehicle", "bad_signature")
+
+
+class SecurityError(ValueError):
+    """A key, certificate or trust directory is missing or invalid (the message names the file)."""
+
+
+def key_id(public_key: ec.EllipticCurvePublicKey) -> bytes:
+    """HashedId8-style key identifier: first 8 bytes of SHA-256 of the DER public key."""
+    der = public_key.public_bytes(serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo)
+    return hashlib.sha256(der).digest()[:KEY_ID_LEN]
+
+
+def signed_bytes(beacon: Beacon) -> bytes:
+    """The bytes a signature covers: the beacon encoded with an empty ``auth``."""
+    return encode(dataclasses.replace(beacon, auth=b""))
+
+
+# ----------------------------------------------------------------------------- signing
+class BeaconSigner:
+    """Signs a vehicle's beacons with its private key."""
+
+    def __init__(self, vehicle: str, private_key: ec.EllipticCurvePrivateKey) -> None:
+        if not isinstance(private_key, ec.EllipticCurvePrivateKey) or private_key.curve.name != _CURVE.name:
+            raise SecurityError(f"{vehicle}: the signing key must be an ECDSA P-256 key")
+        self.vehicle = check_name(vehicle)
+        self._key = private_key
+        self.key_id = key_id(private_key.public_key())
+
+    @classmethod
+    def from_file(cls, vehicle: str, path: Path | str) -> "BeaconSigner":
+        return cls(vehicle, _load_private_key(Path(path)))
+
+    def sign(self, beacon: Beacon) -> Beacon:
+        """A copy of ``beacon`` with its ``auth`` block filled in."""
+        if beacon.vehicle != self.vehicle:
+            raise ValueError(f"signer of {self.vehicle} asked to sign a beacon of {beacon.vehicle}")
+        der = self._key.sign(signed_bytes(beacon), _ALG)
+        r, s = decode_dss_signature(der)
+        return dataclasses.replace(beacon, auth=self.key_id + r.to_bytes(32, "big") + s.to_bytes(32, "big"))
+
+
+# ----------------------------------------------------------------------------- verifying
+class TrustStore:
+    """The public keys a receiver accepts: CA-signed vehicle certificates, by key id.
+
+    Parameters
+    ----------
+    ca_cert : x509.Certificate
+        The fleet CA.
+    certificates : iterable of x509.Certificate
+        Vehicle certificates; any not signed by the CA, outside its validity period, without a
+        valid CN or not on P-256 is refused with :class:`SecurityError`.
+    """
+
+    def __init__(self, ca_cert: x509.Certificate, certificates) -> None:
+        self.ca = ca_cert
+        self._keys: dict[bytes, tuple[str, ec.EllipticCurvePublicKey]] = {}
+        now = _dt.datetime.now(_dt.timezone.utc)
+        for cert in certificates:
+            cn = _common_name(cert)
+            try:
+                cert.verify_directly_issued_by(ca_cert)
+            except (ValueError, TypeError, InvalidSignature) as exc:
+                raise SecurityError(f"certificate of {cn!r} is not signed by the fleet CA ({exc})") from None
+            if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
+                raise SecurityError(f"certificate of {cn!r} is outside its validity period")
+            pk = cert.public_key()
+            if not isinstance(pk, ec.EllipticCurvePublicKey) or pk.curve.name != _CURVE.name:
+                raise SecurityError(f"certificate of {cn!r}: not an ECDSA P-256 key")
+            self._keys[key_id(pk)] = (cn, pk)
+
+    @classmethod
+    def from_dir(cls, directory: Path | str) -> "TrustStore":
+        """Load ``ca.crt`` and every other ``*.crt`` of ``directory``."""
+        d = Path(directory)
+        ca = _load_cert(d / "ca.crt")
+        certs = [_load_cert(p) for p in sorted(d.glob("*.crt")) if p.name != "ca.crt"]
+        if not certs:
+            raise SecurityError(f"{d}: no vehicle certificates (*.crt)")
+        return cls(ca, certs)
+
+    def vehicles(self) -> list[str]:
+        return sorted(v for v, _ in self._keys.values())
+
+    def key_ids(self) -> dict[str, bytes]:
+        """Identity (certificate CN) -> key id."""
+        return {v: kid for kid, (v, _) in sorted(self._keys.items(), key=lambda kv: kv[1][0])}
+
+    def verify(self, beacon: Beacon) -> str:
+        """``"ok"`` or the reason the beacon is refused (one of :data:`REJECTIONS`)."""
+        auth = beacon.auth
+        if not auth:
+            return "unsigned"
+        if len(auth) != AUTH_LEN:
+            return "malformed_auth"
+        entry = self._keys.get(bytes(auth[:KEY_ID_LEN]))
+        if entry is None:
+            return "unknown_key"
+        owner, pk = entry
+        if owner != beacon.vehicle:  # a valid key speaking for another vehicle
+            return "wrong_vehicle"
+        r = int.from_bytes(auth[KEY_ID_LEN:KEY_ID_LEN + 32], "big")
+        s = int.from_bytes(auth[KEY_ID_LEN + 32:], "big")
+        try:
+            pk.verify(encode_dss_signature(r, s), signed_bytes(beacon), _ALG)
+        except (InvalidSignature, ValueError):
+            return "bad_signature"
+        return "ok"
+
+
+# ----------------------------------------------------------------------------- key creation
+def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple[str, ...] = ("127.0.0.1", "localhost"),
+                 days: int = 365, overwrite: bool = False) -> list[Path]:
+    """Create a fleet CA, a key and certificate per vehicle and the router's; returns the files.
+
+    Existing files are kept unless ``overwrite`` (re-running adds missing vehicles with the
+    existing CA). Private keys are written with mode 0600.
+    """
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    for v in vehicles:
+        check_name(v)
+        if v in ("ca", "router"):
+            raise SecurityError(f"{v!r} is reserved; choose another vehicle id")
+    written: list[Path] = []
+    if overwrite or not (d / "ca.crt").exists():
+        ca_key = ec.generate_private_key(_CURVE)
+        name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "slcp fleet CA")])
+        ca_cert = (_builder(name, name, ca_key.public_key(), days)
+                   .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+                   .add_extension(x509.KeyUsage(False, False, False, False, False, True, True, False, False), critical=True)
+                   .sign(ca_key, hashes.SHA256()))
+        written += _write_pair(d, "ca", ca_key, ca_cert)
+    else:
+        ca_key = _load_private_key(d / "ca.key")
+        ca_cert = _load_cert(d / "ca.crt")
+    for name, sans in [(v, ()) for v in vehicles] + [("router", router_hosts)]:
+        if not overwrite and (d / f"{name}.crt").exists():
+            continue
+        key = ec.generate_private_key(_CURVE)
+        b = (_builder(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]), ca_cert.subject,
+                      key.public_key(), days)
+             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True))
+        alt = [x509.DNSName(name)]
+        for h in sans:
+            try:
+                alt.append(x509.IPAddress(ipaddress.ip_address(h)))
+            except ValueError:
+                alt.append(x509.DNSName(h))
+        b = b.add_extension(x509.SubjectAlternativeName(alt), critical=False)
+        written += _write_pair(d, name, key, b.sign(ca_key, hashes.SHA256()))
+    return written
+
+
+def _builder(subject: x509.Name, issuer: x509.Name, public_key, days: int) -> x509.CertificateBuilder:
+    now = _dt.datetime.now(_dt.timezone.utc)
+    return (x509.CertificateBuilder().subject_name(subject).issuer_name(issuer).public_key(public_key)
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - _dt.timedelta(minutes=5)).not_valid_after(now + _dt.timedelta(days=days)))
+
+
+def _write_pair(d: Path, name: str, key: ec.EllipticCurvePrivateKey, cert: x509.Certificate) -> list[Path]:
+    kp, cp = d / f"{name}.key", d / f"{name}.crt"
+    fd = os.open(kp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                  serialization.NoEncryption()))
+    cp.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    return [kp, cp]
+
+
+def _load_cert(path: Path) -> x509.Certificate:
+    try:
+        return x509.load_pem_x509_certificate(path.read_bytes())
+    except OSError as exc:
+        raise SecurityError(f"{path}: cannot read ({exc.strerror})") from None
+    except ValueError as exc:
+        raise SecurityError(f"{path}: not a PEM certificate ({exc})") from None
+
+
+def _load_private_key(path: Path) -> ec.EllipticCurvePrivateKey:
+    try:
+        key = serialization.load_pem_private_key(path.read_bytes(), password=None)
+    except OSError as exc:
+        raise SecurityError(f"{path}: cannot read ({exc.strerror})") from None
+    except (ValueError, TypeError) as exc:
+        raise SecurityError(f"{path}: not an unencrypted PEM private key ({exc})") from None
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise SecurityError(f"{path}: not an elliptic-curve key")
+    return key
+
+
+def _common_name(cert: x509.Certificate) -> str:
+    attrs = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    cn = attrs[0].value if attrs else ""
+    try:
+        return check_name(str(cn))
+    except ValueError:
+        raise SecurityError(f"certificate with subject {cert.subject.rfc4514_string()!r}: CN is not a vehicle id") from None
