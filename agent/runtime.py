@@ -11,8 +11,10 @@ dropped; nothing received can crash the agent.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -66,6 +68,11 @@ class AgentConfig:
     #: beacon only within 0.3 s of the range time, see :class:`agent.neighbours.NeighbourTable`.)
     max_beacon_age: float = 1.0
     max_beacon_future: float = 2.0
+    #: an IMU batch starting more than this after the newest IMU time is a time jump, dropped
+    #: unless ``jump_confirm`` consecutive batches continue it (then the stream re-synchronises);
+    #: a GNSS fix or range this far ahead of the newest IMU time is dropped too [s]
+    max_time_jump: float = 5.0
+    jump_confirm: int = 5
 
 
 class Agent:
@@ -90,6 +97,10 @@ class Agent:
         self.rest = StationarityMonitor()
         self.zupt_gate = ZuptGate()
         self._imu_buffer: list[ImuBatch] = []
+        self._imu_newest: float | None = None  #: newest accepted IMU time [s]
+        self._jump_run: list[float] = []  #: ends of consecutive batches that jumped ahead
+        self._recent: deque = deque(maxlen=1024)  #: keys of the latest sensor messages (duplicates)
+        self._recent_set: set = set()
         self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
         self._beacon_seq = 0
 
@@ -141,20 +152,41 @@ class Agent:
                 log.debug("%s: rejected %s: %s", self.cfg.vehicle, type(msg).__name__, exc)
 
     # ----------------------------------------------------------------- messages
+    def _duplicate(self, kind: str, key: tuple) -> bool:
+        """True (counted ``duplicate_<kind>``) for a sensor message seen already (same stream, seq
+        and time); the last ``recent`` keys are remembered."""
+        k = (kind, *key)
+        if k in self._recent_set:
+            self._count(f"duplicate_{kind}")
+            return True
+        if len(self._recent) == self._recent.maxlen:
+            self._recent_set.discard(self._recent[0])
+        self._recent.append(k)
+        self._recent_set.add(k)
+        return False
+
     async def handle(self, msg) -> None:
         v = self.cfg.vehicle
         if isinstance(msg, ImuBatch):
             if msg.vehicle != v:
                 self.counters["not_for_me"] += 1
                 return
+            if self._duplicate("imu", (msg.seq, float(msg.t[0]))):
+                return
+            if not self._imu_in_time(msg):
+                return
             self.counters["imu_batches"] += 1
-            self._imu_buffer.append(msg)
-            newest = float(msg.t[-1])
+            # held in time order (a batch delivered late is put back in its place), processed once
+            # imu_hold newer data has arrived
+            bisect.insort(self._imu_buffer, msg, key=lambda b: float(b.t[-1]))
+            newest = self._imu_newest
             while self._imu_buffer and float(self._imu_buffer[0].t[-1]) <= newest - self.cfg.imu_hold:
                 await self._imu(self._imu_buffer.pop(0))
         elif isinstance(msg, GnssFix):
             if msg.vehicle != v:
                 self.counters["not_for_me"] += 1
+                return
+            if self._ahead(msg.t, "gnss") or self._duplicate("gnss", (msg.seq, msg.t)):
                 return
             self.counters["gnss"] += 1
             if not self.filters:
@@ -164,6 +196,8 @@ class Agent:
         elif isinstance(msg, UwbRange):
             if v not in (msg.a, msg.b) or msg.a == msg.b:
                 self.counters["not_for_me"] += 1
+                return
+            if self._ahead(msg.t, "uwb") or self._duplicate("uwb", (msg.a, msg.b, msg.seq, msg.t)):
                 return
             self.counters["uwb"] += 1
             if self.filters:
@@ -188,6 +222,34 @@ class Agent:
                                                             msg.first_stopped)
         else:
             self.counters["not_for_me"] += 1
+
+    def _imu_in_time(self, msg: ImuBatch) -> bool:
+        """False (counted ``imu_time_jump``) for a batch that jumps ahead of the stream; a jump
+        that ``jump_confirm`` consecutive batches continue is accepted as the new timeline."""
+        t0, t1 = float(msg.t[0]), float(msg.t[-1])
+        if self._imu_newest is None or t0 - self._imu_newest <= self.cfg.max_time_jump:
+            self._imu_newest = t1 if self._imu_newest is None else max(self._imu_newest, t1)
+            self._jump_run = []
+            return True
+        if self._jump_run and 0.0 < t0 - self._jump_run[-1] <= self.cfg.max_time_jump:
+            self._jump_run.append(t1)
+        else:
+            self._jump_run = [t1]
+        if len(self._jump_run) >= self.cfg.jump_confirm:
+            log.warning("%s: IMU time jumped from %.3f to %.3f s; following it", self.cfg.vehicle,
+                        self._imu_newest, t0)
+            self._imu_newest, self._jump_run = t1, []
+            self._count("imu_time_resync")
+            return True
+        self._count("imu_time_jump")
+        return False
+
+    def _ahead(self, t: float, kind: str) -> bool:
+        """True (counted ``<kind>_time_jump``) for a measurement too far ahead of the IMU stream."""
+        if self._imu_newest is not None and t - self._imu_newest > self.cfg.max_time_jump:
+            self._count(f"{kind}_time_jump")
+            return True
+        return False
 
     def _refuse_beacon(self, msg: Beacon) -> str | None:
         """Why a beacon is refused (signature, then freshness against the filter time), or None."""
@@ -214,6 +276,9 @@ class Agent:
             self._init(self._pending_fix, msg)
         ref = next(iter(self.filters.values()))
         for k in range(len(msg.t)):
+            if self.seq.t is not None and float(msg.t[k]) <= self.seq.t:  # behind the filter: not used at all
+                self.seq.counters["imu_out_of_order"] += 1
+                continue
             for step in self.seq.imu(float(msg.t[k]), msg.dtheta[k], msg.dvel[k], float(msg.dt[k])):
                 if isinstance(step, Propagate):
                     for f in self.filters.values():

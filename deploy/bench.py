@@ -4,7 +4,7 @@ are not timed tests).
 Per-step costs in microseconds (median of repeated timings of a batch): the strapdown step alone,
 the filter's IMU step (mechanisation plus its share of the 10 Hz covariance propagation), one
 covariance propagation, a GNSS update (position and velocity), a UWB range update with split
-CI, a stop-line fix, and beacon encode/decode. Then the real-time factor of the SP replay of
+CI, a stop-line fix, beacon encode/decode and sign/verify (ECDSA P-256). Then the real-time factor of the SP replay of
 the shared real drive, if it is there.
 """
 
@@ -86,6 +86,18 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     out["beacon_encode_us"] = _time_us(lambda: encode(b), n(5000))
     out["beacon_decode_us"] = _time_us(lambda: decode(payload), n(5000))
     out["beacon_bytes"] = float(len(payload))
+    # signing (ECDSA P-256 / SHA-256 over the canonical encoding) and verifying
+    import tempfile
+
+    from transport.security import BeaconSigner, TrustStore, create_fleet
+
+    with tempfile.TemporaryDirectory() as d:
+        create_fleet(d, ["V1"])
+        signer, store = BeaconSigner.from_file("V1", Path(d) / "V1.key"), TrustStore.from_dir(d)
+    signed = signer.sign(b)
+    out["beacon_sign_us"] = _time_us(lambda: signer.sign(b), n(1000))
+    out["beacon_verify_us"] = _time_us(lambda: store.verify(signed), n(1000))
+    out["signed_beacon_bytes"] = float(len(encode(signed)))
     # one vehicle running the four methods: 100 Hz IMU steps, 5 Hz GNSS, 10 Hz ranges to 2
     # neighbours for the two CP methods, 1 Hz stop-line fix for the SL methods
     per_s = (4 * 100 * out["imu_step_us"] + 4 * 5 * out["gnss_update_us"]

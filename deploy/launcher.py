@@ -44,12 +44,11 @@ from hw_emulation.events import event_times, window_bounds
 from hw_emulation.scenario import load_scenario
 from hw_emulation.truth import build_truth
 from transport import keys
+from transport.security import create_fleet
 
 from .bound import posterior_crlb
 from .detection import score_first_stopped
-from transport.codec import CodecError, decode
-from transport.security import create_fleet
-from transport.messages import Diagnostics, Estimate
+from .recorder import Recorder
 
 log = logging.getLogger(__name__)
 
@@ -111,33 +110,12 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
     procs: dict[str, subprocess.Popen] = {}
     logs = []
     stats: dict = {"exit_codes": {}, "recorded": 0, "codec_errors": 0}
-    rec_file = open(out / "recorded" / "messages.jsonl", "w")  # a new run starts a new recording
+    rec_path = out / "recorded" / "messages.jsonl"
+    rec_path.unlink(missing_ok=True)  # a new run starts a new recording
+    rec = Recorder(rec_path)
     est_sub = router.subscribe(keys.ROOT + "/estimate/**", 1_000_000)
     diag_sub = router.subscribe(keys.ROOT + "/diag/**", 100_000)
-    latest_t: dict[str, float] = {}
-    diag: dict[str, tuple[float, dict, dict]] = {}  # source -> (wall time, counters, status)
-
-    async def record(sub) -> None:
-        while True:
-            _, payload = await sub.get()
-            batch = [payload]
-            while not sub.queue.empty():
-                batch.append(sub.queue.get_nowait()[1])
-            for p in batch:
-                try:
-                    m = decode(p)
-                except CodecError:
-                    stats["codec_errors"] += 1
-                    continue
-                rec_file.write(json.dumps(_to_json(m)) + "\n")
-                stats["recorded"] += 1
-                if isinstance(m, Estimate):
-                    latest_t[m.vehicle] = max(latest_t.get(m.vehicle, 0.0), m.t)
-                elif isinstance(m, Diagnostics):
-                    diag[m.source] = (time.monotonic(), m.counters, m.status)
-            rec_file.flush()
-
-    tasks = [asyncio.create_task(record(est_sub)), asyncio.create_task(record(diag_sub))]
+    tasks = [asyncio.create_task(rec.run(est_sub)), asyncio.create_task(rec.run(diag_sub))]
     try:
         for vid in vehicles:
             lf = open(out / "logs" / f"agent-{vid}.log", "w")
@@ -158,18 +136,19 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 raise RuntimeError(f"process(es) {dead} exited early; see {out / 'logs'}")
             if progress and time.monotonic() - last > 2.0:
                 last = time.monotonic()
-                progress(status_table(vehicles, latest_t, diag, prev_diag) + f"\nrecorded {stats['recorded']} messages")
-                prev_diag = dict(diag)
+                progress(status_table(vehicles, rec.latest_t, rec.diag, prev_diag) + f"\nrecorded {rec.recorded} messages")
+                prev_diag = dict(rec.diag)
         await asyncio.sleep(0.5)  # last estimates in flight
     finally:
         _stop_all(procs)
         for t in tasks:
             t.cancel()
-        rec_file.close()
+        rec.close()
         for lf in logs:
             lf.close()
         await router.close()
     stats["exit_codes"] = {n: p.returncode for n, p in procs.items()}
+    stats["recorded"], stats["codec_errors"] = rec.recorded, rec.codec_errors
     return stats
 
 
@@ -259,13 +238,6 @@ def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:
             except ProcessLookupError:
                 pass
             p.wait()
-
-
-def _to_json(m) -> dict:
-    out = {"type": type(m).__name__}
-    for k, v in vars(m).items():
-        out[k] = v.tolist() if isinstance(v, np.ndarray) else (v.hex() if isinstance(v, bytes) else v)
-    return out
 
 
 def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -> dict:

@@ -28,8 +28,11 @@ def test_stale_duplicate_and_timeout() -> None:
     tab = NeighbourTable(max_age=0.3, timeout=2.0)
     tab.update("V2", 5, 10.0, LLH, np.zeros(3), np.eye(3), "SP", now=10.0)
     assert tab.at("V2", 10.31) is None and tab.counters["stale"] == 1
-    assert not tab.update("V2", 5, 10.2, LLH, np.zeros(3), np.eye(3), "SP", now=10.2)   # duplicate seq
+    assert not tab.update("V2", 5, 10.0, LLH, np.zeros(3), np.eye(3), "SP", now=10.2)   # duplicate
     assert not tab.update("V2", 6, 9.9, LLH, np.zeros(3), np.eye(3), "SP", now=10.2)    # older time
-    assert tab.counters["duplicate_or_old"] == 2
-    assert tab.expire(11.9) == [] and tab.expire(12.1) == ["V2"]
-    assert tab.at("V2", 12.1) is None and tab.vehicles() == []
+    assert not tab.update("V2", 7, 10.0, LLH, np.zeros(3), np.eye(3), "SP", now=10.2)   # replay, new seq
+    assert tab.counters["duplicate_or_old"] == 3
+    # a restarted sender counts its sequence from 0 again: its newer beacons are taken
+    assert tab.update("V2", 0, 10.1, LLH, np.zeros(3), np.eye(3), "SP", now=10.1)
+    assert tab.expire(12.0) == [] and tab.expire(12.2) == ["V2"]
+    assert tab.at("V2", 12.2) is None and tab.vehicles() == []
