@@ -66,6 +66,18 @@ def build_parser() -> argparse.ArgumentParser:
     em.add_argument("--speed", type=float, default=None, help="real-time factor (default: as fast as agents keep up)")
     em.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     em.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    em.add_argument("--fleet", type=Path, default=None,
+                    help="fleet directory: connect with mutual TLS as identity 'emulator' (tls/ endpoints)")
+    ro = sub.add_parser("router", help="run the infrastructure Zenoh router (TLS + ACL with --fleet)")
+    ro.add_argument("--listen", action="append", default=[],
+                    help="endpoint (repeatable; default tls/127.0.0.1:7447 with --fleet, else tcp/127.0.0.1:7447)")
+    ro.add_argument("--fleet", type=Path, default=None,
+                    help="fleet directory (slcp keys create): mutual TLS and an ACL in which a vehicle publishes only under its own keys")
+    ro.add_argument("--print-config", action="store_true", help="print the router's Zenoh configuration (JSON5) and exit")
+    rc = sub.add_parser("record", help="record every estimate and diagnostics message (JSON lines, appending)")
+    rc.add_argument("--out", type=Path, required=True, help="recording file (appended to; a restart continues it)")
+    rc.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    rc.add_argument("--fleet", type=Path, default=None, help="fleet directory: mutual TLS as identity 'recorder'")
     rn = sub.add_parser("run", help="run a fleet on this machine over Zenoh and evaluate it")
     rn.add_argument("scenario", nargs="?", default="paper-1", help="scenario (default paper-1)")
     rn.add_argument("--methods", nargs="+", default=None, help="methods (default: SP SL-SP CP SL-CP)")
@@ -89,6 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="host name or address in the router certificate (repeatable; default 127.0.0.1, localhost)")
     kc.add_argument("--days", type=_positive_int, default=365, help="certificate validity [days] (default 365)")
     kc.add_argument("--force", action="store_true", help="replace existing CA, keys and certificates")
+    kc.add_argument("--infra", action="append", default=None,
+                    help="infrastructure identity (repeatable; default: emulator, recorder)")
     kl = ksub.add_parser("list", help="check a fleet directory and list its certificates and key ids")
     kl.add_argument("dir", type=Path)
     bd = sub.add_parser("bound", help="posterior Cramér-Rao bound per vehicle and method on a scenario's truth")
@@ -240,20 +254,53 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_infrastructure(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from transport.zenoh_bus import ZenohConfig
+
+    from .processes import recorder_main, router_main
+
+    if args.command == "record":
+        z = ZenohConfig(mode="client" if args.fleet else "peer", connect=tuple(args.connect))
+        if args.fleet:
+            from .zenoh_security import client_config
+
+            z = client_config(args.fleet, "recorder", tuple(args.connect))
+        return asyncio.run(recorder_main(z, args.out))
+    if args.fleet:
+        from .zenoh_security import as_json5, router_config
+
+        z = router_config(args.fleet, tuple(args.listen) or ("tls/127.0.0.1:7447",))
+        if args.print_config:
+            print(as_json5(z), end="")
+            return 0
+    else:
+        z = ZenohConfig(mode="router", listen=tuple(args.listen) or ("tcp/127.0.0.1:7447",))
+        if args.print_config:
+            from .zenoh_security import as_json5
+
+            print(as_json5(z), end="")
+            return 0
+    return asyncio.run(router_main(z))
+
+
 def _cmd_keys(args: argparse.Namespace) -> int:
     from transport.security import TrustStore, create_fleet
 
     if args.keys_command == "create":
         hosts = tuple(args.router_host) if args.router_host else ("127.0.0.1", "localhost")
-        written = create_fleet(args.dir, args.vehicles, hosts, args.days, overwrite=args.force)
+        infra = tuple(args.infra) if args.infra else ("emulator", "recorder")
+        written = create_fleet(args.dir, args.vehicles, hosts, args.days, overwrite=args.force, infrastructure=infra)
         for p in written:
             print(f"wrote {p}")
         if not written:
             print(f"{args.dir}: every certificate exists already (use --force to replace)")
     store = TrustStore.from_dir(args.dir)
     print(f"{args.dir}: fleet CA {store.ca.subject.rfc4514_string()}, valid to {store.ca.not_valid_after_utc:%Y-%m-%d}")
-    for vid, kid in store.key_ids().items():
-        print(f"  {vid:16s} key id {kid.hex()}")
+    kids = store.key_ids()
+    for name, role in sorted(store.roles.items(), key=lambda kv: (kv[1] != "vehicle", kv[0])):
+        print(f"  {name:16s} {role:15s}" + (f" beacon key id {kids[name].hex()}" if name in kids else ""))
     return 0
 
 
@@ -443,7 +490,13 @@ def main(argv: list[str] | None = None) -> int:
             from .processes import emulator_main
 
             z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
+            if args.fleet:
+                from .zenoh_security import client_config
+
+                z = client_config(args.fleet, "emulator", tuple(args.connect))
             return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z))
+        if args.command in ("router", "record"):
+            return _cmd_infrastructure(args)
         if args.command == "run":
             return _cmd_run(args)
         if args.command == "report":
@@ -454,7 +507,7 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_bench(args)
         if args.command == "keys":
             return _cmd_keys(args)
-    except (DatasetError, ValueError) as exc:
+    except (DatasetError, ValueError, OSError) as exc:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

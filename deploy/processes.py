@@ -20,6 +20,9 @@ Agent configuration file (TOML)::
     listen = []
     lease_ms = 2000
     config_file = ""                            # optional Zenoh JSON5 (TLS, ACL)
+    tls = false                                 # true: mutual TLS to the fleet router (`slcp router`) with
+                                                # this vehicle's certificate from [security]; connect must
+                                                # be tls/<host>:<port> and the mode is client
 """
 
 from __future__ import annotations
@@ -98,9 +101,25 @@ def load_agent_config(path: Path, vehicle: str | None):
         cfg = agent_config(scn, vid, tuple(methods), fusion)
     except ValueError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    sec = {}
     if "security" in data:
-        cfg = dataclasses.replace(cfg, **security_config(data["security"], Path(path), vid))
-    return cfg, zenoh_config(data.get("zenoh", {}), str(path))
+        sec = security_config(data["security"], Path(path), vid)
+        cfg = dataclasses.replace(cfg, signer=sec["signer"], trust=sec["trust"])
+    z = dict(data.get("zenoh", {}))
+    tls = z.pop("tls", False)
+    if not isinstance(tls, bool):
+        raise ConfigError(f"{path}: zenoh.tls: must be true or false")
+    if tls:
+        if not sec:
+            raise ConfigError(f"{path}: zenoh.tls: needs a [security] section (the fleet directory and key)")
+        from .zenoh_security import client_config
+
+        zc = zenoh_config(z, str(path))
+        try:
+            return cfg, client_config(sec["trust_dir"], vid, zc.connect, zc.lease_ms)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{path}: zenoh.tls: {exc}") from None
+    return cfg, zenoh_config(z, str(path))
 
 
 def security_config(d: dict, path: Path, vehicle: str) -> dict:
@@ -125,8 +144,8 @@ def security_config(d: dict, path: Path, vehicle: str) -> dict:
     except SecurityError as exc:
         raise ConfigError(f"{path}: security: {exc}") from None
     if vehicle not in trust.vehicles():
-        raise ConfigError(f"{path}: security: no certificate for {vehicle} in {trust_dir}")
-    return {"signer": signer, "trust": trust}
+        raise ConfigError(f"{path}: security: no vehicle certificate for {vehicle} in {trust_dir}")
+    return {"signer": signer, "trust": trust, "trust_dir": trust_dir}
 
 
 def _install_signals(stop: asyncio.Event) -> None:
@@ -152,6 +171,45 @@ async def agent_main(config_path: Path, vehicle: str | None) -> int:
     finally:
         await bus.close()
     log.info("%s: stopped; counters %s", cfg.vehicle, agent.counters)
+    return 0
+
+
+async def router_main(zcfg: ZenohConfig) -> int:
+    """An infrastructure router (Zenoh router mode) until SIGINT/SIGTERM."""
+    from transport.zenoh_bus import ZenohBus
+
+    stop = asyncio.Event()
+    _install_signals(stop)
+    bus = ZenohBus(zcfg)
+    log.info("router listening on %s", ", ".join(zcfg.listen))
+    try:
+        await stop.wait()
+    finally:
+        await bus.close()
+    return 0
+
+
+async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
+    """Record every estimate and diagnostics message to ``path`` (appending) until SIGINT/SIGTERM."""
+    from transport import keys
+    from transport.zenoh_bus import ZenohBus
+
+    from .recorder import Recorder
+
+    stop = asyncio.Event()
+    _install_signals(stop)
+    bus = ZenohBus(zcfg)
+    rec = Recorder(path)
+    tasks = [asyncio.create_task(rec.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000))),
+             asyncio.create_task(rec.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000)))]
+    try:
+        await stop.wait()
+    finally:
+        for t in tasks:
+            t.cancel()
+        rec.close()
+        await bus.close()
+    log.info("recorder stopped: %d recorded, %d bad payloads", rec.recorded, rec.codec_errors)
     return 0
 
 

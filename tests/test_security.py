@@ -40,7 +40,8 @@ def test_a_signed_beacon_survives_the_wire_and_verifies(fleet) -> None:
     b = decode(encode(signer.sign(beacon())))
     assert len(b.auth) == AUTH_LEN and b.auth[:8] == signer.key_id
     assert store.verify(b) == "ok"
-    assert store.vehicles() == ["V0", "V1", "V2", "router"]
+    assert store.vehicles() == ["V0", "V1", "V2"]  # only vehicles sign beacons
+    assert store.identities("infrastructure") == ["emulator", "recorder", "router"]
 
 
 def test_every_forgery_is_refused_with_its_reason(fleet, tmp_path) -> None:
@@ -98,6 +99,9 @@ def test_create_fleet_keeps_existing_keys_and_adds_vehicles(fleet, tmp_path) -> 
     assert "V5" in TrustStore.from_dir(d).vehicles()
     with pytest.raises(SecurityError, match="reserved"):
         create_fleet(d, ["router"])
+    # an infrastructure key cannot sign beacons, not even for its own name
+    assert TrustStore.from_dir(d).verify(BeaconSigner.from_file("emulator", d / "emulator.key").sign(
+        beacon("emulator"))) == "unknown_key"
 
 
 def _agent(fleet: Path, vehicle: str = "V0") -> Agent:

@@ -12,8 +12,9 @@ alternative names). The same files serve two purposes:
 Files of a fleet directory (``slcp keys create DIR V0 V1 ...``)::
 
     ca.crt  ca.key               the fleet CA (keep ca.key off the vehicles)
-    <vehicle>.crt <vehicle>.key  per vehicle (the key is PKCS#8 PEM, mode 0600)
-    router.crt router.key        the infrastructure router
+    <vehicle>.crt <vehicle>.key  per vehicle, OU=vehicle (keys are PKCS#8 PEM, mode 0600)
+    router.crt router.key        the infrastructure router, OU=infrastructure
+    emulator.*, recorder.*       infrastructure processes, OU=infrastructure
 
 Wire form of ``Beacon.auth``: 72 bytes, ``key_id`` (8 bytes: the first 8 bytes of the SHA-256 of
 the signer's DER SubjectPublicKeyInfo, like 1609.2's HashedId8) followed by the signature
@@ -50,6 +51,10 @@ SIG_LEN = 64
 AUTH_LEN = KEY_ID_LEN + SIG_LEN
 _CURVE = ec.SECP256R1()
 _ALG = ec.ECDSA(hashes.SHA256())
+
+#: certificate roles (the subject's organisational unit)
+VEHICLE = "vehicle"
+INFRASTRUCTURE = "infrastructure"
 
 #: verification outcomes other than "ok"; receivers count each as ``beacon_<outcome>``
 REJECTIONS = ("unsigned", "malformed_auth", "unknown_key", "wrong_vehicle", "bad_signature")
@@ -110,6 +115,7 @@ class TrustStore:
     def __init__(self, ca_cert: x509.Certificate, certificates) -> None:
         self.ca = ca_cert
         self._keys: dict[bytes, tuple[str, ec.EllipticCurvePublicKey]] = {}
+        self.roles: dict[str, str] = {}  #: every valid identity (CN) -> role
         now = _dt.datetime.now(_dt.timezone.utc)
         for cert in certificates:
             cn = _common_name(cert)
@@ -122,7 +128,9 @@ class TrustStore:
             pk = cert.public_key()
             if not isinstance(pk, ec.EllipticCurvePublicKey) or pk.curve.name != _CURVE.name:
                 raise SecurityError(f"certificate of {cn!r}: not an ECDSA P-256 key")
-            self._keys[key_id(pk)] = (cn, pk)
+            self.roles[cn] = role_of(cert)
+            if self.roles[cn] == VEHICLE:  # infrastructure never signs beacons
+                self._keys[key_id(pk)] = (cn, pk)
 
     @classmethod
     def from_dir(cls, directory: Path | str) -> "TrustStore":
@@ -136,6 +144,10 @@ class TrustStore:
 
     def vehicles(self) -> list[str]:
         return sorted(v for v, _ in self._keys.values())
+
+    def identities(self, role: str) -> list[str]:
+        """The identities (certificate CNs) of a role."""
+        return sorted(n for n, r in self.roles.items() if r == role)
 
     def key_ids(self) -> dict[str, bytes]:
         """Identity (certificate CN) -> key id."""
@@ -165,18 +177,25 @@ class TrustStore:
 
 # ----------------------------------------------------------------------------- key creation
 def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple[str, ...] = ("127.0.0.1", "localhost"),
-                 days: int = 365, overwrite: bool = False) -> list[Path]:
-    """Create a fleet CA, a key and certificate per vehicle and the router's; returns the files.
+                 days: int = 365, overwrite: bool = False, infrastructure: tuple[str, ...] = ("emulator", "recorder"),
+                 ) -> list[Path]:
+    """Create a fleet CA, a key and certificate per vehicle, the router's and one per
+    infrastructure process (``infrastructure``: the emulator, the recorder); returns the files.
 
-    Existing files are kept unless ``overwrite`` (re-running adds missing vehicles with the
-    existing CA). Private keys are written with mode 0600.
+    The certificate's organisational unit (OU) is its role: ``vehicle`` or ``infrastructure``
+    (the router is infrastructure). Only vehicle certificates sign beacons; the router's access
+    control gives infrastructure the whole ``slcp/v1/**`` space. Existing files are kept unless
+    ``overwrite`` (re-running adds missing identities with the existing CA). Private keys are
+    written with mode 0600.
     """
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     for v in vehicles:
         check_name(v)
-        if v in ("ca", "router"):
+        if v in ("ca", "router", *infrastructure):
             raise SecurityError(f"{v!r} is reserved; choose another vehicle id")
+    for v in infrastructure:
+        check_name(v)
     written: list[Path] = []
     if overwrite or not (d / "ca.crt").exists():
         ca_key = ec.generate_private_key(_CURVE)
@@ -189,12 +208,15 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
     else:
         ca_key = _load_private_key(d / "ca.key")
         ca_cert = _load_cert(d / "ca.crt")
-    for name, sans in [(v, ()) for v in vehicles] + [("router", router_hosts)]:
+    identities = ([(v, VEHICLE, ()) for v in vehicles] + [("router", INFRASTRUCTURE, router_hosts)]
+                  + [(v, INFRASTRUCTURE, ()) for v in infrastructure])
+    for name, role, sans in identities:
         if not overwrite and (d / f"{name}.crt").exists():
             continue
         key = ec.generate_private_key(_CURVE)
-        b = (_builder(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]), ca_cert.subject,
-                      key.public_key(), days)
+        subject = x509.Name([x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, role),
+                             x509.NameAttribute(NameOID.COMMON_NAME, name)])
+        b = (_builder(subject, ca_cert.subject, key.public_key(), days)
              .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True))
         alt = [x509.DNSName(name)]
         for h in sans:
@@ -243,6 +265,15 @@ def _load_private_key(path: Path) -> ec.EllipticCurvePrivateKey:
     if not isinstance(key, ec.EllipticCurvePrivateKey):
         raise SecurityError(f"{path}: not an elliptic-curve key")
     return key
+
+
+def role_of(cert: x509.Certificate) -> str:
+    """``vehicle`` or ``infrastructure`` (the subject's OU; anything else is an error)."""
+    attrs = cert.subject.get_attributes_for_oid(NameOID.ORGANIZATIONAL_UNIT_NAME)
+    role = str(attrs[0].value) if attrs else ""
+    if role not in (VEHICLE, INFRASTRUCTURE):
+        raise SecurityError(f"certificate {cert.subject.rfc4514_string()!r}: OU must be {VEHICLE} or {INFRASTRUCTURE}")
+    return role
 
 
 def _common_name(cert: x509.Certificate) -> str:

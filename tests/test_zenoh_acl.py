@@ -1,0 +1,110 @@
+"""The infrastructure router (``slcp router --fleet``) on loopback: mutual TLS with the fleet's
+certificates and an ACL in which a vehicle publishes, subscribes and declares liveliness only under
+its own keys; infrastructure (the emulator) may do everything under slcp/v1."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from transport import keys
+from transport.security import create_fleet
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for_port(port: int, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.1)
+    raise TimeoutError(f"nothing listens on 127.0.0.1:{port}")
+
+
+@pytest.fixture()
+def router(tmp_path):
+    fleet = tmp_path / "fleet"
+    create_fleet(fleet, ["V1", "V2"])
+    port = free_port()
+    ep = f"tls/127.0.0.1:{port}"
+    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "router", "--fleet", str(fleet), "--listen", ep],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        wait_for_port(port)
+        yield fleet, ep
+    finally:
+        os.killpg(p.pid, signal.SIGTERM)
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+@pytest.mark.timeout(120)
+def test_a_vehicle_can_only_speak_for_itself(router) -> None:
+    from deploy.zenoh_security import client_config
+    from transport.zenoh_bus import ZenohBus
+
+    fleet, ep = router
+
+    async def main():
+        emu = ZenohBus(client_config(fleet, "emulator", (ep,)))
+        v1 = ZenohBus(client_config(fleet, "V1", (ep,)))
+        v2 = ZenohBus(client_config(fleet, "V2", (ep,)))
+        try:
+            tx = emu.subscribe(keys.ROOT + "/radio/tx/*")
+            rx_v2 = v2.subscribe(keys.radio_rx("V2"))
+            snoop = v1.subscribe(keys.radio_rx("V2"))  # V1 listening to what is delivered to V2
+            seen: list[tuple[str, bool]] = []
+            v2.watch_alive(keys.ROOT + "/alive/**", lambda k, up: seen.append((k, up)))
+            v1.declare_alive(keys.alive("agent", "V1"))
+            v1.declare_alive(keys.alive("agent", "V2"))  # impersonating V2's liveliness
+            await asyncio.sleep(1.5)
+            await v1.publish(keys.radio_tx("V1"), b"own")
+            await v1.publish(keys.radio_tx("V2"), b"forged")
+            await v1.publish(keys.gnss("V2"), b"forged sensor")
+            await emu.publish(keys.radio_rx("V2"), b"delivered")
+            await asyncio.sleep(1.5)
+            drain = lambda sub: [sub.queue.get_nowait() for _ in range(sub.queue.qsize())]  # noqa: E731
+            return drain(tx), drain(rx_v2), drain(snoop), seen
+        finally:
+            for b in (v1, v2, emu):
+                await b.close()
+
+    tx, rx_v2, snoop, seen = asyncio.run(main())
+    assert tx == [(keys.radio_tx("V1"), b"own")]  # the forged beacon never reached the radio
+    assert rx_v2 == [(keys.radio_rx("V2"), b"delivered")]
+    assert snoop == []
+    assert (keys.alive("agent", "V1"), True) in seen and not any(k.endswith("/V2") for k, _ in seen)
+
+
+def test_the_router_configuration_is_printable_and_complete(router, tmp_path) -> None:
+    fleet, ep = router
+    out = subprocess.run([sys.executable, "-m", "deploy.cli", "router", "--fleet", str(fleet), "--listen", ep,
+                          "--print-config"], capture_output=True, text=True, check=True).stdout
+    cfg = json.loads(out)
+    assert cfg["mode"] == "router" and cfg["listen"]["endpoints"] == [ep]
+    tls = cfg["transport"]["link"]["tls"]
+    assert tls["enable_mtls"] and Path(tls["root_ca_certificate"]).name == "ca.crt"
+    acl = cfg["access_control"]
+    assert acl["default_permission"] == "deny"
+    assert {s["id"] for s in acl["subjects"]} == {"vehicle-V1", "vehicle-V2", "infrastructure"}
+    bad = subprocess.run([sys.executable, "-m", "deploy.cli", "router", "--fleet", str(fleet), "--listen",
+                          "tcp/127.0.0.1:7447", "--print-config"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "tls/<host>:<port>" in bad.stderr
