@@ -103,6 +103,8 @@ class Agent:
         self._recent_set: set = set()
         self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
         self._beacon_seq = 0
+        #: neighbours gone: vehicle -> (sensor time [s], "liveliness" | "silence")
+        self.lost: dict[str, tuple[float, str]] = {}
 
     # ----------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event) -> None:
@@ -128,12 +130,25 @@ class Agent:
         self.dropped = {k: s.dropped for k, s in subs.items()}
 
     def _on_alive(self, key: str, alive: bool) -> None:
-        if not alive:
-            other = key.rsplit("/", 1)[-1]
-            for tab in self.tables.values():
-                tab.remove(other)
-            for tr in self.trackers.values():
-                tr.forget(other)
+        other = key.rsplit("/", 1)[-1]
+        if other == self.cfg.vehicle:
+            return
+        if alive:
+            self.lost.pop(other, None)
+            return
+        self._lose(other, "liveliness")
+
+    def _lose(self, other: str, how: str) -> None:
+        """Stop using neighbour ``other`` (gone: its liveliness token vanished, or silent for the
+        table timeout); remembered in ``lost`` as (sensor time, how) for the diagnostics."""
+        for tab in self.tables.values():
+            tab.remove(other)
+        for tr in self.trackers.values():
+            tr.forget(other)
+        if other not in self.lost:
+            self.lost[other] = (self.seq.t if self.seq.t is not None else math.nan, how)
+            self._count(f"neighbour_lost_{how}")
+            log.info("%s: neighbour %s gone (%s) at t=%.2f", self.cfg.vehicle, other, how, self.lost[other][0])
 
     async def _consume(self, kind: str, sub: Subscription) -> None:
         while True:
@@ -211,6 +226,7 @@ class Agent:
             if refused:
                 self._count(f"beacon_{refused}")
                 return
+            self.lost.pop(msg.vehicle, None)
             now = self.seq.t if self.seq.t is not None else msg.t
             if not self.tables[msg.method].update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos,
                                                   msg.method, now):
@@ -382,7 +398,8 @@ class Agent:
                 counters.update({f"{m}_{k}": v for k, v in f.counters.items()})
             counters.update({f"queue_dropped_{k}": s.dropped for k, s in self._subs.items()})
             status = {"t": t, "neighbours": len(set().union(*(tab.vehicles() for tab in self.tables.values()))),
-                      "first_stopped": [m for m in self.trackers if self.claim(m)]}
+                      "first_stopped": [m for m in self.trackers if self.claim(m)],
+                      "lost": {v: [lt, how] for v, (lt, how) in self.lost.items()}}
             await self.bus.publish(keys.diag(self.cfg.vehicle), encode(Diagnostics(self.cfg.vehicle, t, counters, status)))
 
     def claim(self, method: str) -> bool:
@@ -393,9 +410,7 @@ class Agent:
     def _decide(self, t: float) -> None:
         for tab in self.tables.values():  # neighbours not heard for the table's timeout are gone
             for other in tab.expire(t):
-                log.info("%s: neighbour %s not heard for %.1f s, dropped", self.cfg.vehicle, other, tab.timeout)
-                for tr in self.trackers.values():
-                    tr.forget(other)
+                self._lose(other, "silence")
         for m, tr in self.trackers.items():
             dec, changed = first_stopped_step(tr, self.filters[m], self.tables[m], self.cfg.lanes,
                                               self.cfg.origin_llh, t)

@@ -103,7 +103,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     return metrics
 
 
-async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Path, progress) -> dict:
+async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Path, progress,
+                     max_restarts: int = 3) -> dict:
     from transport.zenoh_bus import ZenohBus, ZenohConfig
 
     router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,)))
@@ -116,6 +117,8 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
     est_sub = router.subscribe(keys.ROOT + "/estimate/**", 1_000_000)
     diag_sub = router.subscribe(keys.ROOT + "/diag/**", 100_000)
     tasks = [asyncio.create_task(rec.run(est_sub)), asyncio.create_task(rec.run(diag_sub))]
+    restarts: list[dict] = []
+    wall0 = time.monotonic()
     try:
         for vid in vehicles:
             lf = open(out / "logs" / f"agent-{vid}.log", "w")
@@ -131,9 +134,23 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         prev_diag: dict = {}
         while emu.poll() is None:
             await asyncio.sleep(0.2)
-            dead = [n for n, p in procs.items() if n != "emulator" and p.poll() is not None]
-            if dead:
-                raise RuntimeError(f"process(es) {dead} exited early; see {out / 'logs'}")
+            for n in [n for n, p in procs.items() if n != "emulator" and p.poll() is not None]:
+                # an agent died (crash, kill -9): start it again; it re-initialises from GNSS and
+                # rejoins. Each restart is reported with the time until its first estimate.
+                if sum(r["process"] == n for r in restarts) >= max_restarts:
+                    raise RuntimeError(f"{n} exited {max_restarts + 1} times; see {out / 'logs'}")
+                now, rc, vid = time.monotonic(), procs[n].returncode, n.removeprefix("agent-")
+                log.warning("%s exited with %s; restarting it", n, rc)
+                lf = open(out / "logs" / f"{n}.log", "a")
+                logs.append(lf)
+                _spawn(procs, n, _slcp("-v", "agent", "--vehicle", vid, "--config", str(configs[vid])), lf)
+                restarts.append({"process": n, "exit_code": rc, "at_s": now - wall0, "_t": now,
+                                 "rejoined_after_s": None})
+            for r in restarts:
+                v = r["process"].removeprefix("agent-")
+                if r["rejoined_after_s"] is None and rec.last_wall.get(v, -math.inf) > r["_t"]:
+                    r["rejoined_after_s"] = rec.last_wall[v] - r["_t"]
+                    log.warning("%s rejoined %.2f s after its restart", r["process"], r["rejoined_after_s"])
             if progress and time.monotonic() - last > 2.0:
                 last = time.monotonic()
                 progress(status_table(vehicles, rec.latest_t, rec.diag, prev_diag) + f"\nrecorded {rec.recorded} messages")
@@ -148,6 +165,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
             lf.close()
         await router.close()
     stats["exit_codes"] = {n: p.returncode for n, p in procs.items()}
+    stats["restarts"] = [{k: v for k, v in r.items() if not k.startswith("_")} for r in restarts]
     stats["recorded"], stats["codec_errors"] = rec.recorded, rec.codec_errors
     return stats
 
@@ -367,6 +385,13 @@ def report_markdown(scn, metrics: dict) -> str:
                 lines.append(f"| {vid} | {m} | {d['truth_s']:.1f} | {d['claimed_s']:.1f} | {d['wrong_s']:.1f} | "
                              f"{f(d['precision'])} | {f(d['recall'])} | {lat} | "
                              f"{f(d.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(d.get('sl_rmse_claimed_m'), '{:.2f}')} |")
+        lines.append("")
+    restarts = metrics.get("processes", {}).get("restarts", [])
+    if restarts:
+        lines += ["## Process faults", "", "| process | exit code | at [s wall] | rejoined after [s] |", "|---|---|---|---|"]
+        for r in restarts:
+            rj = "never" if r["rejoined_after_s"] is None else f"{r['rejoined_after_s']:.2f}"
+            lines.append(f"| {r['process']} | {r['exit_code']} | {r['at_s']:.1f} | {rj} |")
         lines.append("")
     lines += ["## Events", "", ", ".join(f"{k} = {v:.1f} s" for k, v in metrics["events"].items()), "",
               "![errors](errors.png)", "", "![map](map.png)", ""]

@@ -230,8 +230,17 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
         emu = EmulatorService(truth, bus, seed=seed, speed=speed)
         emu.prepare()  # subscribed before the agents start publishing
         alive: set[str] = set()
-        bus.watch_alive(keys.ROOT + "/alive/agent/*",
-                        lambda k, up: alive.add(k.rsplit("/", 1)[-1]) if up else alive.discard(k.rsplit("/", 1)[-1]))
+
+        def on_alive(key: str, up: bool) -> None:
+            v = key.rsplit("/", 1)[-1]
+            if up:
+                alive.add(v)
+            else:
+                alive.discard(v)
+                emu.forget_agent(v)
+                log.warning("agent %s left", v)
+
+        bus.watch_alive(keys.ROOT + "/alive/agent/*", on_alive)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + wait_for_agents
         while not stop.is_set() and not set(truth.vehicles) <= alive and loop.time() < deadline:

@@ -36,6 +36,8 @@ class Recorder:
         Messages written; payloads that failed to decode.
     latest_t : dict
         Vehicle -> newest estimate time [s].
+    last_wall : dict
+        Vehicle -> monotonic receipt time [s] of its newest estimate.
     diag : dict
         Source -> (monotonic receipt time [s], counters, status) of its newest diagnostics.
     """
@@ -47,6 +49,7 @@ class Recorder:
         self.recorded = 0
         self.codec_errors = 0
         self.latest_t: dict[str, float] = {}
+        self.last_wall: dict[str, float] = {}  #: vehicle -> monotonic time [s] of its newest estimate
         self.diag: dict[str, tuple[float, dict, dict]] = {}
 
     def write(self, payloads: list[bytes]) -> None:
@@ -61,6 +64,7 @@ class Recorder:
             self.recorded += 1
             if isinstance(m, Estimate):
                 self.latest_t[m.vehicle] = max(self.latest_t.get(m.vehicle, 0.0), m.t)
+                self.last_wall[m.vehicle] = time.monotonic()
             elif isinstance(m, Diagnostics):
                 self.diag[m.source] = (time.monotonic(), m.counters, m.status)
         self._file.flush()

@@ -140,6 +140,10 @@ class EmulatorService:
             if isinstance(e, Estimate):
                 self.agent_time[e.vehicle] = max(self.agent_time.get(e.vehicle, -np.inf), e.t)
 
+    def forget_agent(self, vehicle: str) -> None:
+        """The agent of ``vehicle`` left (its liveliness token went away): stop pacing on it."""
+        self.agent_time.pop(vehicle, None)
+
     # ----------------------------------------------------------------- playback
     def _events(self):
         """(time, kind, vehicle or pair, index) in sensor-time order."""
@@ -223,7 +227,9 @@ class EmulatorService:
             await asyncio.sleep(ahead)
         deadline = time.monotonic() + (5.0 if final else 30.0)
         while not stop.is_set():
-            slow = min((self.agent_time.get(v, -np.inf) for v in self.ids), default=-np.inf)
+            # the slowest agent that reports (one that left is forgotten until it reports again,
+            # so a dead agent never stalls the fleet and a restarted one rejoins the pacing)
+            slow = min((self.agent_time[v] for v in self.ids if v in self.agent_time), default=-np.inf)
             if slow >= t - self.lead or (not final and slow == -np.inf and t - t0 < self.lead):
                 break
             if time.monotonic() > deadline:
