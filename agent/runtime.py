@@ -26,6 +26,7 @@ from transport.codec import CodecError, decode, encode
 from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
 
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
+from .misbehaviour import MisbehaviourDetector
 from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from .nav.measurements.stop_line import StopGapModel
 from .nav.motion import StationarityMonitor, ZuptGate
@@ -73,6 +74,10 @@ class AgentConfig:
     #: a GNSS fix or range this far ahead of the newest IMU time is dropped too [s]
     max_time_jump: float = 5.0
     jump_confirm: int = 5
+    #: check every neighbour's beacons and ranges for misbehaviour and exclude the flagged ones
+    #: (:mod:`agent.misbehaviour`); ``nlos_bias_max`` is the largest NLOS range bias expected [m]
+    misbehaviour_detection: bool = True
+    nlos_bias_max: float = 3.0
 
 
 class Agent:
@@ -105,6 +110,11 @@ class Agent:
         self._beacon_seq = 0
         #: neighbours gone: vehicle -> (sensor time [s], "liveliness" | "silence")
         self.lost: dict[str, tuple[float, str]] = {}
+        #: verified, fresh beacons received / excluded as misbehaving, per sender
+        self.beacons_from: dict[str, int] = {}
+        self.excluded_from: dict[str, int] = {}
+        self.misbehaviour = (MisbehaviourDetector(nlos_bias=cfg.nlos_bias_max)
+                             if cfg.misbehaviour_detection else None)
 
     # ----------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event) -> None:
@@ -227,6 +237,10 @@ class Agent:
                 self._count(f"beacon_{refused}")
                 return
             self.lost.pop(msg.vehicle, None)
+            self.beacons_from[msg.vehicle] = self.beacons_from.get(msg.vehicle, 0) + 1
+            if self._untrusted(msg):
+                self.excluded_from[msg.vehicle] = self.excluded_from.get(msg.vehicle, 0) + 1
+                return
             now = self.seq.t if self.seq.t is not None else msg.t
             if not self.tables[msg.method].update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos,
                                                   msg.method, now):
@@ -238,6 +252,29 @@ class Agent:
                                                             msg.first_stopped)
         else:
             self.counters["not_for_me"] += 1
+
+    def _untrusted(self, msg: Beacon) -> bool:
+        """Misbehaviour check of a verified beacon; True (counted ``beacon_excluded``) while its
+        sender is flagged, in which case the sender is also dropped from the tables."""
+        mb = self.misbehaviour
+        if mb is None:
+            return False
+        was = msg.vehicle in mb.flagged
+        mb.beacon(msg.vehicle, msg.method, msg.t, msg.llh, msg.v_ned, msg.cov_pos)
+        if not mb.excluded(msg.vehicle, msg.t):
+            return False
+        if not was:
+            self._exclude(msg.vehicle)
+        self._count("beacon_excluded")
+        return True
+
+    def _exclude(self, other: str) -> None:
+        t, reason = self.misbehaviour.flagged[other]
+        log.warning("%s: neighbour %s flagged at t=%.2f (%s); excluded", self.cfg.vehicle, other, t, reason)
+        for tab in self.tables.values():
+            tab.remove(other)
+        for tr in self.trackers.values():
+            tr.forget(other)
 
     def _imu_in_time(self, msg: ImuBatch) -> bool:
         """False (counted ``imu_time_jump``) for a batch that jumps ahead of the stream; a jump
@@ -336,6 +373,17 @@ class Agent:
                 f.gnss(msg.llh, msg.v_ned, msg.sigma_ned, msg.sigma_v)
         elif step.kind == "uwb":
             other = msg.b if msg.a == self.cfg.vehicle else msg.a
+            mb = self.misbehaviour
+            if mb is not None:
+                own = self.filters.get("SP") or next(iter(self.filters.values()))  # own sensors only
+                was = other in mb.flagged
+                mb.range(other, step.t, msg.range_m, own.filter.state.llh, own.position_cov,
+                         self.cfg.settings.sigma_uwb)
+                if mb.excluded(other, step.t):
+                    if not was:
+                        self._exclude(other)
+                    self._count("range_excluded")
+                    return
             for m, f in self.filters.items():
                 if f.spec.ranges:
                     self._deferred.append((step.t, m, other, msg.range_m))
@@ -399,7 +447,11 @@ class Agent:
             counters.update({f"queue_dropped_{k}": s.dropped for k, s in self._subs.items()})
             status = {"t": t, "neighbours": len(set().union(*(tab.vehicles() for tab in self.tables.values()))),
                       "first_stopped": [m for m in self.trackers if self.claim(m)],
-                      "lost": {v: [lt, how] for v, (lt, how) in self.lost.items()}}
+                      "lost": {v: [lt, how] for v, (lt, how) in self.lost.items()},
+                      "flagged": ({v: [ft, why] for v, (ft, why) in self.misbehaviour.flagged.items()}
+                                  if self.misbehaviour else {})}
+            if self.misbehaviour:
+                counters.update({f"mb_{k}": v for k, v in self.misbehaviour.counters.items()})
             await self.bus.publish(keys.diag(self.cfg.vehicle), encode(Diagnostics(self.cfg.vehicle, t, counters, status)))
 
     def claim(self, method: str) -> bool:

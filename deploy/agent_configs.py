@@ -52,4 +52,5 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
     nlos_ms = (u.nlos_bias_min**2 + u.nlos_bias_min * u.nlos_bias_max + u.nlos_bias_max**2) / 3.0
     settings = dataclasses.replace(settings, uwb_nlos_sigma=math.sqrt(p_nlos * nlos_ms), max_range=u.max_range)
     gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
-    return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh)
+    return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh,
+                       nlos_bias_max=u.nlos_bias_max)

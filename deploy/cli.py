@@ -92,6 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")
     rn.add_argument("--no-sign", action="store_true",
                     help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
+    ae = sub.add_parser("attack-eval", help="misbehaviour detection against the VeReMi attacks, and false alarms on clean runs")
+    ae.add_argument("scenario", nargs="?", default="paper-1")
+    ae.add_argument("--seeds", type=_positive_int, default=5, help="attack runs per kind (default 5)")
+    ae.add_argument("--kinds", nargs="+", default=None, help="attack kinds (default: all)")
+    ae.add_argument("--clean", nargs="*", default=None, metavar="SCENARIO",
+                    help="also count false alarms on whole clean runs of these scenarios (seed 0)")
+    ae.add_argument("--json", action="store_true", help="print one JSON object")
     ky = sub.add_parser("keys", help="create or list a fleet's CA, vehicle keys and certificates")
     ksub = ky.add_subparsers(dest="keys_command", required=True)
     kc = ksub.add_parser("create", help="create a fleet CA (if absent) and a key + certificate per vehicle and the router")
@@ -283,6 +290,38 @@ def _cmd_infrastructure(args: argparse.Namespace) -> int:
             print(as_json5(z), end="")
             return 0
     return asyncio.run(router_main(z))
+
+
+def _cmd_attack_eval(args: argparse.Namespace) -> int:
+    from hw_emulation.attacks import ATTACKS
+
+    from .attack_eval import attack_study, evaluate_clean
+
+    kinds = tuple(args.kinds) if args.kinds else ATTACKS
+    for k in kinds:
+        if k not in ATTACKS:
+            raise ValueError(f"unknown attack kind {k!r}; known: {', '.join(ATTACKS)}")
+
+    def progress(kind, seed, run):
+        if not args.json:
+            lat = {v: ("-" if r["latency_s"] is None else f"{r['latency_s']:.2f} s") for v, r in run["receivers"].items()}
+            print(f"  {kind:18s} seed {seed}: {run['attacker']} from {run['start_s']:.1f} s; first flag by {lat}", flush=True)
+
+    study = attack_study(args.scenario, list(range(args.seeds)), kinds, progress=progress)
+    study["clean"] = [evaluate_clean(s, 0) for s in (args.clean or [])]
+    if args.json:
+        print(json.dumps(study))
+        return 0
+    print(f"\nattack-eval {args.scenario}, {args.seeds} seeds per kind, detection deadline {study['deadline_s']} s")
+    print(f"  {'kind':18s} {'detected':>10s} {'rate':>6s} {'median':>8s} {'max':>7s} {'honest excl.':>12s}")
+    for k, d in study["kinds"].items():
+        f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+        print(f"  {k:18s} {d['detected']:4d}/{d['cases']:<5d} {f(d['detection_rate']):>6s} {f(d['latency_median_s']):>8s} "
+              f"{f(d['latency_max_s']):>7s} {100 * d['honest_excluded_share']:11.2f}%")
+    for c in study["clean"]:
+        print(f"  clean {c['scenario']}: {c['excluded']} of {c['beacons']} beacons excluded "
+              f"({100 * c['false_alarm_rate']:.2f} %), {c['flags']} flags")
+    return 0
 
 
 def _cmd_keys(args: argparse.Namespace) -> int:
@@ -507,6 +546,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_bench(args)
         if args.command == "keys":
             return _cmd_keys(args)
+        if args.command == "attack-eval":
+            return _cmd_attack_eval(args)
     except (DatasetError, ValueError, OSError) as exc:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2

@@ -57,12 +57,17 @@ class EmulatorService:
     radio_stats: RadioStats = field(default_factory=RadioStats)
     published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "uwb": 0})
     agent_time: dict[str, float] = field(default_factory=dict)
+    #: misbehaving vehicles (their beacons are falsified in the radio, see hw_emulation.attacks)
+    attacks: list = field(default_factory=list)
+    #: vehicle -> transport.security.BeaconSigner, to re-sign an attacker's falsified beacons
+    signers: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.seed)
         self.sensors = emulate_vehicle_sensors(self.truth, rng)
         self.ranges = emulate_uwb(self.truth, rng)
         self.radio_rng = np.random.default_rng(self.seed + 1_000_003)
+        self.attack_rng = np.random.default_rng(self.seed + 2_000_003)
         self.radio: RadioModel = self.truth.scenario.radio
         self.ids = sorted(self.truth.vehicles)
         self._pending: list[tuple[float, str, bytes]] = []  # (deliver at, receiver, payload)
@@ -89,6 +94,12 @@ class EmulatorService:
             self.radio_stats.codec_errors += 1
             return
         self.radio_stats.sent += 1
+        for attack in self.attacks:
+            forged = attack.apply(b, self.truth.scenario.origin_llh, self.attack_rng)
+            if forged is not b:
+                signer = self.signers.get(b.vehicle)
+                forged = signer.sign(forged) if signer is not None else forged
+                payload, b = encode(forged), forged
         pos = self._positions(self.now)
         r = self.radio
         for rx in self.ids:
