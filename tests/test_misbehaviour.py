@@ -1,0 +1,126 @@
+"""Misbehaviour detection: closed-form cases of each test, a seeded Monte-Carlo of honest beacons
+and ranges that must never be flagged, the attack transforms, and attacks on a running fleet."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agent.misbehaviour import MisbehaviourDetector
+from agent.nav import earth
+from hw_emulation.attacks import ATTACKS, Attack
+from transport.messages import Beacon
+
+ORIGIN = np.array([0.7, 2.0, 50.0])
+
+
+def at(n: float, e: float) -> np.ndarray:
+    return earth.offset_llh(ORIGIN, np.array([n, e, 0.0]))
+
+
+def honest_drive(rng: np.random.Generator, det: MisbehaviourDetector, vid: str, n: int = 300, sigma: float = 2.0):
+    """A neighbour driving east at 10 m/s past a receiver standing 15 m north of its path, with
+    beacons (5 Hz) whose errors are a slowly varying bias within the claimed σ, and ranges (10 Hz)
+    with UWB noise 0.1 m measured between the true positions. Returns the strike count."""
+    cov = np.diag([sigma**2, sigma**2, 4.0])
+    bias = np.zeros(2)
+    own_true = np.array([15.0, 0.0])
+    own_bias = rng.normal(0.0, 3.0, 2)
+    strikes = 0
+    for k in range(n):
+        t = 0.1 * k
+        truth = np.array([0.0, -150.0 + 10.0 * t])
+        if k % 2 == 0:
+            bias = 0.98 * bias + rng.normal(0.0, sigma * np.sqrt(1 - 0.98**2), 2)
+            claimed = truth + bias
+            strikes += det.beacon(vid, "CP", t, at(*claimed), np.array([0.0, 10.0, 0.0]), cov) is not None
+        r = float(np.hypot(*(truth - own_true))) + rng.normal(0.0, 0.1)
+        own = own_true + own_bias
+        strikes += det.range(vid, t, r, at(*own), np.diag([9.0, 9.0, 9.0]), 0.1) is not None
+    return strikes
+
+
+def test_honest_neighbours_are_not_flagged() -> None:
+    det = MisbehaviourDetector()
+    rng = np.random.default_rng(1)
+    strikes = sum(honest_drive(rng, det, f"V{k}") for k in range(20))  # 20 drives, 6000 ranges, 3000 beacons
+    assert not det.events, det.events
+    assert strikes <= 3  # 5σ-level tests: essentially never
+
+
+def test_an_implausible_covariance_is_flagged_at_once_and_cleared_after_hold() -> None:
+    det = MisbehaviourDetector(hold=10.0)
+    assert det.beacon("V9", "CP", 1.0, at(0, 0), np.zeros(3), np.diag([1e-4, 1e-4, 1e-4])) == "covariance"
+    assert det.excluded("V9", 1.0) and det.flagged["V9"][1] == "implausible covariance"
+    assert det.excluded("V9", 10.9) and not det.excluded("V9", 11.1)
+    assert det.counters["cleared"] == 1
+    # not positive semi-definite
+    assert det.beacon("V8", "CP", 1.0, at(0, 0), np.zeros(3), np.diag([4.0, -1.0, 1.0])) == "covariance"
+
+
+def test_position_jumps_the_velocity_cannot_explain_are_flagged_after_three_strikes() -> None:
+    det = MisbehaviourDetector()
+    cov = np.diag([1.0, 1.0, 1.0])
+    det.beacon("V9", "CP", 0.0, at(0, 0), np.array([0.0, 10.0, 0.0]), cov)
+    det.beacon("V9", "CP", 0.2, at(0, 2), np.array([0.0, 10.0, 0.0]), cov)  # 10 m/s east: consistent
+    assert not det.events
+    for k, jump in enumerate((40.0, -30.0, 55.0)):
+        det.beacon("V9", "CP", 0.4 + 0.2 * k, at(jump, 4 + 2 * k), np.array([0.0, 10.0, 0.0]), cov)
+    assert det.excluded("V9", 0.8) and det.flagged["V9"][1] == "motion inconsistent"
+    assert det.counters["motion_strikes"] == 3
+
+
+def test_a_claimed_position_off_the_measured_range_is_flagged() -> None:
+    det = MisbehaviourDetector()
+    cov = np.diag([0.25, 0.25, 1.0])
+    for k in range(10):
+        t = 0.1 * k
+        if k % 2 == 0:
+            det.beacon("V9", "CP", t, at(60.0, 0.0), np.zeros(3), cov)  # claims 60 m north of me
+        det.range("V9", t, 20.0, at(0.0, 0.0), np.diag([0.25, 0.25, 1.0]), 0.1)  # measured: 20 m
+    assert det.excluded("V9", 0.9) and det.flagged["V9"][1] == "range inconsistent"
+    # an NLOS-length excess (a longer range, within the allowance) is no evidence
+    det2 = MisbehaviourDetector(nlos_bias=3.0)
+    det2.beacon("V9", "CP", 0.0, at(20.0, 0.0), np.zeros(3), cov)
+    assert det2.range("V9", 0.0, 22.9, at(0.0, 0.0), np.diag([0.25, 0.25, 1.0]), 0.1) is None
+
+
+@pytest.mark.parametrize("kind", ATTACKS)
+def test_each_attack_changes_the_beacon_as_veremi_defines_it(kind) -> None:
+    rng = np.random.default_rng(0)
+    b = Beacon("V2", 1, "CP", 10.0, at(5.0, 5.0), np.array([0.0, 8.0, 0.0]), np.diag([4.0, 4.0, 9.0]))
+    a = Attack("V2", kind, start=10.0)
+    assert Attack("V2", kind, start=11.0).apply(b, ORIGIN, rng) is b  # before the start
+    assert a.apply(Beacon("V1", *list(vars(b).values())[1:]), ORIGIN, rng).vehicle == "V1"
+    f1, f2 = a.apply(b, ORIGIN, rng), a.apply(b, ORIGIN, rng)
+    moved = lambda f: float(np.hypot(*earth.ned_offset(*f.llh, *b.llh)[:2]))  # noqa: E731
+    if kind == "overconfident":
+        assert np.allclose(f1.cov_pos, b.cov_pos * 1e-4) and moved(f1) == 0.0
+    elif kind == "constant_offset":
+        assert moved(f1) == pytest.approx(np.hypot(250.0, 150.0), rel=1e-6) and moved(f2) == pytest.approx(moved(f1))
+    elif kind == "random_offset":
+        assert 0 < moved(f1) <= 70 * np.sqrt(2) and moved(f1) != pytest.approx(moved(f2))
+    elif kind == "random_position":
+        assert not np.allclose(f1.llh, f2.llh)
+    elif kind == "constant_position":
+        assert np.allclose(f1.llh, f2.llh) and moved(f1) > 0
+    else:  # eventual stop: frozen where it was, standing
+        assert np.allclose(f1.llh, b.llh) and np.all(f1.v_ned == 0.0)
+    with pytest.raises(ValueError, match="unknown attack"):
+        Attack("V2", "teleport", 1.0)
+    assert Attack.parse("V2:random_offset@12.5") == Attack("V2", "random_offset", 12.5)
+    with pytest.raises(ValueError, match="VEHICLE:KIND@START_S"):
+        Attack.parse("V2-random_offset")
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("kind", ["constant_offset", "random_position", "overconfident"])
+def test_attacks_on_a_running_fleet_are_detected_within_a_second(kind) -> None:
+    from deploy.attack_eval import evaluate_attack
+
+    run = evaluate_attack("paper-1", kind, seed=2, after=2.0)
+    print(kind, run["attacker"], run["start_s"], run["receivers"])
+    assert run["receivers"], "nobody heard the attacker"
+    for v, r in run["receivers"].items():
+        assert r["detected"], (v, r)
+    assert run["honest_excluded"] == 0 and run["honest_beacons"] > 100
