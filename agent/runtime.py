@@ -68,6 +68,9 @@ class AgentConfig:
     #: one more than ``max_beacon_future`` after it as from the future [s]. (Fusion itself uses a
     #: beacon only within 0.3 s of the range time, see :class:`agent.neighbours.NeighbourTable`.)
     max_beacon_age: float = 1.0
+    #: a neighbour silent this long [s of sensor time] is gone (also when its liveliness token
+    #: vanishes, which is usually sooner)
+    neighbour_timeout: float = 1.5
     max_beacon_future: float = 2.0
     #: an IMU batch starting more than this after the newest IMU time is a time jump, dropped
     #: unless ``jump_confirm`` consecutive batches continue it (then the stream re-synchronises);
@@ -89,7 +92,7 @@ class Agent:
         self.bus = bus
         self.seq = Sequencer()
         self.filters: dict[str, MethodFilter] = {}
-        self.tables = {m: NeighbourTable() for m in cfg.methods}
+        self.tables = {m: NeighbourTable(timeout=cfg.neighbour_timeout) for m in cfg.methods}
         self.detector = FirstStoppedDetector(cfg.lanes, cfg.gap)
         self.trackers = {m: StopTracker(self.detector) for m in cfg.methods if MethodSpec.of(m).stop_line}
         self.counters: dict[str, int] = {"imu_batches": 0, "gnss": 0, "uwb": 0, "beacons_rx": 0,
@@ -110,6 +113,8 @@ class Agent:
         self._beacon_seq = 0
         #: neighbours gone: vehicle -> (sensor time [s], "liveliness" | "silence")
         self.lost: dict[str, tuple[float, str]] = {}
+        #: the latest departures: (sensor time [s], vehicle, how)
+        self.departures: deque = deque(maxlen=20)
         #: verified, fresh beacons received / excluded as misbehaving, per sender
         self.beacons_from: dict[str, int] = {}
         self.excluded_from: dict[str, int] = {}
@@ -157,6 +162,7 @@ class Agent:
             tr.forget(other)
         if other not in self.lost:
             self.lost[other] = (self.seq.t if self.seq.t is not None else math.nan, how)
+            self.departures.append((self.lost[other][0], other, how))
             self._count(f"neighbour_lost_{how}")
             log.info("%s: neighbour %s gone (%s) at t=%.2f", self.cfg.vehicle, other, how, self.lost[other][0])
 
@@ -448,6 +454,7 @@ class Agent:
             status = {"t": t, "neighbours": len(set().union(*(tab.vehicles() for tab in self.tables.values()))),
                       "first_stopped": [m for m in self.trackers if self.claim(m)],
                       "lost": {v: [lt, how] for v, (lt, how) in self.lost.items()},
+                      "departures": [list(d) for d in self.departures],
                       "flagged": ({v: [ft, why] for v, (ft, why) in self.misbehaviour.flagged.items()}
                                   if self.misbehaviour else {})}
             if self.misbehaviour:

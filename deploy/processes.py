@@ -235,6 +235,7 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
             v = key.rsplit("/", 1)[-1]
             if up:
                 alive.add(v)
+                emu.agent_back(v)
             else:
                 alive.discard(v)
                 emu.forget_agent(v)

@@ -54,6 +54,8 @@ class EmulatorService:
     #: in agent-paced mode, never faster than this real-time factor: spreads publication so that
     #: reordering across topics stays far below the agents' IMU hold time
     max_speed: float = 20.0
+    #: agent-paced mode: how long [s wall] the clock waits for an agent that left to come back
+    rejoin_grace: float = 10.0
     radio_stats: RadioStats = field(default_factory=RadioStats)
     published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "uwb": 0})
     agent_time: dict[str, float] = field(default_factory=dict)
@@ -75,6 +77,7 @@ class EmulatorService:
         self.now = float(next(iter(self.truth.vehicles.values())).truth.t[0])
         self.done = asyncio.Event()
         self._subs: tuple | None = None
+        self._away: dict[str, float] = {}  #: vehicle -> monotonic time its agent left
 
     # ----------------------------------------------------------------- radio
     def _positions(self, t: float) -> dict[str, np.ndarray]:
@@ -152,8 +155,15 @@ class EmulatorService:
                 self.agent_time[e.vehicle] = max(self.agent_time.get(e.vehicle, -np.inf), e.t)
 
     def forget_agent(self, vehicle: str) -> None:
-        """The agent of ``vehicle`` left (its liveliness token went away): stop pacing on it."""
+        """The agent of ``vehicle`` left (its liveliness token went away): stop pacing on it. In
+        agent-paced mode the clock waits up to ``rejoin_grace`` (wall) for it to come back, as it
+        would not run ahead of a restarting vehicle in real time."""
         self.agent_time.pop(vehicle, None)
+        self._away[vehicle] = time.monotonic()
+
+    def agent_back(self, vehicle: str) -> None:
+        """The agent of ``vehicle`` (re)declared its liveliness."""
+        self._away.pop(vehicle, None)
 
     # ----------------------------------------------------------------- playback
     def _events(self):
@@ -236,6 +246,9 @@ class EmulatorService:
         ahead = (t - t0) / self.max_speed - (time.monotonic() - wall0)
         if ahead > 0:
             await asyncio.sleep(ahead)
+        while not stop.is_set() and not final and any(
+                time.monotonic() - left < self.rejoin_grace for left in self._away.values()):
+            await asyncio.sleep(0.01)  # an agent left: hold the clock while it restarts
         deadline = time.monotonic() + (5.0 if final else 30.0)
         while not stop.is_set():
             # the slowest agent that reports (one that left is forgotten until it reports again,

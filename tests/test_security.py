@@ -175,5 +175,5 @@ def test_security_section_errors_name_the_field(fleet, tmp_path) -> None:
         with pytest.raises(ConfigError, match=msg):
             load_agent_config(cfg(text), None)
     create_fleet(tmp_path / "small", ["V0"])
-    with pytest.raises(ConfigError, match="no certificate for V1"):
+    with pytest.raises(ConfigError, match="no vehicle certificate for V1"):
         load_agent_config(cfg(f'[security]\ntrust_dir = "{tmp_path / "small"}"\nkey = "{fleet / "V1.key"}"\n'), None)
