@@ -173,7 +173,8 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
 def status_table(vehicles: list[str], latest_t: dict[str, float], diag: dict, prev: dict) -> str:
     """The live status: per vehicle its sensor time, neighbours heard, beacon rates sent and
     received, first-stopped claim, ranges
-    fused/rejected, and the drops (stale beacons, late measurements, bad payloads, queue drops).
+    fused/rejected, and the drops (stale beacons, late measurements, bad payloads -- malformed,
+    refused or misbehaving beacons, duplicates, time jumps --, queue drops).
     Rates are per second of sensor time between the last two diagnostics."""
     rows = [f"{'vehicle':8s} {'t [s]':>7s} {'nbrs':>4s} {'bcn tx/s':>8s} {'bcn rx/s':>8s} {'first':>5s} "
             f"{'ranges ok/rej':>13s} {'stale':>5s} {'late':>4s} {'bad':>4s} {'qdrop':>5s}"]
@@ -188,7 +189,8 @@ def status_table(vehicles: list[str], latest_t: dict[str, float], diag: dict, pr
         rej = sum(c.get(f"{m}_ranges_rejected", 0) for m in METHODS)
         stale = sum(c.get(f"{m}_stale", 0) for m in METHODS)
         late = c.get("seq_late_dropped", 0)
-        bad = c.get("codec_errors", 0) + sum(v2 for k2, v2 in c.items() if k2.startswith("rejected_"))
+        bad = c.get("codec_errors", 0) + sum(v2 for k2, v2 in c.items()
+                                             if k2.startswith(("rejected_", "beacon_", "duplicate_")) or k2.endswith("_time_jump"))
         qdrop = sum(v2 for k2, v2 in c.items() if k2.startswith("queue_dropped_"))
         first = ",".join(m for m in st.get("first_stopped", []))
         rows.append(f"{v:8s} {latest_t.get(v, 0.0):7.1f} {st.get('neighbours', 0):4d} {rate['beacons_tx']} "
