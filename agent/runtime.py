@@ -68,10 +68,10 @@ class AgentConfig:
     #: one more than ``max_beacon_future`` after it as from the future [s]. (Fusion itself uses a
     #: beacon only within 0.3 s of the range time, see :class:`agent.neighbours.NeighbourTable`.)
     max_beacon_age: float = 1.0
+    max_beacon_future: float = 2.0
     #: a neighbour silent this long [s of sensor time] is gone (also when its liveliness token
     #: vanishes, which is usually sooner)
     neighbour_timeout: float = 1.5
-    max_beacon_future: float = 2.0
     #: an IMU batch starting more than this after the newest IMU time is a time jump, dropped
     #: unless ``jump_confirm`` consecutive batches continue it (then the stream re-synchronises);
     #: a GNSS fix or range this far ahead of the newest IMU time is dropped too [s]
@@ -242,15 +242,18 @@ class Agent:
             if refused:
                 self._count(f"beacon_{refused}")
                 return
+            tab = self.tables[msg.method]
+            newest = tab.newest_time(msg.vehicle)
+            if newest is not None and msg.t <= newest:  # a duplicate or replay: not newer than the last
+                tab.counters["duplicate_or_old"] += 1
+                return
             self.lost.pop(msg.vehicle, None)
             self.beacons_from[msg.vehicle] = self.beacons_from.get(msg.vehicle, 0) + 1
             if self._untrusted(msg):
                 self.excluded_from[msg.vehicle] = self.excluded_from.get(msg.vehicle, 0) + 1
                 return
             now = self.seq.t if self.seq.t is not None else msg.t
-            if not self.tables[msg.method].update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos,
-                                                  msg.method, now):
-                return  # a duplicate or replay (not newer than the last accepted); counted by the table
+            tab.update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos, msg.method, now)
             if self._deferred:
                 self._fuse_ranges()
             if msg.method in self.trackers:
