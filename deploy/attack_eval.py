@@ -24,17 +24,21 @@ import numpy as np
 from hw_emulation.attacks import ATTACKS, Attack
 
 
-def _fleet(scenario: str, seed: int, attack: Attack | None, until: float | None):
-    from agent.runtime import Agent
+def _truth(scenario: str):
     from hw_emulation.scenario import load_scenario
-    from hw_emulation.service import EmulatorService
     from hw_emulation.truth import build_truth
+
+    return build_truth(load_scenario(scenario))
+
+
+def _fleet(truth, seed: int, attack: Attack | None, until: float | None):
+    from agent.runtime import Agent
+    from hw_emulation.service import EmulatorService
     from transport.bus import InMemoryNetwork
 
     from .agent_configs import agent_config
 
-    scn = load_scenario(scenario)
-    truth = build_truth(scn)
+    scn = truth.scenario
 
     async def main():
         net = InMemoryNetwork()
@@ -56,7 +60,7 @@ def _fleet(scenario: str, seed: int, attack: Attack | None, until: float | None)
         await asyncio.gather(*tasks)
         return agents
 
-    return truth, asyncio.run(main())
+    return asyncio.run(main())
 
 
 def draw_attack(truth, kind: str, seed: int, rng: np.random.Generator) -> Attack:
@@ -74,12 +78,9 @@ def draw_attack(truth, kind: str, seed: int, rng: np.random.Generator) -> Attack
 
 def evaluate_attack(scenario: str, kind: str, seed: int, after: float = 4.0, deadline: float = 1.0) -> dict:
     """One attack run; per honest receiver the detection latency (None: not flagged)."""
-    from hw_emulation.truth import build_truth
-    from hw_emulation.scenario import load_scenario
-
-    rng = np.random.default_rng(seed)
-    attack = draw_attack(build_truth(load_scenario(scenario)), kind, seed, rng)
-    truth, agents = _fleet(scenario, seed, attack, attack.start + after)
+    truth = _truth(scenario)
+    attack = draw_attack(truth, kind, seed, np.random.default_rng(seed))
+    agents = _fleet(truth, seed, attack, attack.start + after)
     out = {"attacker": attack.vehicle, "kind": kind, "start_s": attack.start, "receivers": {},
            "honest_beacons": 0, "honest_excluded": 0}
     for v, a in agents.items():
@@ -101,7 +102,7 @@ def evaluate_attack(scenario: str, kind: str, seed: int, after: float = 4.0, dea
 
 def evaluate_clean(scenario: str, seed: int) -> dict:
     """A whole scenario without attackers: the share of beacons excluded (false alarms)."""
-    _, agents = _fleet(scenario, seed, None, None)
+    agents = _fleet(_truth(scenario), seed, None, None)
     total = sum(sum(a.beacons_from.values()) for a in agents.values())
     excl = sum(sum(a.excluded_from.values()) for a in agents.values())
     flags = sum(len(a.misbehaviour.events) for a in agents.values())
