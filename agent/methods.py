@@ -344,15 +344,24 @@ class MethodFilter:
 
 def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTable,
                        lanes: dict[str, ApproachLane], origin_llh: tuple[float, float, float],
-                       t: float) -> tuple[Decision, bool]:
+                       t: float, ghosts: dict | None = None) -> tuple[Decision, bool]:
     """One first-stopped decision for filter ``f`` at sensor time ``t`` [s] from its own estimate,
     the map (``lanes``, frame at ``origin_llh``) and the neighbours' beacons in ``table``; a claim
-    applies the stop-line fix (a new claim at once). Returns the decision and whether it changed."""
+    applies the stop-line fix (a new claim at once). Returns the decision and whether it changed.
+
+    ``ghosts`` maps neighbours lost recently (silent, or their process gone) to their last known
+    (llh (3,), NED covariance (3, 3) [m²]): they count as standing there, so that a vehicle that
+    cannot hear the queue ahead of it does not take the stop line."""
     st = f.filter.state
     ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
-    nb_ne = {o: np.array(pymap3d.geodetic2ned(*table.entries[o].llh, *origin_llh, deg=False)[:2])
-             for o in table.vehicles()}
-    nb_cov = {o: table.entries[o].cov[:2, :2] for o in table.vehicles()}
+    known = {o: (table.entries[o].llh, table.entries[o].cov) for o in table.vehicles()}
+    for o, (llh, cov) in (ghosts or {}).items():
+        if o not in known:
+            known[o] = (llh, cov)
+            if o not in tracker._nb:
+                tracker.observe_neighbour(o, t, 0.0, False)  # unknown since when: stopped "forever"
+    nb_ne = {o: np.array(pymap3d.geodetic2ned(*llh, *origin_llh, deg=False)[:2]) for o, (llh, _) in known.items()}
+    nb_cov = {o: cov[:2, :2] for o, (_, cov) in known.items()}
     dec, changed = tracker.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
                                   float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)
     if changed:

@@ -81,6 +81,11 @@ class AgentConfig:
     #: (:mod:`agent.misbehaviour`); ``nlos_bias_max`` is the largest NLOS range bias expected [m]
     misbehaviour_detection: bool = True
     nlos_bias_max: float = 3.0
+    #: a neighbour lost (not excluded) counts, for ``ghost_memory`` seconds or until heard
+    #: again, as standing where it was last heard, with its covariance grown at ``ghost_speed``
+    #: [m/s]: a vehicle that cannot hear the queue ahead does not take the stop line
+    ghost_memory: float = 30.0
+    ghost_speed: float = 1.0
 
 
 class Agent:
@@ -113,6 +118,8 @@ class Agent:
         self._beacon_seq = 0
         #: neighbours gone: vehicle -> (sensor time [s], "liveliness" | "silence")
         self.lost: dict[str, tuple[float, str]] = {}
+        #: method -> neighbour lost -> (last llh, last covariance, time lost [s])
+        self._ghosts: dict[str, dict[str, tuple[np.ndarray, np.ndarray, float]]] = {}
         #: the latest departures: (sensor time [s], vehicle, how)
         self.departures: deque = deque(maxlen=20)
         #: verified, fresh beacons received / excluded as misbehaving, per sender
@@ -155,8 +162,13 @@ class Agent:
 
     def _lose(self, other: str, how: str) -> None:
         """Stop using neighbour ``other`` (gone: its liveliness token vanished, or silent for the
-        table timeout); remembered in ``lost`` as (sensor time, how) for the diagnostics."""
-        for tab in self.tables.values():
+        table timeout); remembered in ``lost`` as (sensor time, how) for the diagnostics, and its
+        last beacon per method as a ghost for the first-stopped decisions (``ghost_memory``)."""
+        t = self.seq.t if self.seq.t is not None else math.nan
+        for m, tab in self.tables.items():
+            e = tab.entries.get(other)
+            if e is not None:
+                self._ghosts.setdefault(m, {})[other] = (e.llh, e.cov, t)
             tab.remove(other)
         for tr in self.trackers.values():
             tr.forget(other)
@@ -248,6 +260,8 @@ class Agent:
                 tab.counters["duplicate_or_old"] += 1
                 return
             self.lost.pop(msg.vehicle, None)
+            for g in self._ghosts.values():
+                g.pop(msg.vehicle, None)
             self.beacons_from[msg.vehicle] = self.beacons_from.get(msg.vehicle, 0) + 1
             if self._untrusted(msg):
                 self.excluded_from[msg.vehicle] = self.excluded_from.get(msg.vehicle, 0) + 1
@@ -470,12 +484,21 @@ class Agent:
         return tr is not None and tr.claim
 
     def _decide(self, t: float) -> None:
-        for tab in self.tables.values():  # neighbours not heard for the table's timeout are gone
+        for m, tab in self.tables.items():  # neighbours not heard for the table's timeout are gone
+            last = dict(tab.entries)
             for other in tab.expire(t):
+                self._ghosts.setdefault(m, {})[other] = (last[other].llh, last[other].cov, t)
                 self._lose(other, "silence")
         for m, tr in self.trackers.items():
+            ghosts = {}
+            for o, (llh, cov, lost_at) in list(self._ghosts.get(m, {}).items()):
+                age = t - lost_at
+                if not age <= self.cfg.ghost_memory:  # also NaN (lost before the filter started)
+                    del self._ghosts[m][o]
+                    continue
+                ghosts[o] = (llh, cov + np.eye(3) * (self.cfg.ghost_speed * age) ** 2)
             dec, changed = first_stopped_step(tr, self.filters[m], self.tables[m], self.cfg.lanes,
-                                              self.cfg.origin_llh, t)
+                                              self.cfg.origin_llh, t, ghosts)
             if changed:
                 self.decision_log.append((t, m, dec.reason))
                 log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,

@@ -66,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     em.add_argument("--speed", type=float, default=None, help="real-time factor (default: as fast as agents keep up)")
     em.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     em.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, see README)")
     em.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory: connect with mutual TLS as identity 'emulator' (tls/ endpoints)")
     ro = sub.add_parser("router", help="run the infrastructure Zenoh router (TLS + ACL with --fleet)")
@@ -90,6 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--seeds", type=_positive_int, default=None, metavar="N",
                     help="N seeded runs (seeds S..S+N-1) spread over the cores, with mean ± sd")
     rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")
+    rn.add_argument("--faults", type=Path, default=None,
+                    help="fault schedule (TOML): link, sensor and process faults, shown on the report")
     rn.add_argument("--no-sign", action="store_true",
                     help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
     ae = sub.add_parser("attack-eval", help="misbehaviour detection against the VeReMi attacks, and false alarms on clean runs")
@@ -255,7 +258,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / f"{name}-seed{args.seed}"
     print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")
     m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
-                  progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign)
+                  progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign,
+                  faults=args.faults)
     print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
     print((out / "report.md").read_text())
     return 0
@@ -533,7 +537,7 @@ def main(argv: list[str] | None = None) -> int:
                 from .zenoh_security import client_config
 
                 z = client_config(args.fleet, "emulator", tuple(args.connect))
-            return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z))
+            return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z, faults_path=args.faults))
         if args.command in ("router", "record"):
             return _cmd_infrastructure(args)
         if args.command == "run":

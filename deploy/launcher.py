@@ -41,6 +41,7 @@ import numpy as np
 from agent.methods import METHODS, MethodSpec
 from agent.nav import earth
 from hw_emulation.events import event_times, window_bounds
+from hw_emulation.faults import PROCESS_FAULTS, load_faults
 from hw_emulation.scenario import load_scenario
 from hw_emulation.truth import build_truth
 from transport import keys
@@ -65,16 +66,19 @@ def _slcp(*args: str) -> list[str]:
 
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = "split-ci",
-              sign: bool = True) -> dict:
+              sign: bool = True, faults: Path | None = None) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called every 2 s with a multi-line status text. With ``sign``
     a fleet CA and per-vehicle keys are created in ``out/keys`` and every beacon is signed and
     verified."""
     scn = load_scenario(scenario)
+    schedule = load_faults(faults, {v.id for v in scn.vehicles}) if faults is not None else []
     out = Path(out)
     for sub in ("config", "logs", "recorded", "estimates"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+    if faults is not None:  # the run keeps its own copy of the schedule
+        (out / "config" / "faults.toml").write_text(Path(faults).read_text())
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     vehicles = [v.id for v in scn.vehicles]
@@ -90,10 +94,11 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
                      f'[zenoh]\nmode = "peer"\nconnect = ["{endpoint}"]\n')
         configs[vid] = p
     wall0 = time.monotonic()
-    stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress))
+    stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
+                                   faults=schedule))
     wall = time.monotonic() - wall0
     truth = build_truth(scn)
-    metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods)
+    metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods, schedule)
     metrics["wall_s"] = wall
     metrics["seed"] = seed
     metrics["fusion"] = fusion
@@ -104,7 +109,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
 
 
 async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Path, progress,
-                     max_restarts: int = 3) -> dict:
+                     max_restarts: int = 3, faults: list | None = None) -> dict:
     from transport.zenoh_bus import ZenohBus, ZenohConfig
 
     router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,)))
@@ -127,6 +132,10 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         lf = open(out / "logs" / "emulator.log", "w")
         logs.append(lf)
         emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint]
+        if faults:
+            emu_args += ["--faults", str(out / "config" / "faults.toml")]
+        pending = sorted((f for f in faults or [] if f.kind in PROCESS_FAULTS), key=lambda f: f.start)
+        frozen: list[tuple[float, str]] = []  # (wall time to resume, process)
         if speed:
             emu_args += ["--speed", str(speed)]
         emu = _spawn(procs, "emulator", _slcp(*emu_args), lf)
@@ -134,6 +143,21 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         prev_diag: dict = {}
         while emu.poll() is None:
             await asyncio.sleep(0.2)
+            # process faults, at the fleet's sensor time (the newest estimate recorded)
+            now_s = max(rec.latest_t.values(), default=0.0)
+            while pending and pending[0].start <= now_s:
+                f = pending.pop(0)
+                p = procs.get(f"agent-{f.vehicles[0]}")
+                if p is None or p.poll() is not None:
+                    continue
+                log.warning("fault %s on %s at t=%.1f s", f.kind, f.vehicles[0], now_s)
+                os.kill(p.pid, signal.SIGKILL if f.kind == "agent_kill" else signal.SIGSTOP)
+                if f.kind == "agent_freeze":
+                    frozen.append((time.monotonic() + f.end - f.start, f"agent-{f.vehicles[0]}"))
+            for due, n in [x for x in frozen if x[0] <= time.monotonic()]:
+                frozen.remove((due, n))
+                if procs[n].poll() is None:
+                    os.kill(procs[n].pid, signal.SIGCONT)
             for n in [n for n, p in procs.items() if n != "emulator" and p.poll() is not None]:
                 # an agent died (crash, kill -9): start it again; it re-initialises from GNSS and
                 # rejoins. Each restart is reported with the time until its first estimate.
@@ -157,6 +181,10 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 prev_diag = dict(rec.diag)
         await asyncio.sleep(0.5)  # last estimates in flight
     finally:
+        for p in procs.values():  # a frozen process would not see the SIGTERM
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(p.pid, signal.SIGCONT)
         _stop_all(procs)
         for t in tasks:
             t.cancel()
@@ -260,8 +288,10 @@ def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:
             p.wait()
 
 
-def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -> dict:
-    """RMSE per window, vehicle and method from the recorded estimates; writes estimate CSVs."""
+def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], faults: list | None = None) -> dict:
+    """RMSE per window, vehicle and method from the recorded estimates; writes estimate CSVs.
+    With a fault schedule, each fault's window is shaded on the plot and its recovery measured
+    (:func:`fault_recovery`)."""
     est: dict[tuple[str, str], list[dict]] = {}
     diags: dict[str, dict] = {}
     bad_lines = 0
@@ -321,7 +351,8 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
         from .plots import plot_run_errors, plot_scenario
 
         plot_run_errors(series, windows, methods, out / "errors.png",
-                        f"{truth.scenario.name}: horizontal error per vehicle and method", sig_h, bound)
+                        f"{truth.scenario.name}: horizontal error per vehicle and method", sig_h, bound,
+                        faults=faults)
         plot_scenario(truth, out / "map.png", event_times(truth))
     except ImportError:  # pragma: no cover - matplotlib is a dependency
         log.warning("matplotlib unavailable: no plots")
@@ -342,9 +373,35 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...]) -
         if MethodSpec.of(m).stop_line and (claim.any() or truth_first.any()):
             detection.setdefault(vid, {})[m] = score_first_stopped(series[(vid, m)][0], truth_first, claim,
                                                                    series[(vid, m)][1][:, 0])
+    fault_rows = [fault_recovery(f, series, sorted(truth.vehicles)) for f in faults or []]
     return {"scenario": truth.scenario.name, "events": event_times(truth), "windows": {k: list(v) for k, v in windows.items()},
+            "faults": fault_rows,
             "rmse": rows, "first_stopped": detection, "unreadable_lines": bad_lines,
             "estimates": {f"{v}/{m}": len(s[0]) for (v, m), s in series.items()}, "diagnostics": diags}
+
+
+def fault_recovery(fault, series: dict, vehicles: list[str], before: float = 5.0) -> dict:
+    """A fault's effect on the affected vehicles' horizontal error, per method: the mean over
+    ``before`` seconds before it, the maximum from its start to 10 s after its end, and the
+    recovery time: from its end until the error is back within max(1.2 × before, before + 0.3 m)
+    (None if it never is)."""
+    hit = list(fault.vehicles) or vehicles
+    out = {"kind": fault.kind, "start_s": fault.start, "end_s": fault.end, "vehicles": list(fault.vehicles),
+           "effect": {}}
+    for (vid, m), (ts, eh) in series.items():
+        if vid not in hit or not len(ts):
+            continue
+        pre = eh[(ts >= fault.start - before) & (ts < fault.start), 0]
+        during = (ts >= fault.start) & (ts <= fault.end + 10.0)
+        if not pre.size or not during.any():
+            continue
+        base = float(np.mean(pre))
+        ok = max(1.2 * base, base + 0.3)
+        after = np.flatnonzero((ts >= fault.end) & (eh[:, 0] <= ok))
+        out["effect"].setdefault(vid, {})[m] = {
+            "before_m": base, "max_m": float(np.max(eh[during, 0])),
+            "recovery_s": float(ts[after[0]] - fault.end) if after.size else None}
+    return out
 
 
 def report_markdown(scn, metrics: dict) -> str:
@@ -388,6 +445,19 @@ def report_markdown(scn, metrics: dict) -> str:
                              f"{f(d['precision'])} | {f(d['recall'])} | {lat} | "
                              f"{f(d.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(d.get('sl_rmse_claimed_m'), '{:.2f}')} |")
         lines.append("")
+    if metrics.get("faults"):
+        lines += ["## Faults", "", "Error of each affected vehicle: mean over 5 s before the fault, maximum until 10 s "
+                  "after it, and the time from its end until the error is back within max(1.2 × before, before + 0.3 m).",
+                  "", "| fault | window [s] | vehicle | method | before [m] | max [m] | recovery [s] |",
+                  "|---|---|---|---|---|---|---|"]
+        for f in metrics["faults"]:
+            who = ",".join(f["vehicles"]) or "all"
+            for vid, per in f["effect"].items():
+                for m, e in per.items():
+                    rec = "never" if e["recovery_s"] is None else f"{e['recovery_s']:.1f}"
+                    lines.append(f"| {f['kind']} ({who}) | {f['start_s']:.1f}–{f['end_s']:.1f} | {vid} | {m} | "
+                                 f"{e['before_m']:.2f} | {e['max_m']:.2f} | {rec} |")
+        lines.append("")
     restarts = metrics.get("processes", {}).get("restarts", [])
     if restarts:
         lines += ["## Process faults", "", "| process | exit code | at [s wall] | rejoined after [s] |", "|---|---|---|---|"]
@@ -427,7 +497,9 @@ def rebuild_report(run_dir: Path) -> dict:
         raise ValueError(f"{run_dir}: cannot tell the scenario (no metrics.json or config/agent-*.toml)")
     scn = load_scenario(name)
     (run_dir / "estimates").mkdir(exist_ok=True)
-    metrics = evaluate_recording(build_truth(scn), rec, run_dir, METHODS)
+    fpath = run_dir / "config" / "faults.toml"
+    schedule = load_faults(fpath, {v.id for v in scn.vehicles}) if fpath.exists() else []
+    metrics = evaluate_recording(build_truth(scn), rec, run_dir, METHODS, schedule)
     for k in ("wall_s", "seed", "fusion", "processes"):
         if k in old:
             metrics[k] = old[k]

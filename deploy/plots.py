@@ -86,7 +86,7 @@ def plot_scenario(truth, path: Path, events: dict[str, float] | None = None) -> 
 
 
 def plot_run_errors(series: dict, windows: dict, methods, path: Path, title: str, sigma: dict | None = None,
-                    bound=None) -> None:
+                    bound=None, faults=None) -> None:
     """Horizontal error over time per vehicle (rows) and method (colours), like the paper's
     Fig. 9/11; evaluation windows shaded. Optional: each method's reported horizontal σ
     (``sigma[(vehicle, method)]``, dotted) and the posterior CRLB (:class:`deploy.bound.Bound`,
@@ -97,6 +97,14 @@ def plot_run_errors(series: dict, windows: dict, methods, path: Path, title: str
     for ax, vid in zip(axes[:, 0], vehicles):
         for i, (w, (a, b)) in enumerate(windows.items()):
             ax.axvspan(a, b, color="tab:orange", alpha=0.06 + 0.04 * (i % 2), lw=0)
+        for f in faults or []:  # fault windows hatched (a kill is a line)
+            if not f.vehicles or vid in f.vehicles:
+                if f.end > f.start:
+                    ax.axvspan(f.start, f.end, facecolor="none", edgecolor="tab:red", hatch="//", lw=0.5, alpha=0.6)
+                else:
+                    ax.axvline(f.start, color="tab:red", lw=1.0, ls="-.")
+                ax.text(f.start, 1.0, f.kind, transform=ax.get_xaxis_transform(), fontsize=6, color="tab:red",
+                        va="bottom")
         for m in methods:
             ts, eh = series.get((vid, m), (None, None))
             if ts is not None and len(ts):

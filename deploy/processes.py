@@ -214,7 +214,7 @@ async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
 
 
 async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: ZenohConfig,
-                        wait_for_agents: float = 20.0) -> int:
+                        wait_for_agents: float = 20.0, faults_path: Path | None = None) -> int:
     from hw_emulation.scenario import load_scenario
     from hw_emulation.service import EmulatorService
     from hw_emulation.truth import build_truth
@@ -223,11 +223,16 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
 
     scn = load_scenario(scenario)
     truth = build_truth(scn)
+    faults = []
+    if faults_path is not None:
+        from hw_emulation.faults import load_faults
+
+        faults = load_faults(faults_path, set(truth.vehicles))
     stop = asyncio.Event()
     _install_signals(stop)
     bus = ZenohBus(zcfg)
     try:
-        emu = EmulatorService(truth, bus, seed=seed, speed=speed)
+        emu = EmulatorService(truth, bus, seed=seed, speed=speed, faults=faults)
         emu.prepare()  # subscribed before the agents start publishing
         alive: set[str] = set()
 
@@ -251,7 +256,7 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
             log.warning("starting without agents %s", sorted(missing))
         await asyncio.sleep(0.3)  # let the agents' subscriptions propagate
         await emu.run(stop)
-        log.info("emulator done: published %s, radio %s", emu.published, emu.radio_stats)
+        log.info("emulator done: published %s, radio %s, faults %s", emu.published, emu.radio_stats, emu.fault_stats)
     finally:
         await bus.close()
     return 0

@@ -27,6 +27,7 @@ from transport.codec import CodecError, decode, encode
 from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, UwbRange
 
 from .emulate import emulate_uwb, emulate_vehicle_sensors
+from .faults import LINK_FAULTS
 from .sensors.radio import RadioModel
 from .truth import ScenarioTruth
 
@@ -63,6 +64,9 @@ class EmulatorService:
     attacks: list = field(default_factory=list)
     #: vehicle -> transport.security.BeaconSigner, to re-sign an attacker's falsified beacons
     signers: dict = field(default_factory=dict)
+    #: link and sensor faults (hw_emulation.faults.Fault); process faults are the launcher's
+    faults: list = field(default_factory=list)
+    fault_stats: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.seed)
@@ -112,6 +116,13 @@ class EmulatorService:
             if d > r.max_range:
                 self.radio_stats.out_of_range += 1
                 continue
+            active = [f for f in self.faults if f.kind in LINK_FAULTS and f.active(b.t) and f.hits_link(b.vehicle, rx)]
+            if any(f.kind == "v2v_blackout" for f in active):
+                self._fault_count("v2v_blackout")
+                continue
+            if any(f.kind == "burst_loss" and self.radio_rng.random() < f.loss for f in active):
+                self._fault_count("burst_loss")
+                continue
             link = (b.vehicle, rx)
             bad = self._ge_bad.get(link, False)
             u = self.radio_rng.random()
@@ -125,8 +136,11 @@ class EmulatorService:
                 self.radio_stats.stale += 1
             else:
                 lat = min(r.latency_min + self.radio_rng.exponential(r.jitter_mean), r.latency_max)
+            spike = sum(f.latency for f in active if f.kind == "latency_spike")
+            if spike:
+                self._fault_count("latency_spike")
             # the radio works in sensor time: the beacon reaches rx at its own time plus latency
-            self._pending.append((b.t + lat, rx, payload))
+            self._pending.append((b.t + lat + spike, rx, payload))
 
     async def _radio_deliver(self) -> None:
         due = [p for p in self._pending if p[0] <= self.now]
@@ -153,6 +167,17 @@ class EmulatorService:
                 continue
             if isinstance(e, Estimate):
                 self.agent_time[e.vehicle] = max(self.agent_time.get(e.vehicle, -np.inf), e.t)
+
+    def _fault_count(self, kind: str) -> None:
+        self.fault_stats[kind] = self.fault_stats.get(kind, 0) + 1
+
+    def _sensor_fault(self, kind: str, t: float, who) -> bool:
+        """Whether a GNSS fix (``who`` a vehicle) or a range (``who`` a pair) is withheld at ``t``."""
+        for f in self.faults:
+            if f.kind == kind and f.active(t) and (f.hits_pair(*who) if kind == "uwb_outage" else f.hits_vehicle(who)):
+                self._fault_count(kind)
+                return True
+        return False
 
     def forget_agent(self, vehicle: str) -> None:
         """The agent of ``vehicle`` left (its liveliness token went away): stop pacing on it. In
@@ -216,11 +241,15 @@ class EmulatorService:
                     await self.bus.publish(keys.imu(who), encode(msg))
                     self.published["imu"] += 1
                 elif kind == "gnss":
+                    if self._sensor_fault("gnss_outage", t, who):
+                        continue
                     g = self.sensors[who].gnss
                     msg = GnssFix(who, idx, float(g.t[idx]), g.llh[idx], g.v_ned[idx], g.sigma_ned[idx], g.sigma_v)
                     await self.bus.publish(keys.gnss(who), encode(msg))
                     self.published["gnss"] += 1
                 else:
+                    if self._sensor_fault("uwb_outage", t, who):
+                        continue
                     a, b = who
                     rr = self.ranges[who]
                     payload = encode(UwbRange(a, b, idx, float(rr.t[idx]), float(rr.range[idx])))

@@ -62,3 +62,30 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
     for v in ("V0", "V1"):
         ts = sorted(d["t"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == v and d["method"] == "SP")
         assert max(b - a for a, b in zip(ts, ts[1:])) < 0.15 and not any(math.isnan(t) for t in ts)
+
+
+@pytest.mark.timeout(240)
+def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
+    """The shipped example schedule (every fault kind, with a freeze and a kill) on `slcp run`."""
+    from pathlib import Path
+
+    schedule = Path(__file__).resolve().parents[1] / "deploy" / "faults" / "paper-1.toml"
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--faults", str(schedule),
+                        "--out", str(out)], capture_output=True, text=True, timeout=200)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert [f["kind"] for f in m["faults"]] == ["v2v_blackout", "burst_loss", "latency_spike", "uwb_outage",
+                                                "gnss_outage", "agent_freeze", "agent_kill"]
+    restarts = m["processes"]["restarts"]
+    assert [(x["process"], x["exit_code"]) for x in restarts] == [("agent-V1", -9)]
+    assert restarts[0]["rejoined_after_s"] is not None and restarts[0]["rejoined_after_s"] < 5.0
+    report = (out / "report.md").read_text()
+    assert "## Faults" in report and "| agent_freeze (V0) |" in report and "## Process faults" in report
+    emu_log = (out / "logs" / "emulator.log").read_text()
+    assert "'gnss_outage': 30" in emu_log and "'v2v_blackout'" in emu_log
+    lines = [json.loads(x) for x in (out / "recorded" / "messages.jsonl").read_text().splitlines()]
+    v0 = [d["t"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == "V0" and d["method"] == "SP"]
+    assert max(v0) > 45.0  # the frozen agent resumed and went on to the end
+    assert not any(d["first_stopped"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == "V2")
+    assert (out / "config" / "faults.toml").read_text() == schedule.read_text()

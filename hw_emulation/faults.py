@@ -1,0 +1,136 @@
+"""Fault schedules: what goes wrong, when and to whom (pure; SI units, sensor time in seconds).
+
+A schedule is a TOML file (``slcp run --faults FILE``, ``slcp emulate --faults FILE``) of
+``[[fault]]`` tables::
+
+    [[fault]]
+    kind = "v2v_blackout"      # see below
+    start = 20.0               # sensor time [s]
+    end = 25.0                 # sensor time [s]; process faults: see below
+    vehicles = ["V1"]          # one vehicle: all its links / its sensors; two: the link between
+                               # them; empty or absent: every vehicle
+    loss = 0.6                 # burst_loss only: loss probability (default 0.5)
+    latency = 0.25             # latency_spike only: added latency [s] (default 0.25)
+
+Kinds played by the emulator (links and sensors):
+
+==================  ======================================================================
+``v2v_blackout``    no beacon is delivered on the affected links
+``burst_loss``      each beacon on the affected links is lost with probability ``loss``
+``latency_spike``   ``latency`` seconds are added to each beacon on the affected links
+``uwb_outage``      no UWB range of the affected vehicles (or pair)
+``gnss_outage``     no GNSS fix of the affected vehicles
+==================  ======================================================================
+
+Kinds played by the launcher (processes; one vehicle each):
+
+==================  ======================================================================
+``agent_kill``      SIGKILL to the vehicle's agent at ``start`` (the launcher restarts it)
+``agent_freeze``    SIGSTOP at ``start``, SIGCONT ``end - start`` seconds of *wall* time later
+                    (the clock of the fleet does not wait for a frozen agent)
+==================  ======================================================================
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+LINK_FAULTS = ("v2v_blackout", "burst_loss", "latency_spike")
+SENSOR_FAULTS = ("uwb_outage", "gnss_outage")
+PROCESS_FAULTS = ("agent_kill", "agent_freeze")
+KINDS = LINK_FAULTS + SENSOR_FAULTS + PROCESS_FAULTS
+
+
+class FaultError(ValueError):
+    """An invalid fault schedule (the message names the file and fault)."""
+
+
+@dataclass(frozen=True)
+class Fault:
+    kind: str
+    start: float
+    end: float
+    vehicles: tuple[str, ...] = ()
+    loss: float = 0.5
+    latency: float = 0.25
+
+    def active(self, t: float) -> bool:
+        return self.start <= t < self.end
+
+    def hits_vehicle(self, vehicle: str) -> bool:
+        """Sensor faults: whether ``vehicle``'s sensors are affected."""
+        return not self.vehicles or vehicle in self.vehicles
+
+    def hits_link(self, tx: str, rx: str) -> bool:
+        """Link faults: whether the link ``tx`` → ``rx`` is affected."""
+        if not self.vehicles:
+            return True
+        if len(self.vehicles) == 2:
+            return {tx, rx} == set(self.vehicles)
+        return tx in self.vehicles or rx in self.vehicles
+
+    def hits_pair(self, a: str, b: str) -> bool:
+        """UWB outages: whether the range between ``a`` and ``b`` is affected."""
+        if len(self.vehicles) == 2:
+            return {a, b} == set(self.vehicles)
+        return not self.vehicles or a in self.vehicles or b in self.vehicles
+
+
+def parse_faults(data: dict, source: str, known_vehicles: set[str] | None = None) -> list[Fault]:
+    """Faults from a parsed TOML document (``[[fault]]`` tables)."""
+    unknown = set(data) - {"fault"}
+    if unknown:
+        raise FaultError(f"{source}: unknown section {sorted(unknown)[0]!r} (expected [[fault]] tables)")
+    items = data.get("fault", [])
+    if not isinstance(items, list):
+        raise FaultError(f"{source}: 'fault' must be an array of tables ([[fault]])")
+    out = []
+    for i, d in enumerate(items):
+        where = f"{source}: fault {i + 1}"
+        if not isinstance(d, dict):
+            raise FaultError(f"{where}: must be a table")
+        extra = set(d) - {"kind", "start", "end", "vehicles", "loss", "latency"}
+        if extra:
+            raise FaultError(f"{where}: unknown field {sorted(extra)[0]!r}")
+        kind = d.get("kind")
+        if kind not in KINDS:
+            raise FaultError(f"{where}: kind must be one of {', '.join(KINDS)}, got {kind!r}")
+        try:
+            start, end = float(d["start"]), float(d.get("end", d["start"]))
+        except KeyError:
+            raise FaultError(f"{where}: start is missing") from None
+        except (TypeError, ValueError):
+            raise FaultError(f"{where}: start and end must be numbers [s]") from None
+        if not (math.isfinite(start) and math.isfinite(end)) or start < 0 or end < start:
+            raise FaultError(f"{where}: need 0 <= start <= end, got {start}, {end}")
+        if kind != "agent_kill" and end == start:
+            raise FaultError(f"{where}: {kind} needs an end after its start")
+        vehicles = d.get("vehicles", [])
+        if not isinstance(vehicles, list) or not all(isinstance(v, str) for v in vehicles) or len(vehicles) > 2:
+            raise FaultError(f"{where}: vehicles must be a list of at most two vehicle ids")
+        if known_vehicles is not None and set(vehicles) - known_vehicles:
+            raise FaultError(f"{where}: unknown vehicle {sorted(set(vehicles) - known_vehicles)[0]!r}")
+        if kind in PROCESS_FAULTS and len(vehicles) != 1:
+            raise FaultError(f"{where}: {kind} needs exactly one vehicle")
+        loss, latency = d.get("loss", 0.5), d.get("latency", 0.25)
+        if isinstance(loss, bool) or not isinstance(loss, (int, float)) or not 0.0 <= loss <= 1.0:
+            raise FaultError(f"{where}: loss must be a probability in [0, 1]")
+        if isinstance(latency, bool) or not isinstance(latency, (int, float)) or not 0.0 <= latency <= 10.0:
+            raise FaultError(f"{where}: latency must be in [0, 10] s")
+        out.append(Fault(kind, start, end, tuple(vehicles), float(loss), float(latency)))
+    return out
+
+
+def load_faults(path: Path | str, known_vehicles: set[str] | None = None) -> list[Fault]:
+    """Read a fault schedule file; :class:`FaultError` names what is wrong."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except OSError as exc:
+        raise FaultError(f"{p}: cannot read ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise FaultError(f"{p}: not valid TOML ({exc})") from None
+    return parse_faults(data, str(p), known_vehicles)
