@@ -383,8 +383,8 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
 def fault_recovery(fault, series: dict, vehicles: list[str], before: float = 5.0) -> dict:
     """A fault's effect on the affected vehicles' horizontal error, per method: the mean over
     ``before`` seconds before it, the maximum from its start to 10 s after its end, and the
-    recovery time: from its end until the error is back within max(1.2 × before, before + 0.3 m)
-    (None if it never is)."""
+    recovery time: from its end until the error, past that maximum, is back within
+    max(1.2 × before, before + 0.3 m) (None if it never is)."""
     hit = list(fault.vehicles) or vehicles
     out = {"kind": fault.kind, "start_s": fault.start, "end_s": fault.end, "vehicles": list(fault.vehicles),
            "effect": {}}
@@ -397,10 +397,15 @@ def fault_recovery(fault, series: dict, vehicles: list[str], before: float = 5.0
             continue
         base = float(np.mean(pre))
         ok = max(1.2 * base, base + 0.3)
-        after = np.flatnonzero((ts >= fault.end) & (eh[:, 0] <= ok))
-        out["effect"].setdefault(vid, {})[m] = {
-            "before_m": base, "max_m": float(np.max(eh[during, 0])),
-            "recovery_s": float(ts[after[0]] - fault.end) if after.size else None}
+        idx = np.flatnonzero(during)
+        peak = idx[int(np.argmax(eh[idx, 0]))]
+        after = np.flatnonzero((ts >= max(fault.end, ts[peak])) & (eh[:, 0] <= ok))
+        if eh[peak, 0] <= ok:
+            recovery: float | None = 0.0  # never left the band
+        else:
+            recovery = max(float(ts[after[0]] - fault.end), 0.0) if after.size else None
+        out["effect"].setdefault(vid, {})[m] = {"before_m": base, "max_m": float(eh[peak, 0]),
+                                                "recovery_s": recovery}
     return out
 
 
@@ -447,7 +452,8 @@ def report_markdown(scn, metrics: dict) -> str:
         lines.append("")
     if metrics.get("faults"):
         lines += ["## Faults", "", "Error of each affected vehicle: mean over 5 s before the fault, maximum until 10 s "
-                  "after it, and the time from its end until the error is back within max(1.2 × before, before + 0.3 m).",
+                  "after it, and the time from its end until the error, past that maximum, is back within "
+                  "max(1.2 × before, before + 0.3 m).",
                   "", "| fault | window [s] | vehicle | method | before [m] | max [m] | recovery [s] |",
                   "|---|---|---|---|---|---|---|"]
         for f in metrics["faults"]:
