@@ -46,7 +46,7 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
     assert restarts[0]["rejoined_after_s"] is not None and restarts[0]["rejoined_after_s"] < 5.0
     lines = [json.loads(x) for x in (out / "recorded" / "messages.jsonl").read_text().splitlines()]
     v2 = sorted(d["t"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == "V2" and d["method"] == "CP")
-    gaps = [(a, b) for a, b in zip(v2, v2[1:]) if b - a > 0.5]
+    gaps = [(a, b) for a, b in zip(v2, v2[1:]) if b - a > 0.15]  # 10 Hz estimates; the clock waits for V2
     assert len(gaps) == 1, gaps  # the one outage, and V2 estimates again after it
     last_before = gaps[0][0]
     for v in ("V0", "V1"):
@@ -55,7 +55,8 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
         assert gone, f"{v} never noticed V2 leave"
         t_lost, how = gone[0]
         print(f"{v} saw V2 gone ({how}) {t_lost - last_before:.2f} s of sensor time after V2's last estimate")
-        assert how in ("liveliness", "silence") and 0.0 <= t_lost - last_before < 2.0
+        # in the receiver's own sensor time, which may trail V2's by up to the IMU hold (0.25 s)
+        assert how in ("liveliness", "silence") and -0.3 <= t_lost - last_before < 2.0
         back = [d["t"] for d in diags if gaps[0][1] < d["t"] < v2[-1] and "V2" not in d["status"]["lost"]]
         assert back, f"{v} never took V2 back"  # its beacons came back with the restarted agent
     # the run's recording is complete: every estimate of V0 and V1 on a 10 Hz grid
