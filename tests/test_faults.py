@@ -90,3 +90,82 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
     assert max(v0) > 45.0  # the frozen agent resumed and went on to the end
     assert not any(d["first_stopped"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == "V2")
     assert (out / "config" / "faults.toml").read_text() == schedule.read_text()
+
+
+@pytest.mark.timeout(120)
+def test_a_killed_recorder_keeps_what_it_wrote_and_a_restarted_one_continues(tmp_path) -> None:
+    """`slcp record` behind `slcp router` (loopback): SIGKILL mid-stream, restart, stream again.
+    Everything published well before the kill is on disk, the file is appended to (never
+    rewritten), and the restarted recorder records what follows."""
+    import asyncio
+    import socket
+
+    import numpy as np
+
+    from transport import keys
+    from transport.codec import encode
+    from transport.messages import Estimate
+    from transport.zenoh_bus import ZenohBus, ZenohConfig
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ep = f"tcp/127.0.0.1:{port}"
+    out = tmp_path / "messages.jsonl"
+    cli = [sys.executable, "-m", "deploy.cli"]
+    router = subprocess.Popen([*cli, "router", "--listen", ep], start_new_session=True,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    procs = [router]
+
+    def recorder() -> subprocess.Popen:
+        p = subprocess.Popen([*cli, "record", "--connect", ep, "--out", str(out)], start_new_session=True,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        procs.append(p)
+        return p
+
+    def est(k: int) -> bytes:
+        return encode(Estimate("V1", "SP", 0.1 * k, np.array([0.7, 2.0, 50.0]), np.zeros(3), np.zeros(3), np.eye(3)))
+
+    async def publish(bus, ks, pause: float = 0.01) -> None:
+        for k in ks:
+            await bus.publish(keys.estimate("V1", "SP"), est(k))
+            await asyncio.sleep(pause)
+
+    def times() -> list[float]:
+        return [json.loads(x)["t"] for x in out.read_text().splitlines() if x.endswith("}")]
+
+    try:
+        time.sleep(1.5)
+        rec = recorder()
+        time.sleep(2.0)
+
+        async def main():
+            bus = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
+            try:
+                await asyncio.sleep(0.5)
+                await publish(bus, range(0, 200))  # ~2 s
+                await asyncio.sleep(0.5)
+                before = out.read_bytes()
+                os.kill(rec.pid, signal.SIGKILL)
+                rec.wait(timeout=10)
+                await publish(bus, range(200, 250))  # nobody records these
+                recorder()
+                await asyncio.sleep(2.5)
+                await publish(bus, range(250, 450))
+                await asyncio.sleep(1.0)
+                return before
+            finally:
+                await bus.close()
+
+        before = asyncio.run(main())
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+                p.wait(timeout=10)
+    got = times()
+    assert out.read_bytes().startswith(before)  # appended to, never rewritten
+    t = np.round(np.array(got) * 10).astype(int)
+    assert set(range(0, 200)) <= set(t)  # all flushed before the kill
+    assert set(range(250, 450)) <= set(t)  # the restarted recorder got everything after it
+    assert not set(range(200, 250)) & set(t)
