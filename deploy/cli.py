@@ -67,6 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     em.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     em.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
     em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, see README)")
+    em.add_argument("--start-at", type=float, default=None, metavar="T",
+                    help="resume the scenario at sensor time T [s] (a restarted emulator)")
     em.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory: connect with mutual TLS as identity 'emulator' (tls/ endpoints)")
     ro = sub.add_parser("router", help="run the infrastructure Zenoh router (TLS + ACL with --fleet)")
@@ -537,7 +539,8 @@ def main(argv: list[str] | None = None) -> int:
                 from .zenoh_security import client_config
 
                 z = client_config(args.fleet, "emulator", tuple(args.connect))
-            return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z, faults_path=args.faults))
+            return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z, faults_path=args.faults,
+                                             start_at=args.start_at))
         if args.command in ("router", "record"):
             return _cmd_infrastructure(args)
         if args.command == "run":

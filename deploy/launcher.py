@@ -141,17 +141,31 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         emu = _spawn(procs, "emulator", _slcp(*emu_args), lf)
         last = 0.0
         prev_diag: dict = {}
-        while emu.poll() is None:
+        while True:
+            if emu.poll() is not None:
+                if emu.returncode == 0:
+                    break
+                # the emulator died: resume the scenario where the fleet is (sensor time)
+                if sum(r["process"] == "emulator" for r in restarts) >= max_restarts:
+                    raise RuntimeError(f"the emulator exited {max_restarts + 1} times; see {out / 'logs'}")
+                now, rc = time.monotonic(), emu.returncode
+                t_resume = max(rec.latest_t.values(), default=0.0)
+                log.warning("the emulator exited with %s; restarting it at t=%.2f s", rc, t_resume)
+                lf = open(out / "logs" / "emulator.log", "a")
+                logs.append(lf)
+                emu = _spawn(procs, "emulator", _slcp(*emu_args, "--start-at", f"{t_resume:.3f}"), lf)
+                restarts.append({"process": "emulator", "exit_code": rc, "at_s": now - wall0, "_t": now,
+                                 "rejoined_after_s": None, "resumed_at_t_s": t_resume})
             await asyncio.sleep(0.2)
             # process faults, at the fleet's sensor time (the newest estimate recorded)
             now_s = max(rec.latest_t.values(), default=0.0)
             while pending and pending[0].start <= now_s:
                 f = pending.pop(0)
-                p = procs.get(f"agent-{f.vehicles[0]}")
+                p = procs.get("emulator" if f.kind == "emulator_kill" else f"agent-{f.vehicles[0]}")
                 if p is None or p.poll() is not None:
                     continue
-                log.warning("fault %s on %s at t=%.1f s", f.kind, f.vehicles[0], now_s)
-                os.kill(p.pid, signal.SIGKILL if f.kind == "agent_kill" else signal.SIGSTOP)
+                log.warning("fault %s on %s at t=%.1f s", f.kind, ",".join(f.vehicles) or "emulator", now_s)
+                os.kill(p.pid, signal.SIGSTOP if f.kind == "agent_freeze" else signal.SIGKILL)
                 if f.kind == "agent_freeze":
                     frozen.append((time.monotonic() + f.end - f.start, f"agent-{f.vehicles[0]}"))
             for due, n in [x for x in frozen if x[0] <= time.monotonic()]:
@@ -170,10 +184,12 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 _spawn(procs, n, _slcp("-v", "agent", "--vehicle", vid, "--config", str(configs[vid])), lf)
                 restarts.append({"process": n, "exit_code": rc, "at_s": now - wall0, "_t": now,
                                  "rejoined_after_s": None})
-            for r in restarts:
+            for r in restarts:  # an agent is back with its first estimate; the emulator with anyone's
                 v = r["process"].removeprefix("agent-")
-                if r["rejoined_after_s"] is None and rec.last_wall.get(v, -math.inf) > r["_t"]:
-                    r["rejoined_after_s"] = rec.last_wall[v] - r["_t"]
+                seen = (max(rec.last_wall.values(), default=-math.inf) if r["process"] == "emulator"
+                        else rec.last_wall.get(v, -math.inf))
+                if r["rejoined_after_s"] is None and seen > r["_t"]:
+                    r["rejoined_after_s"] = seen - r["_t"]
                     log.warning("%s rejoined %.2f s after its restart", r["process"], r["rejoined_after_s"])
             if progress and time.monotonic() - last > 2.0:
                 last = time.monotonic()

@@ -214,7 +214,8 @@ async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
 
 
 async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: ZenohConfig,
-                        wait_for_agents: float = 20.0, faults_path: Path | None = None) -> int:
+                        wait_for_agents: float = 20.0, faults_path: Path | None = None,
+                        start_at: float | None = None) -> int:
     from hw_emulation.scenario import load_scenario
     from hw_emulation.service import EmulatorService
     from hw_emulation.truth import build_truth
@@ -232,7 +233,7 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
     _install_signals(stop)
     bus = ZenohBus(zcfg)
     try:
-        emu = EmulatorService(truth, bus, seed=seed, speed=speed, faults=faults)
+        emu = EmulatorService(truth, bus, seed=seed, speed=speed, faults=faults, start_at=start_at)
         emu.prepare()  # subscribed before the agents start publishing
         alive: set[str] = set()
 

@@ -28,6 +28,8 @@ Kinds played by the launcher (processes; one vehicle each):
 ``agent_kill``      SIGKILL to the vehicle's agent at ``start`` (the launcher restarts it)
 ``agent_freeze``    SIGSTOP at ``start``, SIGCONT ``end - start`` seconds of *wall* time later
                     (the clock of the fleet does not wait for a frozen agent)
+``emulator_kill``   SIGKILL to the emulator at ``start`` (no vehicles); the launcher restarts
+                    it at the fleet's newest sensor time (``slcp emulate --start-at``)
 ==================  ======================================================================
 """
 
@@ -40,7 +42,7 @@ from pathlib import Path
 
 LINK_FAULTS = ("v2v_blackout", "burst_loss", "latency_spike")
 SENSOR_FAULTS = ("uwb_outage", "gnss_outage")
-PROCESS_FAULTS = ("agent_kill", "agent_freeze")
+PROCESS_FAULTS = ("agent_kill", "agent_freeze", "emulator_kill")
 KINDS = LINK_FAULTS + SENSOR_FAULTS + PROCESS_FAULTS
 
 
@@ -106,14 +108,14 @@ def parse_faults(data: dict, source: str, known_vehicles: set[str] | None = None
             raise FaultError(f"{where}: start and end must be numbers [s]") from None
         if not (math.isfinite(start) and math.isfinite(end)) or start < 0 or end < start:
             raise FaultError(f"{where}: need 0 <= start <= end, got {start}, {end}")
-        if kind != "agent_kill" and end == start:
+        if kind not in ("agent_kill", "emulator_kill") and end == start:
             raise FaultError(f"{where}: {kind} needs an end after its start")
         vehicles = d.get("vehicles", [])
         if not isinstance(vehicles, list) or not all(isinstance(v, str) for v in vehicles) or len(vehicles) > 2:
             raise FaultError(f"{where}: vehicles must be a list of at most two vehicle ids")
         if known_vehicles is not None and set(vehicles) - known_vehicles:
             raise FaultError(f"{where}: unknown vehicle {sorted(set(vehicles) - known_vehicles)[0]!r}")
-        if kind in PROCESS_FAULTS and len(vehicles) != 1:
+        if kind in ("agent_kill", "agent_freeze") and len(vehicles) != 1:
             raise FaultError(f"{where}: {kind} needs exactly one vehicle")
         loss, latency = d.get("loss", 0.5), d.get("latency", 0.25)
         if isinstance(loss, bool) or not isinstance(loss, (int, float)) or not 0.0 <= loss <= 1.0:

@@ -57,6 +57,8 @@ class EmulatorService:
     max_speed: float = 20.0
     #: agent-paced mode: how long [s wall] the clock waits for an agent that left to come back
     rejoin_grace: float = 10.0
+    #: resume a scenario at this sensor time [s] (a restarted emulator): earlier events are skipped
+    start_at: float | None = None
     radio_stats: RadioStats = field(default_factory=RadioStats)
     published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "uwb": 0})
     agent_time: dict[str, float] = field(default_factory=dict)
@@ -223,12 +225,19 @@ class EmulatorService:
         radio = asyncio.create_task(self._radio_loop(), name="radio")
         watch = asyncio.create_task(self._watch_agents(), name="agent-watch")
         self.bus.declare_alive(keys.alive("emulator", "main"))
+        if self.start_at is not None:
+            self.now = max(self.now, float(self.start_at))
+            log.warning("resuming the scenario at t=%.2f s", self.now)
         wall0, t0 = time.monotonic(), self.now
         seq: dict[str, int] = {}
         try:
             for t, _, kind, who, idx in self._events():
                 if stop.is_set():
                     break
+                if t < t0:
+                    continue  # played before a restart
+                if kind == "imu":  # batch numbers as an uninterrupted emulator would have them
+                    seq.setdefault(who, idx // self.batch - 1)
                 await self._pace(t, wall0, t0, stop)
                 self.now = t
                 await self._radio_deliver()

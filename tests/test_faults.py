@@ -67,7 +67,8 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
 
 @pytest.mark.timeout(240)
 def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
-    """The shipped example schedule (every fault kind, with a freeze and a kill) on `slcp run`."""
+    """The shipped example schedule (every fault kind: link and sensor faults, an agent frozen, an
+    agent killed, the emulator killed) on `slcp run`."""
     from pathlib import Path
 
     schedule = Path(__file__).resolve().parents[1] / "deploy" / "faults" / "paper-1.toml"
@@ -77,15 +78,17 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert [f["kind"] for f in m["faults"]] == ["v2v_blackout", "burst_loss", "latency_spike", "uwb_outage",
-                                                "gnss_outage", "agent_freeze", "agent_kill"]
+                                                "gnss_outage", "agent_freeze", "agent_kill", "emulator_kill"]
     restarts = m["processes"]["restarts"]
-    assert [(x["process"], x["exit_code"]) for x in restarts] == [("agent-V1", -9)]
-    assert restarts[0]["rejoined_after_s"] is not None and restarts[0]["rejoined_after_s"] < 5.0
+    assert [(x["process"], x["exit_code"]) for x in restarts] == [("agent-V1", -9), ("emulator", -9)]
+    assert all(x["rejoined_after_s"] is not None and x["rejoined_after_s"] < 5.0 for x in restarts), restarts
+    assert 45.0 <= restarts[1]["resumed_at_t_s"] < 48.0  # resumed where the fleet was
     report = (out / "report.md").read_text()
     assert "## Faults" in report and "| agent_freeze (V0) |" in report and "## Process faults" in report
-    emu_log = (out / "logs" / "emulator.log").read_text()
-    assert "'gnss_outage': 30" in emu_log and "'v2v_blackout'" in emu_log
     lines = [json.loads(x) for x in (out / "recorded" / "messages.jsonl").read_text().splitlines()]
+    for row in ("| gnss_outage (V2) | 8.0–14.0 | V2 |", "| v2v_blackout (V2) | 20.0–24.0 | V2 |",
+                "| emulator_kill (all) | 45.0–45.0 | V0 |"):
+        assert row in report, row
     v0 = [d["t"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == "V0" and d["method"] == "SP"]
     assert max(v0) > 45.0  # the frozen agent resumed and went on to the end
     assert not any(d["first_stopped"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == "V2")
