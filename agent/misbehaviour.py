@@ -7,9 +7,10 @@ checks it against what it can observe independently:
 * **covariance plausibility** -- a horizontal standard deviation below ``min_sigma`` (5 cm; the
   best honest figure in the fleet runs is 0.12 m, a first stopped vehicle on its stop line) or a
   covariance that is not positive semi-definite is implausible: flagged at once;
-* **motion consistency** -- each beacon against the same stream's previous one: the displacement
-  must match the reported velocities within the two covariances plus an acceleration allowance
-  (a χ² test on 2 degrees of freedom);
+* **motion consistency** -- each beacon against the same stream's previous one: the velocity may
+  not change faster than ``max_accel`` (1 g, plus a velocity step at an update), and the
+  displacement must match the reported velocities within the two covariances plus an
+  acceleration allowance (a χ² test on 2 degrees of freedom);
 * **range consistency** -- each UWB range to the neighbour against the distance between the
   receiver's *own-sensor* estimate (independent of every neighbour) and the neighbour's claimed
   position, normalised by ``σ_uwb² + uᵀ(P_own + P_nb)u`` plus the NLOS bias allowance; and the
@@ -72,6 +73,10 @@ class MisbehaviourDetector:
     min_sigma: float = 0.05
     motion_chi2: float = 32.2
     accel: float = 6.0
+    #: velocity-change test: largest plausible horizontal acceleration [m/s²] and a velocity
+    #: estimate's step at an update [m/s]
+    max_accel: float = 10.0
+    velocity_step: float = 1.0
     range_k: float = 10.0
     rate_k: float = 5.0
     nlos_bias: float = 3.0
@@ -96,7 +101,8 @@ class MisbehaviourDetector:
     #: every flag raised: (time [s], vehicle, reason)
     events: list[tuple[float, str, str]] = field(default_factory=list)
     counters: dict[str, int] = field(default_factory=lambda: {
-        "implausible_covariance": 0, "motion_strikes": 0, "range_strikes": 0, "flags": 0, "cleared": 0})
+        "implausible_covariance": 0, "motion_strikes": 0, "acceleration_strikes": 0, "range_strikes": 0,
+        "flags": 0, "cleared": 0})
 
     # ----------------------------------------------------------------- checks
     def beacon(self, vehicle: str, stream: str, t: float, llh: np.ndarray, v_ned: np.ndarray,
@@ -124,6 +130,11 @@ class MisbehaviourDetector:
         if prev is None or not 0.0 < b.t - prev.t <= 1.0:
             return None
         dt = b.t - prev.t
+        if float(np.hypot(*(b.v[:2] - prev.v[:2]))) > self.max_accel * dt + self.velocity_step:
+            # a change of velocity no vehicle makes (an emergency stop is about 1 g)
+            self.counters["acceleration_strikes"] += 1
+            self._strike(vehicle, b.t, "acceleration")
+            return "acceleration"
         moved = earth.ned_offset(*b.llh, *prev.llh)[:2]
         predicted = 0.5 * (b.v[:2] + prev.v[:2]) * dt
         e = moved - predicted

@@ -70,6 +70,17 @@ def test_position_jumps_the_velocity_cannot_explain_are_flagged_after_three_stri
     assert det.counters["motion_strikes"] == 3
 
 
+def test_a_velocity_change_no_vehicle_can_make_is_a_strike() -> None:
+    det = MisbehaviourDetector(max_accel=10.0, velocity_step=1.0)
+    cov = np.diag([1.0, 1.0, 1.0])
+    det.beacon("V9", "CP", 0.0, at(0, 0), np.array([0.0, 10.0, 0.0]), cov)
+    # braking at 5 m/s² (a hard but ordinary stop): fine
+    assert det.beacon("V9", "CP", 0.2, at(0, 1.9), np.array([0.0, 9.0, 0.0]), cov) is None
+    # from 9 m/s to standing still within 0.2 s (45 m/s²): the eventual-stop signature
+    assert det.beacon("V9", "CP", 0.4, at(0, 2.8), np.zeros(3), cov) == "acceleration"
+    assert det.counters["acceleration_strikes"] == 1 and not det.flagged  # one strike alone flags nobody
+
+
 def test_a_claimed_position_off_the_measured_range_is_flagged() -> None:
     det = MisbehaviourDetector()
     cov = np.diag([0.25, 0.25, 1.0])
