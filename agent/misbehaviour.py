@@ -7,10 +7,10 @@ checks it against what it can observe independently:
 * **covariance plausibility** -- a horizontal standard deviation below ``min_sigma`` (5 cm; the
   best honest figure in the fleet runs is 0.12 m, a first stopped vehicle on its stop line) or a
   covariance that is not positive semi-definite is implausible: flagged at once;
-* **motion consistency** -- each beacon against the same stream's previous one: the velocity may
-  not change faster than ``max_accel`` (1 g, plus a velocity step at an update), and the
-  displacement must match the reported velocities within the two covariances plus an
-  acceleration allowance (a χ² test on 2 degrees of freedom);
+* **motion consistency** -- each beacon against the same stream's previous one: no sudden stop
+  (from above 3 m/s to standing, faster than ``max_accel`` = 1 g plus a velocity step at an
+  update), and the displacement must match the reported velocities within the two covariances
+  plus an acceleration allowance (a χ² test on 2 degrees of freedom);
 * **range consistency** -- each UWB range to the neighbour against the distance between the
   receiver's *own-sensor* estimate (independent of every neighbour) and the neighbour's claimed
   position, normalised by ``σ_uwb² + uᵀ(P_own + P_nb)u`` plus the NLOS bias allowance; and the
@@ -77,6 +77,9 @@ class MisbehaviourDetector:
     #: estimate's step at an update [m/s]
     max_accel: float = 10.0
     velocity_step: float = 1.0
+    #: the sudden-stop test applies from above ``stop_from`` to below ``stopped`` [m/s]
+    stop_from: float = 3.0
+    stopped: float = 0.3
     range_k: float = 10.0
     rate_k: float = 5.0
     nlos_bias: float = 3.0
@@ -130,8 +133,10 @@ class MisbehaviourDetector:
         if prev is None or not 0.0 < b.t - prev.t <= 1.0:
             return None
         dt = b.t - prev.t
-        if float(np.hypot(*(b.v[:2] - prev.v[:2]))) > self.max_accel * dt + self.velocity_step:
-            # a change of velocity no vehicle makes (an emergency stop is about 1 g)
+        v0, v1 = float(np.hypot(*prev.v[:2])), float(np.hypot(*b.v[:2]))
+        if v0 > self.stop_from and v1 < self.stopped and v0 - v1 > self.max_accel * dt + self.velocity_step:
+            # from driving to standing within one beacon period: a stop no vehicle makes (an
+            # emergency stop is about 1 g), the signature of a claim frozen in place
             self.counters["acceleration_strikes"] += 1
             self._strike(vehicle, b.t, "acceleration")
             return "acceleration"
