@@ -169,9 +169,7 @@ class Agent:
             e = tab.entries.get(other)
             if e is not None:
                 self._ghosts.setdefault(m, {})[other] = (e.llh, e.cov, t)
-            tab.remove(other)
-        for tr in self.trackers.values():
-            tr.forget(other)
+        self._drop(other)
         if other not in self.lost:
             self.lost[other] = (self.seq.t if self.seq.t is not None else math.nan, how)
             self.departures.append((self.lost[other][0], other, how))
@@ -294,6 +292,10 @@ class Agent:
     def _exclude(self, other: str) -> None:
         t, reason = self.misbehaviour.flagged[other]
         log.warning("%s: neighbour %s flagged at t=%.2f (%s); excluded", self.cfg.vehicle, other, t, reason)
+        self._drop(other)
+
+    def _drop(self, other: str) -> None:
+        """Forget neighbour ``other`` in every method's table and first-stopped tracker."""
         for tab in self.tables.values():
             tab.remove(other)
         for tr in self.trackers.values():

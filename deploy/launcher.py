@@ -44,7 +44,6 @@ from hw_emulation.events import event_times, window_bounds
 from hw_emulation.faults import PROCESS_FAULTS, load_faults
 from hw_emulation.scenario import load_scenario
 from hw_emulation.truth import build_truth
-from transport import keys
 from transport.security import create_fleet
 
 from .bound import posterior_crlb
@@ -119,9 +118,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
     rec_path = out / "recorded" / "messages.jsonl"
     rec_path.unlink(missing_ok=True)  # a new run starts a new recording
     rec = Recorder(rec_path)
-    est_sub = router.subscribe(keys.ROOT + "/estimate/**", 1_000_000)
-    diag_sub = router.subscribe(keys.ROOT + "/diag/**", 100_000)
-    tasks = [asyncio.create_task(rec.run(est_sub)), asyncio.create_task(rec.run(diag_sub))]
+    tasks = rec.start(router)
     restarts: list[dict] = []
     wall0 = time.monotonic()
     try:

@@ -191,7 +191,6 @@ async def router_main(zcfg: ZenohConfig) -> int:
 
 async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
     """Record every estimate and diagnostics message to ``path`` (appending) until SIGINT/SIGTERM."""
-    from transport import keys
     from transport.zenoh_bus import ZenohBus
 
     from .recorder import Recorder
@@ -200,8 +199,7 @@ async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
     _install_signals(stop)
     bus = ZenohBus(zcfg)
     rec = Recorder(path)
-    tasks = [asyncio.create_task(rec.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000))),
-             asyncio.create_task(rec.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000)))]
+    tasks = rec.start(bus)
     try:
         await stop.wait()
     finally:

@@ -78,5 +78,15 @@ class Recorder:
                 batch.append(sub.queue.get_nowait()[1])
             self.write(batch)
 
+    def start(self, bus) -> list:
+        """Subscribe on ``bus`` to every estimate and diagnostics message and record them; returns
+        the two recording tasks (cancel them, then :meth:`close`)."""
+        import asyncio
+
+        from transport import keys
+
+        return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000))),
+                asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000)))]
+
     def close(self) -> None:
         self._file.close()
