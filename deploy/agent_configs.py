@@ -13,6 +13,7 @@ from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineAppro
 from agent.runtime import AgentConfig
 from hw_emulation.geometry import offset_polyline
 from hw_emulation.scenario import Scenario
+from hw_emulation.sensors.imu import ImuModel
 
 from .sp_check import imu_noise_of
 
@@ -54,3 +55,40 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
     gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
     return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh,
                        nlos_bias_max=u.nlos_bias_max)
+
+
+#: ``[gnss]`` fields of an agent configuration -> :class:`FilterSettings` fields
+GNSS_FIELDS = {"multipath_sigma": "gnss_multipath_sigma", "multipath_tau": "gnss_multipath_tau",
+               "multipath_tau_static": "gnss_multipath_tau_static", "white_sigma": "gnss_white_sigma",
+               "gate": "gnss_gate"}
+
+
+def siteless_agent_config(vehicle: str, methods: tuple[str, ...] = METHODS, fusion: str = "split-ci",
+                          imu: ImuModel | None = None) -> AgentConfig:
+    """A vehicle without a site map: no stop lines (SL-SP and SL-CP then equal SP and CP).
+
+    The IMU model (default :class:`ImuModel`) sets the filter's noise and initial biases; GNSS
+    is taken at its reported σ as white noise (a real receiver's σ; no multipath states).
+    """
+    imu = imu or ImuModel()
+    settings = FilterSettings(imu_noise_of(imu), init_gyro_bias_sigma=imu.gyro_turn_on,
+                              init_accel_bias_sigma=imu.accel_turn_on, gnss_multipath_sigma=None,
+                              fusion=fusion)
+    return AgentConfig(vehicle, tuple(methods), settings, StopGapModel(1.5, 0.3, 1.75, 0.3, 2.5), {},
+                       (0.0, 0.0, 0.0))
+
+
+def with_imu(cfg: AgentConfig, imu: ImuModel) -> AgentConfig:
+    """``cfg`` with the filter's IMU noise and initial bias σ of ``imu``."""
+    s = dataclasses.replace(cfg.settings, noise=imu_noise_of(imu), init_gyro_bias_sigma=imu.gyro_turn_on,
+                            init_accel_bias_sigma=imu.accel_turn_on)
+    return dataclasses.replace(cfg, settings=s)
+
+
+def with_gnss(cfg: AgentConfig, fields: dict[str, float | None]) -> AgentConfig:
+    """``cfg`` with GNSS filter settings given by their ``[gnss]`` names (:data:`GNSS_FIELDS`);
+    a ``multipath_sigma`` of 0 means none (the reported σ is used as white noise)."""
+    kw = {GNSS_FIELDS[k]: v for k, v in fields.items()}
+    if kw.get("gnss_multipath_sigma") == 0:
+        kw["gnss_multipath_sigma"] = None
+    return dataclasses.replace(cfg, settings=dataclasses.replace(cfg.settings, **kw))

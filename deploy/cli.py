@@ -56,6 +56,18 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--imu-time-offset", type=float, default=-0.125, help="initial IMU time offset [s]")
     rp.add_argument("--out", type=Path, default=Path("runs/replay"), help="output directory")
     rp.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
+    pg = rp.add_argument_group("publishing onto the sensor topics (a live agent runs on the drive)")
+    pg.add_argument("--publish", action="store_true",
+                    help="publish the drive's IMU and GNSS (outages withheld) on VEHICLE's sensor topics over Zenoh, "
+                         "score the estimates the agent publishes back")
+    pg.add_argument("--vehicle", default="V0", help="vehicle id of the topics (default V0)")
+    pg.add_argument("--speed", type=float, default=1.0, help="real-time factor of the publication (default 1)")
+    pg.add_argument("--start", type=float, default=0.0, help="start this long after the first GNSS epoch [s]")
+    pg.add_argument("--duration", type=float, default=None, help="publish this long [s] (default: to the end)")
+    pg.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    pg.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    pg.add_argument("--wait-agent", type=float, default=30.0,
+                    help="wait this long for the vehicle's agent (liveliness) before publishing [s] (default 30)")
 
     ag = sub.add_parser("agent", help="run one vehicle agent (Zenoh)")
     ag.add_argument("--vehicle", help="vehicle id (overrides the config file)")
@@ -77,6 +89,20 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory (slcp keys create): mutual TLS and an ACL in which a vehicle publishes only under its own keys")
     ro.add_argument("--print-config", action="store_true", help="print the router's Zenoh configuration (JSON5) and exit")
+    se = sub.add_parser("sensors", help="publish a vehicle's real GNSS (NMEA/UBX) and IMU from serial ports or log files")
+    se.add_argument("--vehicle", required=True, help="vehicle id of the sensor topics")
+    se.add_argument("--gnss", default=None, metavar="nmea|ubx:PATH[@BAUD]",
+                    help="GNSS receiver: a serial device (e.g. nmea:/dev/ttyACM0@115200) or a log file")
+    se.add_argument("--imu", default=None, metavar="csv:PATH[@BAUD]", help="IMU text lines: a serial device or a log file")
+    se.add_argument("--imu-units", default="m/s2,rad/s", metavar="ACCEL,GYRO",
+                    help="units of the IMU lines: m/s2|g|mg and rad/s|deg/s|mrad/s (default m/s2,rad/s)")
+    se.add_argument("--imu-mount", default="0,0,0", metavar="ROLL,PITCH,YAW",
+                    help="sensor-to-body rotation [deg] (default 0,0,0: the IMU axes are forward, right, down)")
+    se.add_argument("--imu-time-offset", type=float, default=0.0, help="added to the IMU time stamps [s]")
+    se.add_argument("--uere", type=float, default=2.5, help="NMEA without GST: horizontal sigma = HDOP x UERE [m]")
+    se.add_argument("--speed", type=float, default=1.0, help="pacing of log files (real-time factor, default 1)")
+    se.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    se.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
     rc = sub.add_parser("record", help="record every estimate and diagnostics message (JSON lines, appending)")
     rc.add_argument("--out", type=Path, required=True, help="recording file (appended to; a restart continues it)")
     rc.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
@@ -196,6 +222,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         imu_time_offset=args.imu_time_offset,
         estimate_time_offset=not args.no_time_offset_estimation,
     )
+    if args.publish:
+        return _replay_publish(args, drive, cfg)
     res = run_replay(drive, cfg)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -226,6 +254,62 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
         print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
         print(f"  wrote {out}/trajectory.csv, metrics.json, error.png")
+    return 0
+
+
+def _replay_publish(args: argparse.Namespace, drive, cfg) -> int:
+    import asyncio
+
+    from transport.zenoh_bus import ZenohConfig
+
+    from .replay_publish import plan_drive, replay_publish_main
+
+    if not args.speed > 0:
+        raise ValueError(f"--speed must be > 0, got {args.speed}")
+    plan = plan_drive(drive, args.vehicle, cfg, args.start, args.duration)
+    z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
+    res = asyncio.run(replay_publish_main(plan, z, args.speed, args.wait_agent))
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(f"published {res['published']} messages ({res['imu_batches']} IMU batches of {res['imu_samples']} samples, "
+          f"{res['gnss_fixes']} fixes, {res['gnss_withheld']} withheld) on {args.vehicle}'s topics: "
+          f"{res['sensor_s']:.1f} s of sensor time in {res['wall_s']:.1f} s wall, at most {res['max_late_s'] * 1e3:.0f} ms late")
+    if not res["methods"]:
+        print("no estimate of the agent received (is `slcp agent` running for this vehicle?)")
+    fmt = lambda x: "   -  " if x is None else f"{x:6.2f}"  # noqa: E731
+    for m, r in res["methods"].items():
+        print(f"  {m:6s} {r['n_estimates']:6d} estimates, {r['epochs']:5d} epochs: horizontal RMS {fmt(r['h_rms_m'])} m, "
+              f"GNSS on {fmt(r['gnss_on_h_rms_m'])} m, outages {fmt(r['outage_h_rms_m'])} m (max {fmt(r['outage_h_max_m'])} m)")
+    return 0
+
+
+def _cmd_sensors(args: argparse.Namespace) -> int:
+    import asyncio
+    import math
+
+    from transport.zenoh_bus import ZenohConfig
+
+    from .sensors.driver import SourceSpec, sensors_main
+    from .sensors.imu import ImuAdapter, parse_units
+
+    try:
+        mount = tuple(math.radians(float(x)) for x in args.imu_mount.split(","))
+    except ValueError:
+        mount = ()
+    if len(mount) != 3 or not all(math.isfinite(x) for x in mount):
+        raise ValueError(f"--imu-mount {args.imu_mount!r}: expected ROLL,PITCH,YAW in degrees")
+    units = parse_units(args.imu_units)
+    if not (args.speed > 0 and args.uere > 0):
+        raise ValueError("--speed and --uere must be > 0")
+    gnss = SourceSpec.parse("gnss", args.gnss) if args.gnss else None
+    imu = SourceSpec.parse("imu", args.imu) if args.imu else None
+    if gnss is None and imu is None:
+        raise ValueError("nothing to read: give --gnss and/or --imu")
+    adapter = ImuAdapter(args.vehicle, mount, args.imu_time_offset)
+    z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
+    counters = asyncio.run(sensors_main(z, args.vehicle, gnss, imu, adapter, units, args.uere, args.speed))
+    print(json.dumps(counters))
     return 0
 
 
@@ -541,6 +625,8 @@ def main(argv: list[str] | None = None) -> int:
                 z = client_config(args.fleet, "emulator", tuple(args.connect))
             return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z, faults_path=args.faults,
                                              start_at=args.start_at))
+        if args.command == "sensors":
+            return _cmd_sensors(args)
         if args.command in ("router", "record"):
             return _cmd_infrastructure(args)
         if args.command == "run":

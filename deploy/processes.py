@@ -65,9 +65,10 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
 
 def load_agent_config(path: Path, vehicle: str | None):
     from agent.methods import FUSION_RULES, METHODS, MethodSpec
-    from hw_emulation.scenario import load_scenario
+    from hw_emulation.scenario import load_scenario, model_from_table
+    from hw_emulation.sensors.imu import ImuModel
 
-    from .agent_configs import agent_config
+    from .agent_configs import agent_config, siteless_agent_config, with_gnss, with_imu
 
     try:
         data = tomllib.loads(Path(path).read_text())
@@ -93,14 +94,21 @@ def load_agent_config(path: Path, vehicle: str | None):
     unknown = set(a) - {"vehicle", "scenario", "methods", "fusion"}
     if unknown:
         raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
-    unknown = set(data) - {"agent", "security", "zenoh"}
+    unknown = set(data) - {"agent", "imu", "gnss", "security", "zenoh"}
     if unknown:
-        raise ConfigError(f"{path}: [{sorted(unknown)[0]}]: unknown section (known: agent, security, zenoh)")
-    scn = load_scenario(a.get("scenario", "paper-1"))
+        raise ConfigError(f"{path}: [{sorted(unknown)[0]}]: unknown section "
+                          "(known: agent, imu, gnss, security, zenoh)")
     try:
-        cfg = agent_config(scn, vid, tuple(methods), fusion)
-    except ValueError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        if "scenario" in a:
+            cfg = agent_config(load_scenario(a["scenario"]), vid, tuple(methods), fusion)
+        else:
+            cfg = siteless_agent_config(vid, tuple(methods), fusion)
+        if "imu" in data:
+            cfg = with_imu(cfg, model_from_table(ImuModel, data["imu"], str(path), "imu"))
+        if "gnss" in data:
+            cfg = with_gnss(cfg, _gnss_table(data["gnss"], path))
+    except ValueError as exc:  # ScenarioError included
+        raise ConfigError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
     sec = {}
     if "security" in data:
         sec = security_config(data["security"], Path(path), vid)
@@ -120,6 +128,24 @@ def load_agent_config(path: Path, vehicle: str | None):
         except (OSError, ValueError) as exc:
             raise ConfigError(f"{path}: zenoh.tls: {exc}") from None
     return cfg, zenoh_config(z, str(path))
+
+
+def _gnss_table(d, path: Path) -> dict:
+    """The ``[gnss]`` section: the filter's GNSS error model (SI units)."""
+    from .agent_configs import GNSS_FIELDS
+
+    if not isinstance(d, dict):
+        raise ConfigError(f"{path}: [gnss]: must be a table")
+    out = {}
+    for k, v in d.items():
+        if k not in GNSS_FIELDS:
+            raise ConfigError(f"{path}: gnss.{k}: unknown field (known: {', '.join(sorted(GNSS_FIELDS))})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0 or v == float("inf"):
+            raise ConfigError(f"{path}: gnss.{k}: must be a finite number >= 0, got {v!r}")
+        if k.endswith("tau") and v <= 0:
+            raise ConfigError(f"{path}: gnss.{k}: must be > 0, got {v!r}")
+        out[k] = float(v)
+    return out
 
 
 def security_config(d: dict, path: Path, vehicle: str) -> dict:

@@ -28,6 +28,7 @@ from agent.nav.rotation import euler_to_dcm, euler_to_quat, quat_to_euler
 from agent.nav.state import NavState
 
 from .datasets.rtklib import RtklibDrive
+from .sensors.imu import imu_increments
 
 log = logging.getLogger(__name__)
 
@@ -126,19 +127,6 @@ TRAJECTORY_COLUMNS = (
     "time_gpst_s", "lat_deg", "lon_deg", "h_m", "vn_mps", "ve_mps", "vd_mps",
     "roll_deg", "pitch_deg", "yaw_deg", "sigma_n_m", "sigma_e_m", "sigma_d_m",
 )
-
-
-def imu_increments(t: np.ndarray, accel_s: np.ndarray, gyro_s: np.ndarray, c_sb: np.ndarray):
-    """Trapezoidal increments over each sample interval, rotated to the body frame.
-
-    Returns ``(dtheta, dvel, dt)`` with shapes (n-1, 3), (n-1, 3), (n-1,).
-    """
-    dt = np.diff(t)
-    w_b = gyro_s @ c_sb.T
-    f_b = accel_s @ c_sb.T
-    dtheta = 0.5 * (w_b[1:] + w_b[:-1]) * dt[:, None]
-    dvel = 0.5 * (f_b[1:] + f_b[:-1]) * dt[:, None]
-    return dtheta, dvel, dt
 
 
 def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> ReplayResult:

@@ -187,6 +187,14 @@ class _Ctx:
             raise self.fail(path, str(exc)) from exc
 
 
+def model_from_table(cls, d: dict, source: str, path: str, base=None):
+    """``base`` (default ``cls()``) with the fields of TOML table ``d`` replaced; unknown or
+    invalid fields raise :class:`ScenarioError` naming ``source`` and ``path``."""
+    if not isinstance(d, dict):
+        raise ScenarioError(f"{source}: {path}: must be a table")
+    return _Ctx(source).model(cls, d, path, base)
+
+
 def _check_keys(ctx: _Ctx, d: dict, allowed: set[str], path: str) -> None:
     for k in d:
         if k not in allowed:

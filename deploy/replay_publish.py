@@ -1,0 +1,227 @@
+"""Play a recorded drive onto a vehicle's sensor topics, so a live agent runs on real data.
+
+``slcp replay rtklib PATH --publish --vehicle V`` turns the drive into the messages a vehicle
+computer's sensor drivers would publish (:mod:`deploy.sensors`):
+
+* IMU: the samples through :class:`deploy.sensors.imu.ImuAdapter` with the drive's mounting
+  rotation and IMU time offset (:class:`deploy.replay.ReplayConfig`), 10 Hz batches;
+* GNSS: one :class:`GnssFix` per ``.pos`` epoch, height made ellipsoidal with the geoid
+  undulation, the file's σ (north, east, up -> down) and velocity σ (largest axis); fixes inside
+  the outage protocol's windows are withheld, as in ``slcp replay``. The 5 cm antenna lever arm
+  is left out.
+
+Messages are published in time order, paced on the wall clock at ``speed`` × real time
+(sensor time is GPST seconds, Unix-epoch convention). While publishing, the agent's estimates of
+that vehicle are collected and compared with the file's fixes at their epochs (the error of the
+estimate interpolated to the epoch): an honest check that the live agent works on real data.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pymap3d
+
+from transport import keys
+from transport.codec import CodecError, decode, encode
+from transport.messages import Estimate, GnssFix, Message
+
+from .datasets.rtklib import RtklibDrive
+from .replay import ReplayConfig
+from .sensors.imu import ImuAdapter
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PublishPlan:
+    """Messages of a drive in publication order, and the fixes to score against."""
+
+    vehicle: str
+    messages: list[tuple[float, str, Message]]  #: (time [s], key, message)
+    fix_t: np.ndarray  #: every epoch of the window [s]
+    fix_llh: np.ndarray  #: (n, 3) rad, rad, m ellipsoidal
+    withheld: np.ndarray  #: (n,) bool: inside an outage (not published)
+    counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def span(self) -> tuple[float, float]:
+        return self.messages[0][0], self.messages[-1][0]
+
+
+def plan_drive(drive: RtklibDrive, vehicle: str, cfg: ReplayConfig = ReplayConfig(), start: float = 0.0,
+               duration: float | None = None) -> PublishPlan:
+    """The messages of ``drive`` from ``start`` seconds after its first GNSS epoch, for
+    ``duration`` seconds (None: to the end). Outage windows follow ``cfg.outage`` on the whole
+    drive, so a window keeps the outages it has in ``slcp replay``."""
+    keys.check_name(vehicle)
+    imu, gnss = drive.imu, drive.gnss
+    g0 = float(gnss.t[0])
+    t_a = g0 + start
+    t_b = float(gnss.t[-1]) if duration is None else t_a + duration
+    if not t_b > t_a:
+        raise ValueError("nothing to publish: the window is empty")
+    adapter = ImuAdapter(vehicle, cfg.mount_rpy, cfg.imu_time_offset)
+    t_imu = imu.t + cfg.imu_time_offset
+    sel = np.flatnonzero((t_imu >= t_a - 1.0) & (t_imu <= t_b))  # one second of levelling before
+    msgs: list[tuple[float, str, Message]] = []
+    k_imu = keys.imu(vehicle)
+    for b in adapter.push_many(imu.t[sel], imu.accel[sel], imu.gyro[sel]):
+        msgs.append((float(b.t[-1]), k_imu, b))
+    last = adapter.flush()
+    if last is not None:
+        msgs.append((float(last.t[-1]), k_imu, last))
+    windows = cfg.outage.windows(g0, float(gnss.t[-1]))
+    gi = np.flatnonzero((gnss.t >= t_a) & (gnss.t <= t_b))
+    if len(gi) == 0:
+        raise ValueError("no GNSS epoch in the window")
+    llh = gnss.llh[gi].copy()
+    llh[:, 2] += cfg.geoid_undulation
+    withheld = np.array([any(a <= t < b for a, b in windows) for t in gnss.t[gi]], bool)
+    k_gnss = keys.gnss(vehicle)
+    for j, i in enumerate(gi):
+        if withheld[j]:
+            continue
+        sig = np.maximum(gnss.sd_neu[i], 0.01)
+        fix = GnssFix(vehicle, j, float(gnss.t[i]), llh[j], gnss.v_ned[i].copy(), sig,
+                      float(max(np.max(gnss.sd_v[i]), 0.01)), int(gnss.quality[i]))
+        msgs.append((fix.t, k_gnss, fix))
+    msgs.sort(key=lambda m: m[0])
+    counts = {"imu_batches": int(sum(m[1] == k_imu for m in msgs)), "imu_samples": int(len(sel)),
+              "gnss_fixes": int(len(gi) - withheld.sum()), "gnss_withheld": int(withheld.sum())}
+    return PublishPlan(vehicle, msgs, gnss.t[gi].copy(), llh, withheld, counts)
+
+
+async def publish_plan(bus, plan: PublishPlan, speed: float, stop: asyncio.Event | None = None) -> dict:
+    """Publish ``plan`` paced at ``speed`` × real time; returns publication figures."""
+    if not speed > 0:
+        raise ValueError("speed must be > 0")
+    loop = asyncio.get_running_loop()
+    t0 = plan.messages[0][0]
+    w0 = loop.time()
+    late = 0.0
+    n = 0
+    for t, key, msg in plan.messages:
+        if stop is not None and stop.is_set():
+            break
+        due = w0 + (t - t0) / speed
+        now = loop.time()
+        if due > now:
+            await asyncio.sleep(due - now)
+        else:
+            late = max(late, now - due)
+        await bus.publish(key, encode(msg))
+        n += 1
+    wall = loop.time() - w0
+    return {"published": n, "wall_s": wall, "sensor_s": plan.messages[n - 1][0] - t0 if n else 0.0,
+            "max_late_s": late}
+
+
+class EstimateCollector:
+    """Collects the estimates of one vehicle from the bus (``slcp/v1/estimate/<vehicle>/*``)."""
+
+    def __init__(self, bus, vehicle: str) -> None:
+        self.sub = bus.subscribe(f"{keys.ROOT}/estimate/{keys.check_name(vehicle)}/*", 65536)
+        self.by_method: dict[str, list[tuple[float, np.ndarray]]] = {}
+        self.bad = 0
+        self._task = asyncio.ensure_future(self._run())
+
+    async def _run(self) -> None:
+        async for _key, payload in self.sub:
+            try:
+                m = decode(payload)
+            except CodecError:
+                self.bad += 1
+                continue
+            if isinstance(m, Estimate):
+                self.by_method.setdefault(m.method, []).append((m.t, m.llh))
+
+    async def close(self) -> None:
+        self._task.cancel()
+        try:
+            await self._task
+        except asyncio.CancelledError:
+            pass
+
+
+def score_estimates(plan: PublishPlan, by_method: dict[str, list[tuple[float, np.ndarray]]]) -> dict:
+    """Horizontal error of each method's estimates against the file's fixes [m].
+
+    The estimate is interpolated linearly to each epoch inside its time span; per method:
+    ``n_estimates``, ``epochs`` scored, ``h_rms_m`` and ``h_max_m`` over all of them,
+    ``gnss_on_h_rms_m`` (epochs whose fix was published) and ``outage_h_rms_m`` /
+    ``outage_h_max_m`` (withheld epochs). The file's fixes (RTK) stand as truth.
+    """
+    out = {}
+    lat0, lon0, h0 = plan.fix_llh[0]
+    ref = np.column_stack(pymap3d.geodetic2ned(plan.fix_llh[:, 0], plan.fix_llh[:, 1], plan.fix_llh[:, 2],
+                                               lat0, lon0, h0, deg=False)[:2])
+    for method, rows in sorted(by_method.items()):
+        rows = sorted(rows, key=lambda r: r[0])
+        t = np.array([r[0] for r in rows])
+        llh = np.array([r[1] for r in rows])
+        ne = np.column_stack(pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], lat0, lon0, h0, deg=False)[:2])
+        inside = (plan.fix_t >= t[0]) & (plan.fix_t <= t[-1]) if len(t) > 1 else np.zeros(len(plan.fix_t), bool)
+        est = np.column_stack([np.interp(plan.fix_t[inside], t, ne[:, i]) for i in (0, 1)]) if inside.any() \
+            else np.zeros((0, 2))
+        err = np.hypot(*(est - ref[inside]).T) if len(est) else np.zeros(0)
+        wh = plan.withheld[inside]
+
+        def rms(x: np.ndarray) -> float | None:
+            return float(np.sqrt(np.mean(x * x))) if len(x) else None
+
+        out[method] = {"n_estimates": len(rows), "epochs": int(inside.sum()),
+                       "h_rms_m": rms(err), "h_max_m": float(err.max()) if len(err) else None,
+                       "gnss_on_h_rms_m": rms(err[~wh]), "outage_h_rms_m": rms(err[wh]),
+                       "outage_h_max_m": float(err[wh].max()) if wh.any() else None}
+    return out
+
+
+async def wait_for_agent(bus, vehicle: str, timeout: float) -> bool:
+    """Whether the agent of ``vehicle`` declared its liveliness token within ``timeout`` [s]."""
+    seen = asyncio.Event()
+
+    def on_alive(key: str, up: bool) -> None:
+        if up and key.rsplit("/", 1)[-1] == vehicle:
+            seen.set()
+
+    bus.watch_alive(keys.alive("agent", vehicle), on_alive)
+    try:
+        await asyncio.wait_for(seen.wait(), timeout)
+        return True
+    except asyncio.TimeoutError:
+        return False
+
+
+async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent: float,
+                              settle: float = 2.0) -> dict:
+    """Publish over Zenoh, collect the agent's estimates, and score them (see module doc)."""
+    from transport.zenoh_bus import ZenohBus
+
+    from .processes import _install_signals
+
+    stop = asyncio.Event()
+    _install_signals(stop)
+    bus = ZenohBus(zcfg)
+    try:
+        bus.declare_alive(keys.alive("sensors", plan.vehicle))
+        if wait_agent > 0:
+            if not await wait_for_agent(bus, plan.vehicle, wait_agent):
+                log.warning("no agent %s after %.0f s; publishing anyway", plan.vehicle, wait_agent)
+            await asyncio.sleep(0.5)  # let its subscriptions propagate
+        collector = EstimateCollector(bus, plan.vehicle)
+        wall0 = time.perf_counter()
+        stats = await publish_plan(bus, plan, speed, stop)
+        if not stop.is_set():
+            await asyncio.sleep(settle)  # the agent holds 0.25 s of IMU and publishes after it
+        await collector.close()
+        stats["wall_s"] = time.perf_counter() - wall0
+        return {"vehicle": plan.vehicle, "speed": speed, **plan.counts, **stats,
+                "estimate_codec_errors": collector.bad,
+                "methods": score_estimates(plan, collector.by_method)}
+    finally:
+        await bus.close()
