@@ -14,6 +14,8 @@ import time
 
 import pytest
 
+from conftest import free_port
+
 
 @pytest.mark.timeout(240)
 def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None:
@@ -101,8 +103,6 @@ def test_a_killed_recorder_keeps_what_it_wrote_and_a_restarted_one_continues(tmp
     Everything published well before the kill is on disk, the file is appended to (never
     rewritten), and the restarted recorder records what follows."""
     import asyncio
-    import socket
-
     import numpy as np
 
     from transport import keys
@@ -110,9 +110,7 @@ def test_a_killed_recorder_keeps_what_it_wrote_and_a_restarted_one_continues(tmp
     from transport.messages import Estimate
     from transport.zenoh_bus import ZenohBus, ZenohConfig
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     out = tmp_path / "messages.jsonl"
     cli = [sys.executable, "-m", "deploy.cli"]

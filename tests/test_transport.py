@@ -4,7 +4,6 @@ and two Zenoh peers on loopback."""
 from __future__ import annotations
 
 import asyncio
-import socket
 
 import msgpack
 import numpy as np
@@ -12,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import free_port
 from transport import keys
 from transport.bus import InMemoryNetwork
 from transport.codec import SCHEMA_VERSION, CodecError, decode, encode
@@ -133,18 +133,12 @@ def test_in_memory_bus_delivery_drops_and_liveliness() -> None:
     asyncio.run(main())
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.timeout(60)
 def test_two_zenoh_peers_on_loopback() -> None:
     from transport.zenoh_bus import ZenohBus, ZenohConfig
 
     async def main():
-        port = _free_port()
+        port = free_port()
         a = ZenohBus(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",)))
         b = ZenohBus(ZenohConfig(connect=(f"tcp/127.0.0.1:{port}",)))
         try:
