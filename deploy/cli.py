@@ -103,6 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--speed", type=float, default=1.0, help="pacing of log files (real-time factor, default 1)")
     se.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     se.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    se.add_argument("--fleet", type=Path, default=None,
+                    help="fleet directory: mutual TLS to the router as the vehicle (its .key/.crt)")
     rc = sub.add_parser("record", help="record every estimate and diagnostics message (JSON lines, appending)")
     rc.add_argument("--out", type=Path, required=True, help="recording file (appended to; a restart continues it)")
     rc.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
@@ -308,6 +310,10 @@ def _cmd_sensors(args: argparse.Namespace) -> int:
         raise ValueError("nothing to read: give --gnss and/or --imu")
     adapter = ImuAdapter(args.vehicle, mount, args.imu_time_offset)
     z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
+    if args.fleet:
+        from .zenoh_security import client_config
+
+        z = client_config(args.fleet, args.vehicle, tuple(args.connect))
     counters = asyncio.run(sensors_main(z, args.vehicle, gnss, imu, adapter, units, args.uere, args.speed))
     print(json.dumps(counters))
     return 0

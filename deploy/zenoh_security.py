@@ -7,8 +7,9 @@ identifies each connection by the certificate's common name (CN). The ACL (``def
 deny``) then allows:
 
 * a **vehicle** ``V`` (OU=vehicle) to publish only under its own keys: ``radio/tx/V``,
-  ``estimate/V/*``, ``diag/V``, ``sensor/V/*`` and ``uwb/V`` (its own sensor drivers); to declare
-  its liveliness token ``alive/agent/V`` only; to subscribe to its own inputs (``sensor/V/*``,
+  ``estimate/V/*``, ``diag/V``, ``diag/V.sensors``, ``sensor/V/*`` and ``uwb/V`` (its own sensor
+  drivers, ``slcp sensors``); to declare its liveliness tokens ``alive/agent/V`` and
+  ``alive/sensors/V`` only; to subscribe to its own inputs (``sensor/V/*``,
   ``uwb/V``, ``radio/rx/V``) and to liveliness under ``alive/**``; and to be sent only those;
 * **infrastructure** (OU=infrastructure: the emulator, the recorder) everything under ``slcp/v1``.
 
@@ -46,14 +47,15 @@ def tls_settings(fleet_dir: Path, identity: str, listen: bool = False, verify_na
 def _vehicle_rules(v: str) -> list[dict]:
     return [
         {"id": f"{v}-publish", "permission": "allow", "flows": ["ingress"], "messages": ["put", "delete"],
-         "key_exprs": [keys.radio_tx(v), f"{_R}/estimate/{v}/*", keys.diag(v), f"{_R}/sensor/{v}/*", keys.uwb(v)]},
+         "key_exprs": [keys.radio_tx(v), f"{_R}/estimate/{v}/*", keys.diag(v), keys.diag(f"{v}.sensors"),
+                       f"{_R}/sensor/{v}/*", keys.uwb(v)]},
         {"id": f"{v}-subscribe", "permission": "allow", "flows": ["ingress"],
          "messages": ["declare_subscriber"],
          "key_exprs": [f"{_R}/sensor/{v}/*", keys.uwb(v), keys.radio_rx(v)]},
         {"id": f"{v}-liveliness", "permission": "allow", "flows": ["ingress"],
          "messages": ["declare_liveliness_subscriber", "liveliness_query"], "key_exprs": [f"{_R}/alive/**"]},
         {"id": f"{v}-token", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
-         "key_exprs": [keys.alive("agent", v)]},
+         "key_exprs": [keys.alive("agent", v), keys.alive("sensors", v)]},
         {"id": f"{v}-deliver", "permission": "allow", "flows": ["egress"], "messages": ["put", "delete"],
          "key_exprs": [f"{_R}/sensor/{v}/*", keys.uwb(v), keys.radio_rx(v)]},
         {"id": f"{v}-learn", "permission": "allow", "flows": ["egress"],
