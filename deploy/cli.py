@@ -79,6 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
     em.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     em.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
     em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, see README)")
+    em.add_argument("--wait-agents", type=float, default=20.0,
+                    help="wait up to this long for every vehicle's agent before starting [s] (default 20)")
     em.add_argument("--start-at", type=float, default=None, metavar="T",
                     help="resume the scenario at sensor time T [s] (a restarted emulator)")
     em.add_argument("--fleet", type=Path, default=None,
@@ -155,6 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="rtklibexplorer drive for the replay factor (skipped if absent)")
     bn.add_argument("--quick", action="store_true", help="fewer repetitions")
     bn.add_argument("--json", action="store_true", help="print one JSON object")
+    bn.add_argument("--fleet", default=None, metavar="N,N,...",
+                    help="also run the fleet scaling benchmark with these agent counts (e.g. 10,25,50,75)")
+    bn.add_argument("--fleet-duration", type=float, default=40.0, help="scenario length of each fleet point [s] (default 40)")
+    bn.add_argument("--fleet-method", default="SL-CP", help="the one method each agent runs (default SL-CP)")
     rp2 = sub.add_parser("report", help="rebuild the report of a run (from its recording) or a study (from its seeds)")
     rp2.add_argument("run_dir", type=Path)
 
@@ -485,10 +491,31 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     import os
     import platform
 
+    from agent.methods import MethodSpec
+
     from .bench import micro_benchmarks, replay_factor
 
+    counts: list[int] = []
+    if args.fleet:
+        try:
+            counts = [int(x) for x in args.fleet.split(",")]
+        except ValueError:
+            counts = [0]
+        if not counts or min(counts) < 1:
+            raise ValueError(f"--fleet {args.fleet!r}: expected positive agent counts, e.g. 10,25,50,75")
+        if not args.fleet_duration > 5:
+            raise ValueError("--fleet-duration must be > 5 s")
+        MethodSpec.of(args.fleet_method)
     out = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
            "steps": micro_benchmarks(args.quick), "replay": replay_factor(args.drive)}
+    if counts:
+        from .fleet_bench import run_fleet_point
+
+        out["fleet"] = []
+        for n in counts:
+            if not args.json:
+                print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
+            out["fleet"].append(run_fleet_point(n, args.fleet_duration, args.fleet_method))
     if args.json:
         print(json.dumps(out))
         return 0
@@ -502,6 +529,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     else:
         print(f"  replay real-time factor     {r['realtime_factor']:10.1f}x  ({r['imu_span_s']:.1f} s of data in "
               f"{r['wall_s']:.2f} s; outage RMS {r['outage_h_rms_m']:.2f} m)")
+    for f in out.get("fleet", []):
+        if "error" in f:
+            print(f"  fleet {f['agents']:3d} agents: {f['error']}")
+            continue
+        lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
+        print(f"  fleet {f['agents']:3d} agents ({f['method']}): real-time factor {f['realtime_factor']:.2f}, "
+              f"lag p99 {f['lag_p99_s']:.2f} s, CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
+              f"(max {f['cpu_pct_per_agent']['max']:.1f}), emulator {f['emulator_cpu_pct']:.0f} %, "
+              f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "
+              f"beacon latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms, sensor drops {f['sensor_dropped']}")
     return 0
 
 
@@ -630,7 +667,7 @@ def main(argv: list[str] | None = None) -> int:
 
                 z = client_config(args.fleet, "emulator", tuple(args.connect))
             return asyncio.run(emulator_main(args.scenario, args.seed, args.speed, z, faults_path=args.faults,
-                                             start_at=args.start_at))
+                                             start_at=args.start_at, wait_for_agents=args.wait_agents))
         if args.command == "sensors":
             return _cmd_sensors(args)
         if args.command in ("router", "record"):

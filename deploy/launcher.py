@@ -65,12 +65,16 @@ def _slcp(*args: str) -> list[str]:
 
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = "split-ci",
-              sign: bool = True, faults: Path | None = None) -> dict:
+              sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
+              wait_agents: float = 20.0) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called every 2 s with a multi-line status text. With ``sign``
     a fleet CA and per-vehicle keys are created in ``out/keys`` and every beacon is signed and
-    verified."""
+    verified. ``monitor`` (optional, see :class:`deploy.fleet_bench.FleetMonitor`) gets
+    ``attach(bus, procs)`` once every process is started and ``sample(recorder)`` every 0.2 s.
+    Without ``evaluate`` only the process statistics are returned (no truth, no metrics files).
+    The emulator waits up to ``wait_agents`` seconds for every agent's liveliness."""
     scn = load_scenario(scenario)
     schedule = load_faults(faults, {v.id for v in scn.vehicles}) if faults is not None else []
     out = Path(out)
@@ -94,8 +98,10 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
         configs[vid] = p
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
-                                   faults=schedule))
+                                   faults=schedule, monitor=monitor, wait_agents=wait_agents))
     wall = time.monotonic() - wall0
+    if not evaluate:
+        return {"wall_s": wall, "processes": stats}
     truth = build_truth(scn)
     metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods, schedule)
     metrics["wall_s"] = wall
@@ -108,7 +114,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
 
 
 async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Path, progress,
-                     max_restarts: int = 3, faults: list | None = None) -> dict:
+                     max_restarts: int = 3, faults: list | None = None, monitor=None,
+                     wait_agents: float = 20.0) -> dict:
     from transport.zenoh_bus import ZenohBus, ZenohConfig
 
     router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,)))
@@ -128,7 +135,8 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
             _spawn(procs, f"agent-{vid}", _slcp("-v", "agent", "--vehicle", vid, "--config", str(configs[vid])), lf)
         lf = open(out / "logs" / "emulator.log", "w")
         logs.append(lf)
-        emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint]
+        emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint,
+                    "--wait-agents", f"{wait_agents:g}"]
         if faults:
             emu_args += ["--faults", str(out / "config" / "faults.toml")]
         pending = sorted((f for f in faults or [] if f.kind in PROCESS_FAULTS), key=lambda f: f.start)
@@ -136,6 +144,8 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         if speed:
             emu_args += ["--speed", str(speed)]
         emu = _spawn(procs, "emulator", _slcp(*emu_args), lf)
+        if monitor is not None:
+            monitor.attach(router, procs)
         last = 0.0
         prev_diag: dict = {}
         while True:
@@ -154,6 +164,8 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 restarts.append({"process": "emulator", "exit_code": rc, "at_s": now - wall0, "_t": now,
                                  "rejoined_after_s": None, "resumed_at_t_s": t_resume})
             await asyncio.sleep(0.2)
+            if monitor is not None:
+                monitor.sample(rec)
             # process faults, at the fleet's sensor time (the newest estimate recorded)
             now_s = max(rec.latest_t.values(), default=0.0)
             while pending and pending[0].start <= now_s:

@@ -57,6 +57,10 @@ class Bus(Protocol):
 
     def declare_alive(self, key: str) -> None: ...
 
+    def tap(self, expr: str, callback) -> None:
+        """``callback(key, payload)`` at arrival, on the transport's own thread (for measurements:
+        it must be quick and thread-safe)."""
+
     def watch_alive(self, expr: str, callback) -> None: ...
 
     async def close(self) -> None: ...
@@ -84,10 +88,14 @@ class InMemoryBus:
         self.subs: list[Subscription] = []
         self.tokens: list[str] = []
         self.published = defaultdict(int)
+        self.taps: list[tuple[str, object]] = []
 
     async def publish(self, key: str, payload: bytes) -> None:
         self.published[key] += 1
         for bus in self.network.buses:
+            for expr, cb in bus.taps:
+                if matches(expr, key):
+                    cb(key, bytes(payload))
             for sub in bus.subs:
                 if matches(sub.expr, key):
                     sub.offer(key, bytes(payload))
@@ -96,6 +104,9 @@ class InMemoryBus:
         sub = Subscription(expr, maxsize, asyncio.get_running_loop())
         self.subs.append(sub)
         return sub
+
+    def tap(self, expr: str, callback) -> None:
+        self.taps.append((expr, callback))
 
     def declare_alive(self, key: str) -> None:
         self.tokens.append(key)

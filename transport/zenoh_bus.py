@@ -93,6 +93,14 @@ class ZenohBus:
         self._subs.append(sub)
         return sub
 
+    def tap(self, expr: str, callback) -> None:
+        """``callback(key, payload)`` in Zenoh's thread at arrival (quick and thread-safe only)."""
+
+        def on_sample(sample) -> None:
+            callback(str(sample.key_expr), sample.payload.to_bytes())
+
+        self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
+
     def declare_alive(self, key: str) -> None:
         self._tokens.append(self.session.liveliness().declare_token(key))
 

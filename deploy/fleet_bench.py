@@ -1,0 +1,193 @@
+"""Fleet scaling benchmark (``slcp bench --fleet N,...``): N agent processes on this machine.
+
+For each N, a grid scenario (:mod:`hw_emulation.grid`: IMU 100 Hz, GNSS 5 Hz, UWB 10 Hz to the
+at most 7 other vehicles of an intersection, beacons 5 Hz) is run by the launcher at speed 1×
+(the emulator paces on the wall clock), with signed beacons and one method per agent. Measured:
+
+* ``realtime_factor``: sensor time advanced by the fleet's median agent (its newest estimate)
+  per second of wall time, over the steady part (once every agent publishes); below 1 the
+  agents do not keep up;
+* ``lag_p99_s``: how far the slowest agent's newest estimate trails the emulator's clock at the
+  end (sensor time) — it grows when the fleet falls behind;
+* ``cpu_pct_per_agent`` (mean, max) and ``emulator_cpu_pct``: CPU time over the steady part
+  per wall time (/proc), 100 % = one core; ``machine_cpu_pct``: all processes of the run;
+* ``rss_mb_per_agent`` (mean, max of each agent's peak resident set, /proc ``VmHWM``);
+* ``beacon_latency_ms`` p50/p99: from a beacon's publication by its sender to its delivery to
+  each receiver by the emulated radio (whose own emulated latency is 0 in this scenario), both
+  seen by a tap of the launcher's Zenoh router at arrival;
+* ``sensor_dropped``: sensor messages lost in the agents' queues or dropped as too late by
+  their sequencers (``queue_dropped_imu|gnss|uwb`` + ``seq_late_dropped``), summed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hw_emulation.grid import grid_scenario_toml
+from transport import keys
+
+log = logging.getLogger(__name__)
+
+_TICK = os.sysconf("SC_CLK_TCK")
+
+
+def _proc_cpu_s(pid: int) -> float | None:
+    """User + system CPU time of a process [s] (None once it is gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / _TICK
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _proc_peak_rss_mb(pid: int) -> float | None:
+    """Peak resident set size (VmHWM) [MB]."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+@dataclasses.dataclass
+class FleetMonitor:
+    """Samples a running fleet (see :func:`deploy.launcher.run_fleet`'s ``monitor``)."""
+
+    vehicles: list[str]
+
+    def __post_init__(self) -> None:
+        self.procs: dict = {}
+        self._lock = threading.Lock()
+        self._tx: dict[int, float] = {}  # hash of a beacon payload -> arrival time (monotonic)
+        self._rx: list[tuple[float, int]] = []
+        self.latencies: list[float] = []
+        self.unmatched = 0
+        self.steady: tuple[float, dict, float] | None = None  # (wall, cpu per process, median t)
+        self.last: tuple[float, dict, float] | None = None
+        self.emulator_t0: float | None = None
+        self.lag_end: list[float] = []
+        self.rss: dict[str, float] = {}
+        self._next = 0.0
+
+    def attach(self, bus, procs: dict) -> None:
+        self.procs = procs
+        bus.tap(f"{keys.ROOT}/radio/tx/*", self._on_tx)
+        bus.tap(f"{keys.ROOT}/radio/rx/*", self._on_rx)
+
+    def _on_tx(self, key: str, payload: bytes) -> None:  # Zenoh thread
+        now = time.monotonic()
+        with self._lock:
+            self._tx[hash(payload)] = now
+
+    def _on_rx(self, key: str, payload: bytes) -> None:  # Zenoh thread
+        now = time.monotonic()
+        with self._lock:
+            self._rx.append((now, hash(payload)))
+
+    def _match(self) -> None:
+        with self._lock:
+            rx, self._rx = self._rx, []
+            for t_rx, h in rx:
+                t_tx = self._tx.get(h)
+                if t_tx is None:
+                    self.unmatched += 1
+                else:
+                    self.latencies.append(t_rx - t_tx)
+            cutoff = time.monotonic() - 10.0
+            if len(self._tx) > 200_000:
+                self._tx = {h: t for h, t in self._tx.items() if t > cutoff}
+
+    def _cpu(self) -> dict[str, float]:
+        return {n: c for n, p in self.procs.items() if (c := _proc_cpu_s(p.pid)) is not None}
+
+    def sample(self, rec) -> None:
+        """Called by the launcher every 0.2 s with its recorder."""
+        self.rec = rec
+        now = time.monotonic()
+        if now < self._next:
+            return
+        self._next = now + 1.0
+        self._match()
+        for n, p in self.procs.items():
+            r = _proc_peak_rss_mb(p.pid)
+            if r is not None:
+                self.rss[n] = max(self.rss.get(n, 0.0), r)
+        ts = [rec.latest_t[v] for v in self.vehicles if v in rec.latest_t]
+        if len(ts) < len(self.vehicles):
+            return  # not every agent publishes yet
+        point = (now, self._cpu(), float(np.median(ts)))
+        if self.steady is None:
+            self.steady = point
+            self.emulator_t0 = now - point[2]  # the emulator's clock at 1x: sensor t at wall now
+        self.last = point
+        self.lag_end = [(now - self.emulator_t0) - t for t in ts]
+
+    def result(self) -> dict:
+        self._match()
+        rec = getattr(self, "rec", None)
+        out: dict = {"agents": len(self.vehicles)}
+        if rec is None or self.steady is None or self.last is None or self.last[0] - self.steady[0] < 2.0:
+            out["error"] = "the fleet never ran with every agent publishing for 2 s"
+            return out
+        (w0, c0, t0), (w1, c1, t1) = self.steady, self.last
+        wall = w1 - w0
+        pct = {n: 100.0 * (c1[n] - c0[n]) / wall for n in c1 if n in c0}
+        agent_pct = [v for n, v in pct.items() if n.startswith("agent-")]
+        agent_rss = [v for n, v in self.rss.items() if n.startswith("agent-")]
+        lat = np.array(self.latencies) * 1e3
+        dropped: dict[str, int] = {}
+        for v in self.vehicles:
+            _, c, _ = rec.diag.get(v, (None, {}, {}))
+            for k in ("queue_dropped_imu", "queue_dropped_gnss", "queue_dropped_uwb", "queue_dropped_beacon",
+                      "seq_late_dropped"):
+                dropped[k] = dropped.get(k, 0) + int(c.get(k, 0))
+        out.update({
+            "steady_wall_s": wall,
+            "realtime_factor": (t1 - t0) / wall,
+            "lag_p99_s": float(np.percentile(self.lag_end, 99)) if self.lag_end else None,
+            "cpu_pct_per_agent": {"mean": float(np.mean(agent_pct)), "max": float(np.max(agent_pct))} if agent_pct else None,
+            "emulator_cpu_pct": pct.get("emulator"),
+            "machine_cpu_pct": float(sum(pct.values())),
+            "rss_mb_per_agent": {"mean": float(np.mean(agent_rss)), "max": float(np.max(agent_rss))} if agent_rss else None,
+            "emulator_rss_mb": self.rss.get("emulator"),
+            "beacon_latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
+                                   "n": int(len(lat))} if len(lat) else None),
+            "beacons_unmatched": self.unmatched,
+            "sensor_dropped": int(sum(v for k, v in dropped.items() if k != "queue_dropped_beacon")),
+            "dropped_by_kind": dropped,
+        })
+        return out
+
+
+def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign: bool = True,
+                    out: Path | None = None) -> dict:
+    """One benchmark point: ``n`` agents on the grid at 1×; returns :meth:`FleetMonitor.result`."""
+    from .launcher import run_fleet
+
+    with tempfile.TemporaryDirectory(prefix=f"slcp-bench-{n}-") as tmp:
+        base = Path(out) if out is not None else Path(tmp)
+        base.mkdir(parents=True, exist_ok=True)
+        scn = base / f"grid-{n}.toml"
+        scn.write_text(grid_scenario_toml(n, duration))
+        mon = FleetMonitor([f"G{i}" for i in range(n)])
+        wall0 = time.monotonic()
+        stats = run_fleet(str(scn), methods=(method,), speed=1.0, seed=0, out=base / "run", sign=sign,
+                          monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n))
+        res = mon.result()
+        res["method"] = method
+        res["duration_s"] = duration
+        res["total_wall_s"] = time.monotonic() - wall0
+        res["restarts"] = len(stats["processes"].get("restarts", []))
+        return res
