@@ -9,13 +9,19 @@ import numpy as np
 
 from agent.first_stopped import ApproachLane
 from agent.methods import METHODS, FilterSettings
+from agent.nav.error_model import ImuNoise
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
 from agent.runtime import AgentConfig
 from hw_emulation.geometry import offset_polyline
 from hw_emulation.scenario import Scenario
 from hw_emulation.sensors.imu import ImuModel
 
-from .sp_check import imu_noise_of
+
+
+def imu_noise_of(model: ImuModel) -> ImuNoise:
+    """Filter IMU model matching an emulated IMU (in-run biases as Gauss-Markov)."""
+    return ImuNoise(arw=model.arw, vrw=model.vrw, gyro_bias_sigma=model.gyro_in_run, gyro_bias_tau=model.bias_tau,
+                    accel_bias_sigma=model.accel_in_run, accel_bias_tau=model.bias_tau)
 
 
 def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:

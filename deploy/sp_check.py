@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.nav import earth
-from agent.nav.error_model import ImuNoise
 from agent.nav.ins_filter import InsFilter
 from agent.nav.measurements.gnss import gnss_position, gnss_velocity
 from agent.nav.rotation import euler_to_quat
@@ -24,13 +23,9 @@ from hw_emulation.events import window_bounds
 from hw_emulation.sensors.imu import ImuModel
 from hw_emulation.truth import ScenarioTruth, VehicleTruth
 
+from .agent_configs import imu_noise_of
+
 EVAL_STEP = 10  #: evaluate every 10th IMU sample (10 Hz at 100 Hz)
-
-
-def imu_noise_of(model: ImuModel) -> ImuNoise:
-    """Filter IMU model matching an emulated IMU (in-run biases as Gauss-Markov)."""
-    return ImuNoise(arw=model.arw, vrw=model.vrw, gyro_bias_sigma=model.gyro_in_run, gyro_bias_tau=model.bias_tau,
-                    accel_bias_sigma=model.accel_in_run, accel_bias_tau=model.bias_tau)
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import CubicSpline, make_smoothing_spline
 
 
 def polyline_length(points: np.ndarray) -> float:
@@ -74,6 +73,9 @@ class Path:
         d = np.diff(xy, axis=0)
         hd = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
         mid = 0.5 * (ss[1:] + ss[:-1])
+        # deferred: an agent loads its site map from this module and needs no splines
+        from scipy.interpolate import CubicSpline, make_smoothing_spline
+
         if np.ptp(hd) < 1e-12:
             self._heading = CubicSpline(mid[[0, -1]], hd[[0, -1]], extrapolate=True)
         else:

@@ -158,6 +158,10 @@ class EmulatorService:
         while True:
             _, payload = await sub.get()
             self._radio_send(payload)
+            # deliver at once what is due: beacons arrive after the radio's clock passed their
+            # time (agents trail it by their IMU hold), so waiting for the next sensor event
+            # would add up to a batch period of latency
+            await self._radio_deliver()
 
     async def _watch_agents(self) -> None:
         sub = self._subs[1]

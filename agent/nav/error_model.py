@@ -12,7 +12,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
 
 from . import earth
 from .state import ATT, BA, BG, N_STATES, VEL, NavState
@@ -180,6 +179,8 @@ def discretize_density(
         qd += gqg
         qd *= dt
     elif method == "van_loan":
+        from scipy.linalg import expm  # deferred: the series is the run-time method
+
         m = np.zeros((2 * n, 2 * n))
         m[:n, :n] = -F
         m[:n, n:] = gqg

@@ -8,6 +8,8 @@ state (closed loop).
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -54,12 +56,44 @@ class UpdateResult:
     skipped: bool = False  #: not applied because its expected gain was too small (node selection)
 
 
+def chi2_survival(x: float, dof: int) -> float:
+    """``P(chi2_dof > x)`` for an integer ``dof`` >= 1, in closed form (Abramowitz & Stegun
+    26.4.4-5): with ``m = dof // 2``, ``exp(-x/2) Σ_{i<m} (x/2)^i / i!`` for even ``dof``, and
+    ``erfc(sqrt(x/2)) + sqrt(2x/π) exp(-x/2) Σ_{i<m} x^i / (3·5···(2i+1))`` for odd ``dof``."""
+    if x <= 0.0:
+        return 1.0
+    e = math.exp(-0.5 * x)
+    if dof % 2 == 0:
+        term, total = 1.0, 1.0
+        for i in range(1, dof // 2):
+            term *= 0.5 * x / i
+            total += term
+        return e * total
+    term, total = 1.0, 0.0
+    for i in range(dof // 2):
+        total += term
+        term *= x / (2 * i + 3)
+    return math.erfc(math.sqrt(0.5 * x)) + math.sqrt(2.0 * x / math.pi) * e * total
+
+
 @lru_cache(maxsize=256)
 def chi2_gate(dof: int, probability: float) -> float:
-    """Chi-square quantile ``P(chi2_dof <= gate) = probability``."""
-    from scipy.stats import chi2  # deferred: importing scipy.stats costs ~1 s at start-up
-
-    return float(chi2.ppf(probability, dof))
+    """Chi-square quantile ``P(chi2_dof <= gate) = probability`` (bisection on
+    :func:`chi2_survival` to 1e-12 relative; agrees with ``scipy.stats.chi2.ppf``, which an agent
+    does not import: ``scipy.stats`` alone would add about 50 MB to its resident memory)."""
+    if not (isinstance(dof, int) and dof >= 1) or not 0.0 < probability < 1.0:
+        raise ValueError(f"chi2_gate needs an integer dof >= 1 and 0 < probability < 1, got {dof}, {probability}")
+    tail = 1.0 - probability
+    lo, hi = 0.0, max(1.0, float(dof))
+    while chi2_survival(hi, dof) > tail:
+        lo, hi = hi, 2.0 * hi
+    while hi - lo > 1e-12 * hi:
+        mid = 0.5 * (lo + hi)
+        if chi2_survival(mid, dof) > tail:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 def stack(measurements: list[Measurement], name: str = "stacked") -> Measurement:

@@ -2,8 +2,10 @@
 
 Quaternions are scalar-first ``[w, x, y, z]`` and represent the rotation from the body frame
 (FRD) to the navigation frame (NED): ``v_n = C_bn @ v_b``. Euler angles are roll, pitch, yaw
-(z-y-x intrinsic, aerospace convention) in radians. The hot-path helpers are hand-written for
-speed on 3-vectors; conversions at the edges use :class:`scipy.spatial.transform.Rotation`.
+(z-y-x intrinsic, aerospace convention) in radians. Everything here is closed form on plain
+floats: fast on 3-vectors, and it keeps an agent process from importing ``scipy.spatial``
+(about 30 MB of resident memory). The tests check each conversion against
+:class:`scipy.spatial.transform.Rotation`.
 """
 
 from __future__ import annotations
@@ -11,7 +13,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -64,20 +65,49 @@ def quat_normalize(q: np.ndarray) -> np.ndarray:
 
 
 def euler_to_dcm(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Body-to-NED DCM from roll, pitch, yaw [rad] (z-y-x), shape (3, 3)."""
-    return Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
+    """Body-to-NED DCM from roll, pitch, yaw [rad] (z-y-x), shape (3, 3) (Groves eq. 2.22, transposed)."""
+    sr, cr = math.sin(roll), math.cos(roll)
+    sp, cp = math.sin(pitch), math.cos(pitch)
+    sy, cy = math.sin(yaw), math.cos(yaw)
+    return np.array([
+        [cp * cy, -cr * sy + sr * sp * cy, sr * sy + cr * sp * cy],
+        [cp * sy, cr * cy + sr * sp * sy, -sr * cy + cr * sp * sy],
+        [-sp, sr * cp, cr * cp],
+    ])
 
 
 def euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Body-to-NED scalar-first quaternion from roll, pitch, yaw [rad]."""
-    x, y, z, w = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()
-    return quat_normalize(np.array([w, x, y, z]))
+    """Body-to-NED scalar-first quaternion from roll, pitch, yaw [rad] (Groves eq. 2.39)."""
+    sr, cr = math.sin(0.5 * roll), math.cos(0.5 * roll)
+    sp, cp = math.sin(0.5 * pitch), math.cos(0.5 * pitch)
+    sy, cy = math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+    return quat_normalize(np.array([
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ]))
 
 
 def dcm_to_quat(c: np.ndarray) -> np.ndarray:
-    """Scalar-first unit quaternion of a DCM."""
-    x, y, z, w = Rotation.from_matrix(c).as_quat()
-    return quat_normalize(np.array([w, x, y, z]))
+    """Scalar-first unit quaternion of a DCM (Shepperd's method: the largest of the four
+    candidates is taken as the pivot, so it is accurate for every rotation)."""
+    c = np.asarray(c, float)
+    tr = c[0, 0] + c[1, 1] + c[2, 2]
+    k = int(np.argmax([tr, c[0, 0], c[1, 1], c[2, 2]]))
+    if k == 0:
+        w = 0.5 * math.sqrt(max(1.0 + tr, 0.0))
+        q = [w, (c[2, 1] - c[1, 2]) / (4 * w), (c[0, 2] - c[2, 0]) / (4 * w), (c[1, 0] - c[0, 1]) / (4 * w)]
+    elif k == 1:
+        x = 0.5 * math.sqrt(max(1.0 + c[0, 0] - c[1, 1] - c[2, 2], 0.0))
+        q = [(c[2, 1] - c[1, 2]) / (4 * x), x, (c[0, 1] + c[1, 0]) / (4 * x), (c[0, 2] + c[2, 0]) / (4 * x)]
+    elif k == 2:
+        y = 0.5 * math.sqrt(max(1.0 - c[0, 0] + c[1, 1] - c[2, 2], 0.0))
+        q = [(c[0, 2] - c[2, 0]) / (4 * y), (c[0, 1] + c[1, 0]) / (4 * y), y, (c[1, 2] + c[2, 1]) / (4 * y)]
+    else:
+        z = 0.5 * math.sqrt(max(1.0 - c[0, 0] - c[1, 1] + c[2, 2], 0.0))
+        q = [(c[1, 0] - c[0, 1]) / (4 * z), (c[0, 2] + c[2, 0]) / (4 * z), (c[1, 2] + c[2, 1]) / (4 * z), z]
+    return quat_normalize(np.array(q))
 
 
 def quat_to_euler(q: np.ndarray) -> np.ndarray:

@@ -19,7 +19,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from . import earth
 from .rotation import quat_mul, quat_normalize, quat_to_dcm, rotvec_to_quat
@@ -124,6 +123,8 @@ def state_error(est: NavState, truth: NavState) -> np.ndarray:
     dx[8] = -(est.h - truth.h)
     dx[VEL] = est.v - truth.v
     # C_est C_true^T = exp(-[phi×])
+    from scipy.spatial.transform import Rotation  # deferred: evaluation only, keeps agents small
+
     c = est.dcm @ truth.dcm.T
     dx[ATT] = -Rotation.from_matrix(c).as_rotvec()
     dx[BG] = est.bg - truth.bg

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.signal import lfilter
 
 
 def gauss_markov(n: int, dt: float, sigma: float, tau: float, rng: np.random.Generator,
@@ -24,6 +23,8 @@ def gauss_markov(n: int, dt: float, sigma: float, tau: float, rng: np.random.Gen
     w = rng.normal(0.0, sigma * math.sqrt(1.0 - phi * phi), (n, dims))
     w[0] = x0
     # x[k] = phi x[k-1] + w[k], x[0] = w[0]
+    from scipy.signal import lfilter  # deferred: agents import the sensor models' parameters only
+
     return lfilter([1.0], [1.0, -phi], w, axis=0)
 
 
