@@ -1,0 +1,75 @@
+"""The fleet benchmark's parts: the grid scenario and the monitor's bookkeeping (the benchmark
+itself prints figures and is not a test)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+
+import numpy as np
+import pytest
+
+from deploy.fleet_bench import FleetMonitor, _proc_cpu_s, _proc_peak_rss_mb
+from hw_emulation.grid import grid_scenario_toml
+from hw_emulation.scenario import load_scenario
+from transport import keys
+from transport.bus import InMemoryNetwork
+
+
+def test_the_grid_has_the_vehicles_and_at_most_seven_neighbours_each(tmp_path) -> None:
+    p = tmp_path / "grid.toml"
+    p.write_text(grid_scenario_toml(19, duration=20.0))
+    scn = load_scenario(p)
+    assert len(scn.vehicles) == 19 and scn.duration == 20.0
+    assert scn.radio.latency_max == 0.0 and scn.radio.stale_prob == 0.0
+    from hw_emulation.truth import build_truth
+
+    truth = build_truth(scn)
+    ids = sorted(truth.vehicles)
+    import pymap3d
+
+    llh = np.stack([truth.vehicles[v].truth.llh for v in ids])  # (vehicles, time, 3)
+    ne = np.stack(pymap3d.geodetic2ned(llh[..., 0], llh[..., 1], llh[..., 2], *llh[0, 0], deg=False)[:2], axis=-1)
+    d = np.linalg.norm(ne[:, None] - ne[None, :], axis=-1)  # (v, v, time)
+    in_range = (d < max(scn.radio.max_range, scn.uwb.max_range)).any(axis=-1)
+    np.fill_diagonal(in_range, False)
+    assert in_range.sum(axis=1).max() <= 7
+    for bad in ((0,), (10, 0.0), (10, 20.0, 9)):
+        with pytest.raises(ValueError):
+            grid_scenario_toml(*bad)
+
+
+def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None:
+    class Rec:
+        latest_t = {"G0": 1.0, "G1": 1.0}
+        diag = {"G0": (0.0, {"seq_late_dropped": 3, "queue_dropped_imu": 1}, {}), "G1": (0.0, {}, {})}
+
+    class Proc:
+        pid = os.getpid()
+
+    async def main():
+        net = InMemoryNetwork()
+        bus = net.bus()
+        mon = FleetMonitor(["G0", "G1"])
+        mon.attach(bus, {"agent-G0": Proc()})
+        await bus.publish(keys.radio_tx("G0"), b"beacon-1")
+        await asyncio.sleep(0.02)
+        await bus.publish(keys.radio_rx("G1"), b"beacon-1")
+        await bus.publish(keys.radio_rx("G1"), b"never-sent")
+        mon.sample(Rec())
+        for _ in range(3):
+            sum(i * i for i in range(200_000))  # some CPU time to measure
+            mon._next = 0.0
+            Rec.latest_t = {v: t + 1.0 for v, t in Rec.latest_t.items()}
+            time.sleep(0.75)
+            mon.sample(Rec())
+        return mon.result()
+
+    res = asyncio.run(main())
+    assert res["beacon_latency_ms"]["n"] == 1 and 15 <= res["beacon_latency_ms"]["p50"] < 500
+    assert res["beacons_unmatched"] == 1
+    assert res["sensor_dropped"] == 4
+    assert 0.5 < res["realtime_factor"] < 2.0
+    assert res["rss_mb_per_agent"]["max"] > 10 and res["cpu_pct_per_agent"]["max"] > 0
+    assert _proc_cpu_s(2**22 + 12345) is None and _proc_peak_rss_mb(2**22 + 12345) is None
