@@ -48,10 +48,6 @@ class PublishPlan:
     withheld: np.ndarray  #: (n,) bool: inside an outage (not published)
     counts: dict[str, int] = field(default_factory=dict)
 
-    @property
-    def span(self) -> tuple[float, float]:
-        return self.messages[0][0], self.messages[-1][0]
-
 
 def plan_drive(drive: RtklibDrive, vehicle: str, cfg: ReplayConfig = ReplayConfig(), start: float = 0.0,
                duration: float | None = None) -> PublishPlan:
