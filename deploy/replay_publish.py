@@ -144,35 +144,46 @@ class EstimateCollector:
             pass
 
 
+def errors_at_epochs(fix_t: np.ndarray, fix_llh: np.ndarray, est_t: np.ndarray,
+                     est_llh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal error [m] of estimates against reference fixes at the fixes' epochs.
+
+    The estimates (times (k,), llh (k, 3) in rad, rad, m) are interpolated linearly in local
+    NED to each epoch of ``fix_t`` (n,) inside their time span. Returns ``(inside (n,) bool,
+    error (inside.sum(),))``.
+    """
+    order = np.argsort(est_t)
+    t, llh = np.asarray(est_t, float)[order], np.asarray(est_llh, float)[order]
+    inside = (fix_t >= t[0]) & (fix_t <= t[-1]) if len(t) > 1 else np.zeros(len(fix_t), bool)
+    if not inside.any():
+        return inside, np.zeros(0)
+    origin = fix_llh[0]
+    ref = np.column_stack(pymap3d.geodetic2ned(*fix_llh[inside].T, *origin, deg=False)[:2])
+    ne = np.column_stack(pymap3d.geodetic2ned(*llh.T, *origin, deg=False)[:2])
+    est = np.column_stack([np.interp(fix_t[inside], t, ne[:, i]) for i in (0, 1)])
+    return inside, np.hypot(*(est - ref).T)
+
+
+def _rms(x: np.ndarray) -> float | None:
+    return float(np.sqrt(np.mean(x * x))) if len(x) else None
+
+
 def score_estimates(plan: PublishPlan, by_method: dict[str, list[tuple[float, np.ndarray]]]) -> dict:
     """Horizontal error of each method's estimates against the file's fixes [m].
 
-    The estimate is interpolated linearly to each epoch inside its time span; per method:
-    ``n_estimates``, ``epochs`` scored, ``h_rms_m`` and ``h_max_m`` over all of them,
-    ``gnss_on_h_rms_m`` (epochs whose fix was published) and ``outage_h_rms_m`` /
-    ``outage_h_max_m`` (withheld epochs). The file's fixes (RTK) stand as truth.
+    Per method (:func:`errors_at_epochs`): ``n_estimates``, ``epochs`` scored, ``h_rms_m`` and
+    ``h_max_m`` over all of them, ``gnss_on_h_rms_m`` (epochs whose fix was published) and
+    ``outage_h_rms_m`` / ``outage_h_max_m`` (withheld epochs). The file's fixes (RTK) stand as
+    truth.
     """
     out = {}
-    lat0, lon0, h0 = plan.fix_llh[0]
-    ref = np.column_stack(pymap3d.geodetic2ned(plan.fix_llh[:, 0], plan.fix_llh[:, 1], plan.fix_llh[:, 2],
-                                               lat0, lon0, h0, deg=False)[:2])
     for method, rows in sorted(by_method.items()):
-        rows = sorted(rows, key=lambda r: r[0])
-        t = np.array([r[0] for r in rows])
-        llh = np.array([r[1] for r in rows])
-        ne = np.column_stack(pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], lat0, lon0, h0, deg=False)[:2])
-        inside = (plan.fix_t >= t[0]) & (plan.fix_t <= t[-1]) if len(t) > 1 else np.zeros(len(plan.fix_t), bool)
-        est = np.column_stack([np.interp(plan.fix_t[inside], t, ne[:, i]) for i in (0, 1)]) if inside.any() \
-            else np.zeros((0, 2))
-        err = np.hypot(*(est - ref[inside]).T) if len(est) else np.zeros(0)
+        inside, err = errors_at_epochs(plan.fix_t, plan.fix_llh, np.array([r[0] for r in rows]),
+                                       np.array([r[1] for r in rows]))
         wh = plan.withheld[inside]
-
-        def rms(x: np.ndarray) -> float | None:
-            return float(np.sqrt(np.mean(x * x))) if len(x) else None
-
         out[method] = {"n_estimates": len(rows), "epochs": int(inside.sum()),
-                       "h_rms_m": rms(err), "h_max_m": float(err.max()) if len(err) else None,
-                       "gnss_on_h_rms_m": rms(err[~wh]), "outage_h_rms_m": rms(err[wh]),
+                       "h_rms_m": _rms(err), "h_max_m": float(err.max()) if len(err) else None,
+                       "gnss_on_h_rms_m": _rms(err[~wh]), "outage_h_rms_m": _rms(err[wh]),
                        "outage_h_max_m": float(err[wh].max()) if wh.any() else None}
     return out
 

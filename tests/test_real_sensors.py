@@ -407,16 +407,10 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     assert counters["nmea_bad"] == 0 and counters["imu_bad_line"] == 0 and counters["imu_out_of_order"] == 0
     gap_all = (truth["t"] >= truth["gap"][0]) & (truth["t"] < truth["gap"][1])
     assert gap_all.sum() > 40 and counters["gnss_fixes"] == int((~gap_all).sum())  # 12 s of fixes left out
-    import pymap3d
+    from deploy.replay_publish import errors_at_epochs
 
-    t = np.array([r.t for r in rows])
-    llh = np.array([r.llh for r in rows])
-    ref = truth["llh"]
-    n_e = np.column_stack(pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], *ref[0], deg=False)[:2])
-    r_ne = np.column_stack(pymap3d.geodetic2ned(ref[:, 0], ref[:, 1], ref[:, 2], *ref[0], deg=False)[:2])
-    inside = (truth["t"] >= t.min()) & (truth["t"] <= t.max())
-    est = np.column_stack([np.interp(truth["t"][inside], t, n_e[:, i]) for i in (0, 1)])
-    err = np.hypot(*(est - r_ne[inside]).T)
+    inside, err = errors_at_epochs(truth["t"], truth["llh"], np.array([r.t for r in rows]),
+                                   np.array([r.llh for r in rows]))
     in_gap = (truth["t"][inside] >= truth["gap"][0]) & (truth["t"][inside] < truth["gap"][1])
     on_median, on_p95 = np.percentile(err[~in_gap], [50, 95])
     gap_rms = float(np.sqrt(np.mean(err[in_gap] ** 2)))
