@@ -58,6 +58,75 @@ def encode(msg: Message) -> bytes:
     return msgpack.packb(out, use_bin_type=True)
 
 
+def _check_str(name: str, fname: str, val: Any) -> str:
+    if not isinstance(val, str) or not 0 < len(val) <= MAX_STR:
+        raise CodecError(f"{name}.{fname}: must be a string of 1-{MAX_STR} characters")
+    return val
+
+
+def _check_int(name: str, fname: str, val: Any) -> int:
+    if val.__class__ is not int or not 0 <= val < 2**63:  # bool is an int subclass: refused
+        raise CodecError(f"{name}.{fname}: must be a non-negative integer")
+    return val
+
+
+def _check_float(name: str, fname: str, val: Any) -> float:
+    if (val.__class__ is not float and val.__class__ is not int) or not math.isfinite(val):
+        raise CodecError(f"{name}.{fname}: must be a finite number")
+    return float(val)
+
+
+def _check_auth(name: str, fname: str, val: Any) -> bytes:
+    if not isinstance(val, bytes) or len(val) > 1024:
+        raise CodecError(f"{name}.auth: must be bytes (<= 1024)")
+    return val
+
+
+def _check_bool(name: str, fname: str, val: Any) -> bool:
+    if not isinstance(val, bool):
+        raise CodecError(f"{name}.first_stopped: must be a boolean")
+    return val
+
+
+def _check_counters(name: str, fname: str, val: Any) -> dict:
+    if not isinstance(val, dict) or not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
+                                             for k, v in val.items()):
+        raise CodecError(f"{name}.counters: must map strings to integers")
+    return val
+
+
+def _check_status(name: str, fname: str, val: Any) -> dict:
+    if not isinstance(val, dict) or not all(isinstance(k, str) for k in val):
+        raise CodecError(f"{name}.status: must be a map with string keys")
+    return val
+
+
+_VALIDATORS = {"auth": _check_auth, "first_stopped": _check_bool, "counters": _check_counters,
+               "status": _check_status}
+
+
+def _validator(fname: str):
+    if fname in _STRINGS:
+        return _check_str
+    if fname in _INTS:
+        return _check_int
+    if fname in _FLOATS:
+        return _check_float
+    return _VALIDATORS[fname]  # a KeyError here at import: a new field without a validator
+
+
+#: per type: the class, its fields as (name, required, array shape or None, scalar validator),
+#: and the set of allowed keys; built once (dataclasses.fields() per message is slow)
+_SCHEMA: dict[str, tuple[type, tuple, frozenset]] = {}
+for _name, _cls in MESSAGE_TYPES.items():
+    _rows = []
+    for _f in fields(_cls):
+        _required = _f.default is MISSING and _f.default_factory is MISSING
+        _shape = _ARRAYS[_name].get(_f.name)
+        _rows.append((_f.name, _required, _shape, None if _shape is not None else _validator(_f.name)))
+    _SCHEMA[_name] = (_cls, tuple(_rows), frozenset(["v", "type", *(r[0] for r in _rows)]))
+
+
 def decode(payload: bytes) -> Message:
     """Parse and validate a payload; raises :class:`CodecError` on anything wrong."""
     if not isinstance(payload, (bytes, bytearray, memoryview)):
@@ -65,7 +134,7 @@ def decode(payload: bytes) -> Message:
     if len(payload) > MAX_PAYLOAD:
         raise CodecError(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
     try:
-        obj = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True, max_bin_len=MAX_PAYLOAD,
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_bin_len=MAX_PAYLOAD,
                               max_str_len=4096, max_array_len=4096, max_map_len=256)
     except Exception as exc:  # msgpack raises several unrelated types on bad input
         raise CodecError(f"not msgpack: {type(exc).__name__}") from None
@@ -74,54 +143,23 @@ def decode(payload: bytes) -> Message:
     if obj.get("v") != SCHEMA_VERSION:
         raise CodecError(f"schema version {obj.get('v')!r}, expected {SCHEMA_VERSION}")
     name = obj.get("type")
-    cls = MESSAGE_TYPES.get(name) if isinstance(name, str) else None
-    if cls is None:
+    schema = _SCHEMA.get(name) if isinstance(name, str) else None
+    if schema is None:
         raise CodecError(f"unknown message type {name!r}")
+    cls, rows, allowed = schema
+    if not allowed.issuperset(obj):
+        raise CodecError(f"{name}: unknown fields {sorted(set(obj) - allowed)}")
     kwargs: dict[str, Any] = {}
     n_lead: int | None = None
-    for f in fields(cls):
-        if f.name not in obj:
-            if f.default is MISSING and f.default_factory is MISSING:
-                raise CodecError(f"{name}: missing field {f.name!r}")
+    for fname, required, shape, check in rows:
+        if fname not in obj:
+            if required:
+                raise CodecError(f"{name}: missing field {fname!r}")
             continue
-        val = obj[f.name]
-        if f.name in _ARRAYS[name]:
-            arr, n_lead = _array(name, f.name, val, _ARRAYS[name][f.name], n_lead)
-            kwargs[f.name] = arr
-        elif f.name in _STRINGS:
-            if not isinstance(val, str) or not 0 < len(val) <= MAX_STR:
-                raise CodecError(f"{name}.{f.name}: must be a string of 1-{MAX_STR} characters")
-            kwargs[f.name] = val
-        elif f.name in _INTS:
-            if isinstance(val, bool) or not isinstance(val, int) or not 0 <= val < 2**63:
-                raise CodecError(f"{name}.{f.name}: must be a non-negative integer")
-            kwargs[f.name] = val
-        elif f.name in _FLOATS:
-            if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
-                raise CodecError(f"{name}.{f.name}: must be a finite number")
-            kwargs[f.name] = float(val)
-        elif f.name == "auth":
-            if not isinstance(val, bytes) or len(val) > 1024:
-                raise CodecError(f"{name}.auth: must be bytes (<= 1024)")
-            kwargs[f.name] = val
-        elif f.name == "first_stopped":
-            if not isinstance(val, bool):
-                raise CodecError(f"{name}.first_stopped: must be a boolean")
-            kwargs[f.name] = val
-        elif f.name == "counters":
-            if not isinstance(val, dict) or not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
-                                                     for k, v in val.items()):
-                raise CodecError(f"{name}.counters: must map strings to integers")
-            kwargs[f.name] = val
-        elif f.name == "status":
-            if not isinstance(val, dict) or not all(isinstance(k, str) for k in val):
-                raise CodecError(f"{name}.status: must be a map with string keys")
-            kwargs[f.name] = val
-        else:  # pragma: no cover - every field is listed above
-            raise CodecError(f"{name}.{f.name}: no validator")
-    extra = set(obj) - {"v", "type"} - {f.name for f in fields(cls)}
-    if extra:
-        raise CodecError(f"{name}: unknown fields {sorted(extra)}")
+        if shape is not None:
+            kwargs[fname], n_lead = _array(name, fname, obj[fname], shape, n_lead)
+        else:
+            kwargs[fname] = check(name, fname, obj[fname])
     return cls(**kwargs)
 
 
@@ -129,8 +167,8 @@ def _array(name: str, fname: str, val: Any, shape: tuple, n_lead: int | None) ->
     if not isinstance(val, bytes) or len(val) % 8:
         raise CodecError(f"{name}.{fname}: must be float64 bytes")
     arr = np.frombuffer(val, dtype="<f8").astype(float)
-    inner = int(np.prod([d for d in shape if d is not None])) if any(d is not None for d in shape) else 1
     if shape[0] is None:
+        inner = math.prod(shape[1:])
         if len(arr) % inner:
             raise CodecError(f"{name}.{fname}: length {len(arr)} not a multiple of {inner}")
         n = len(arr) // inner
@@ -138,12 +176,13 @@ def _array(name: str, fname: str, val: Any, shape: tuple, n_lead: int | None) ->
             raise CodecError(f"{name}.{fname}: {n} rows, other fields have {n_lead}")
         if not 0 < n <= MAX_SAMPLES:
             raise CodecError(f"{name}.{fname}: {n} rows outside 1-{MAX_SAMPLES}")
-        arr = arr.reshape((n,) + tuple(d for d in shape[1:]))
+        arr = arr.reshape((n, *shape[1:]))
         n_lead = n
     else:
-        if arr.size != int(np.prod(shape)):
-            raise CodecError(f"{name}.{fname}: expected {int(np.prod(shape))} values, got {arr.size}")
+        size = math.prod(shape)
+        if arr.size != size:
+            raise CodecError(f"{name}.{fname}: expected {size} values, got {arr.size}")
         arr = arr.reshape(shape)
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise CodecError(f"{name}.{fname}: non-finite values")
     return arr, n_lead
