@@ -115,6 +115,8 @@ class Agent:
         self._recent: deque = deque(maxlen=1024)  #: keys of the latest sensor messages (duplicates)
         self._recent_set: set = set()
         self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
+        self._timer_due = math.inf  #: earliest of ``_next`` [s sensor time]
+        self._rest_checked = -math.inf  #: sensor time of the last rest/ZUPT check [s]
         self._beacon_seq = 0
         #: neighbours gone: vehicle -> (sensor time [s], "liveliness" | "silence")
         self.lost: dict[str, tuple[float, str]] = {}
@@ -353,22 +355,40 @@ class Agent:
                 return
             self._init(self._pending_fix, msg)
         ref = next(iter(self.filters.values()))
-        for k in range(len(msg.t)):
-            if self.seq.t is not None and float(msg.t[k]) <= self.seq.t:  # behind the filter: not used at all
-                self.seq.counters["imu_out_of_order"] += 1
+        filters = list(self.filters.values())
+        seq = self.seq
+        ts, dts = msg.t.tolist(), msg.dt.tolist()
+        ths, dvs = msg.dtheta.tolist(), msg.dvel.tolist()
+        rest_from = 0  # first sample not yet in the rest detector
+        for k in range(len(ts)):
+            t = ts[k]
+            if seq.t is not None and t <= seq.t:  # behind the filter: not used at all
+                seq.counters["imu_out_of_order"] += 1
                 continue
-            for step in self.seq.imu(float(msg.t[k]), msg.dtheta[k], msg.dvel[k], float(msg.dt[k])):
-                if isinstance(step, Propagate):
-                    for f in self.filters.values():
-                        f.propagate(step.dtheta, step.dvel, step.dt)
-                else:
-                    self._apply(step)
-            self.rest.push(msg.dtheta[k], msg.dvel[k], float(msg.dt[k]), ref.filter.state.dcm)
-            v = ref.filter.state.v
-            if self.zupt_gate.due(float(msg.t[k]), self.rest, math.hypot(v[0], v[1])):
-                for f in self.filters.values():
-                    f.zupt()
-            await self._timers(float(msg.t[k]))
+            if not seq.pending_by(t):  # the common case: no measurement inside the interval
+                dt = seq.imu_plain(t, dts[k])
+                if dt is not None:
+                    for f in filters:
+                        f.propagate(ths[k], dvs[k], dt)
+            else:
+                for step in seq.imu(t, ths[k], dvs[k], dts[k]):
+                    if isinstance(step, Propagate):
+                        for f in filters:
+                            f.propagate(step.dtheta, step.dvel, step.dt)
+                    else:
+                        self._apply(step)
+            # rest detection and ZUPT at the gate's rate, on the samples since the last check
+            if k == len(ts) - 1 or t - self._rest_checked >= self.zupt_gate.interval:
+                self._rest_checked = t
+                self.rest.push_batch(msg.dtheta[rest_from:k + 1], msg.dvel[rest_from:k + 1],
+                                     msg.dt[rest_from:k + 1], ref.filter.state.dcm)
+                rest_from = k + 1
+                v = ref.filter.state.v
+                if self.zupt_gate.due(t, self.rest, math.hypot(v[0], v[1])):
+                    for f in filters:
+                        f.zupt()
+            if t >= self._timer_due:
+                await self._timers(t)
         if self._deferred:
             self._fuse_ranges()
 
@@ -384,6 +404,7 @@ class Agent:
         for name, rate in (("beacon", self.cfg.beacon_rate), ("estimate", self.cfg.estimate_rate),
                            ("decision", self.cfg.decision_rate), ("diag", 1.0)):
             self._next[name] = self.seq.t + 1.0 / rate
+        self._timer_due = min(self._next.values())
         log.info("%s: initialised %s at t=%.2f", self.cfg.vehicle, ",".join(self.cfg.methods), self.seq.t)
 
     def _apply_now(self, steps: list[Apply]) -> None:
@@ -438,6 +459,12 @@ class Agent:
 
     # ----------------------------------------------------------------- sensor-time timers
     async def _timers(self, t: float) -> None:
+        try:
+            await self._run_timers(t)
+        finally:
+            self._timer_due = min((v for v in self._next.values() if v is not None), default=math.inf)
+
+    async def _run_timers(self, t: float) -> None:
         if self._next["decision"] is not None and t >= self._next["decision"]:
             self._next["decision"] += 1.0 / self.cfg.decision_rate
             self._decide(t)

@@ -72,17 +72,38 @@ class Sequencer:
             self.counters["overflow"] += 1
         return []
 
-    def imu(self, t_end: float, dtheta, dvel, dt: float, max_gap: float = 0.1) -> Iterator[Propagate | Apply]:
-        """Steps for one IMU interval ending at ``t_end`` lasting ``dt`` seconds."""
+    def _interval_start(self, t_end: float, dt: float, max_gap: float) -> float | None:
+        """Start of the IMU interval ending at ``t_end`` as integrated (None: out of order)."""
         t0 = t_end - dt
         if self.t is not None:
             if t_end <= self.t:
                 self.counters["imu_out_of_order"] += 1
-                return
+                return None
             if t0 - self.t > max_gap:
                 self.counters["imu_gaps"] += 1
             elif abs(t0 - self.t) > 1e-9:
                 t0 = self.t  # absorb jitter: intervals are contiguous
+        return t0
+
+    def pending_by(self, t: float) -> bool:
+        """Whether a queued measurement is due at or before sensor time ``t`` [s]."""
+        return bool(self._heap) and self._heap[0][0] <= t
+
+    def imu_plain(self, t_end: float, dt: float, max_gap: float = 0.1) -> float | None:
+        """:meth:`imu` for an interval with no queued measurement in it (``pending_by(t_end)``
+        is False): advances the clock and returns the length [s] to integrate the whole
+        interval's increments over, or None (out of order, or nothing left to integrate)."""
+        t0 = self._interval_start(t_end, dt, max_gap)
+        if t0 is None:
+            return None
+        self.t = t_end
+        return t_end - t0 if t_end - t0 > 1e-12 else None
+
+    def imu(self, t_end: float, dtheta, dvel, dt: float, max_gap: float = 0.1) -> Iterator[Propagate | Apply]:
+        """Steps for one IMU interval ending at ``t_end`` lasting ``dt`` seconds."""
+        t0 = self._interval_start(t_end, dt, max_gap)
+        if t0 is None:
+            return
         th = tuple(float(x) for x in dtheta)
         dv = tuple(float(x) for x in dvel)
         span = t_end - t0

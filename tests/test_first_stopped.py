@@ -121,6 +121,18 @@ def test_imu_rest_is_told_from_constant_acceleration_and_turning() -> None:
     assert rest.stationary
     assert not feed(g + [1.0, 0.0, 0.0], np.zeros(3)).stationary        # steady 1 m/s² forward
     assert not feed(g, np.array([0.0, 0.0, np.radians(5.0)])).stationary  # turning at 5 °/s
+    # a batch resolved with one DCM is the same as its samples one by one
+    c = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    th, dv = rng.normal(0, 1e-3, (60, 3)), g * dt + rng.normal(0, 0.02, (60, 3))
+    dts = dt + rng.normal(0, 1e-4, 60)
+    one, many = StationarityMonitor(), StationarityMonitor()
+    for k in range(60):
+        one.push(th[k], dv[k], dts[k], c)
+    many.push_batch(th[:25], dv[:25], dts[:25], c)
+    many.push_batch(th[25:], dv[25:], dts[25:], c)
+    for x, y in ((one._w, many._w), (one._f, many._f), (one._fn, many._fn)):
+        np.testing.assert_allclose(np.array(x), np.array(y), rtol=1e-12, atol=1e-15)
+    assert one.stationary == many.stationary
     gate = ZuptGate()
     gate.gnss(10.0)
     assert not gate.due(10.2, rest, 0.05)    # GNSS still arriving: Doppler does the job

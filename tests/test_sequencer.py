@@ -51,3 +51,29 @@ def test_late_and_out_of_order() -> None:
     for t in (5.0, 6.0, 7.0):
         small.push(t, "g", t)
     assert small.counters["overflow"] == 1
+
+
+def test_plain_interval_fast_path_equals_the_general_one() -> None:
+    """``imu_plain`` (no measurement inside the interval) advances the clock, counts gaps and
+    out-of-order samples, and absorbs jitter exactly as :meth:`Sequencer.imu` does."""
+    rng = np.random.default_rng(3)
+    a, b = Sequencer(), Sequencer()
+    t = 10.0
+    for k in range(300):
+        dt = 0.01 + rng.normal(0.0, 2e-4)
+        t += 0.3 if k == 150 else dt  # one data gap
+        if k == 200:
+            t -= 0.05                 # one sample behind the clock
+        th, dv = tuple(rng.normal(0, 1e-3, 3)), tuple(rng.normal(0, 1e-2, 3))
+        steps = list(a.imu(t, th, dv, dt))
+        assert not b.pending_by(t)
+        span = b.imu_plain(t, dt)
+        if not steps:
+            assert span is None
+        else:
+            (p,) = steps
+            assert span == pytest.approx(p.dt, abs=1e-15) and p.dtheta == pytest.approx(th)
+        assert a.t == b.t
+    assert a.counters == b.counters and a.counters["imu_gaps"] == 1 and a.counters["imu_out_of_order"] >= 1
+    b.push(b.t + 0.005, "gnss", None)
+    assert b.pending_by(b.t + 0.01) and not b.pending_by(b.t + 0.001)

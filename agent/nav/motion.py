@@ -86,6 +86,19 @@ class StationarityMonitor:
         self._f.append(float(np.linalg.norm(f)))
         self._fn.append((float(fn[0]), float(fn[1])))
 
+    def push_batch(self, dtheta: np.ndarray, dvel: np.ndarray, dt: np.ndarray, c_bn: np.ndarray) -> None:
+        """Add consecutive IMU intervals at once: ``dtheta`` [rad], ``dvel`` [m/s] shape (n, 3),
+        ``dt`` [s] shape (n,), resolved with one body-to-NED DCM ``c_bn`` (3, 3) (the attitude
+        of a batch of a tenth of a second is one for this test). Same as ``n`` calls of
+        :meth:`push` with that DCM."""
+        inv = 1.0 / np.asarray(dt, float)[:, None]
+        w = np.asarray(dtheta, float) * inv
+        f = np.asarray(dvel, float) * inv
+        fn = f @ c_bn[:2].T
+        self._w.extend(np.sqrt(np.einsum("ij,ij->i", w, w)).tolist())
+        self._f.extend(np.sqrt(np.einsum("ij,ij->i", f, f)).tolist())
+        self._fn.extend(map(tuple, fn.tolist()))
+
     @property
     def stationary(self) -> bool:
         if len(self._w) < self.window:
