@@ -360,7 +360,11 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
             known[o] = (llh, cov)
             if o not in tracker._nb:
                 tracker.observe_neighbour(o, t, 0.0, False)  # unknown since when: stopped "forever"
-    nb_ne = {o: np.array(pymap3d.geodetic2ned(*llh, *origin_llh, deg=False)[:2]) for o, (llh, _) in known.items()}
+    nb_ne = {}
+    if known:  # one vectorised conversion for all neighbours
+        llh = np.array([v[0] for v in known.values()])
+        n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], *origin_llh, deg=False)
+        nb_ne = {o: np.array([n[i], e[i]]) for i, o in enumerate(known)}
     nb_cov = {o: cov[:2, :2] for o, (_, cov) in known.items()}
     dec, changed = tracker.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
                                   float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)

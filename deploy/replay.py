@@ -9,6 +9,7 @@ nothing is smoothed backwards.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import time
@@ -237,8 +238,36 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
     # filter time of the next epoch; changes only when an update moves the offset estimate
     t_ep = epoch_time(gi) if gi < n_ep else math.inf
     n_int = len(dt)
+    t_list = t_imu.tolist()
+    # runs of whole intervals are integrated at once; intervals shorter than this are skipped
+    # (as the per-interval path does), so runs stop before them
+    tiny = np.flatnonzero(dt_a <= 1e-9).tolist() + [n_int]
+
+    def constrain(j: int) -> None:
+        """ZUPT (and zero angular rate) at rest, else NHC while coasting, at sample ``j``."""
+        if j >= len(stationary):
+            return
+        if stationary[j]:
+            flt.update(zero_velocity(flt.state, cfg.zupt_sigma))
+            flt.update(zero_angular_rate(flt.state, cfg.detector.window_mean_gyro(w_b, j),
+                                         cfg.noise.arw / math.sqrt(cfg.detector.window * 0.01) * 2))
+        elif cfg.nhc and yaw_aligned and (
+                not cfg.nhc_only_coasting or flt.t - last_fix_time > cfg.coast_after):
+            flt.update(_nhc(flt.state, w_b[j], cfg))
+
     while j < n_int:
-        t_next = float(t_imu[j + 1])
+        if pending is None:
+            # whole intervals before the next constraint step, the next epoch and the next tiny one
+            end = min((j // step + 1) * step, bisect.bisect_left(t_list, t_ep, j + 1) - 1,
+                      tiny[bisect.bisect_left(tiny, j)])
+            if end > j:
+                flt.propagate_run(dtheta[j:end], dvel[j:end], dt[j:end])
+                t_cur = t_list[end]
+                j = end
+                if j % step == 0:
+                    constrain(j)
+                continue
+        t_next = t_list[j + 1]
         dth, dv, dtt = pending if pending is not None else (dtheta[j], dvel[j], dt[j])
         while t_ep <= t_next:
             tg = t_ep
@@ -255,14 +284,8 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
         t_cur = t_next
         j += 1
         pending = None
-        if j % step == 0 and j < len(stationary):
-            if stationary[j]:
-                flt.update(zero_velocity(flt.state, cfg.zupt_sigma))
-                flt.update(zero_angular_rate(flt.state, cfg.detector.window_mean_gyro(w_b, j),
-                                             cfg.noise.arw / math.sqrt(cfg.detector.window * 0.01) * 2))
-            elif cfg.nhc and yaw_aligned and (
-                    not cfg.nhc_only_coasting or flt.t - last_fix_time > cfg.coast_after):
-                flt.update(_nhc(flt.state, w_b[j], cfg))
+        if j % step == 0:
+            constrain(j)
         if gi >= n_ep:
             break
 

@@ -74,3 +74,45 @@ def test_split_interval_matches_unsplit(turning_truth) -> None:
     assert np.linalg.norm(parts.v - whole.v) < 1e-5
     with pytest.raises(ValueError):
         split_increment(tr.dtheta[0], tr.dvel[0], 0.0, 0.01, 0.02)
+
+
+def test_run_of_intervals_equals_one_by_one(turning_truth) -> None:
+    """``mechanize_run`` over many intervals and ``InsFilter.propagate_run`` (with scale-factor
+    states and covariance steps inside the run) give what one call per interval gives."""
+    from agent.nav.ins_filter import InsFilter
+    from agent.nav.mechanization import mechanize_fast, mechanize_run
+
+    from conftest import MEMS_NOISE
+
+    tr = turning_truth
+    n = 1000
+    th, dv, dts = tr.dtheta[:n].tolist(), tr.dvel[:n].tolist(), np.diff(tr.t[: n + 1]).tolist()
+    s0 = NavState(*tr.llh[0], tr.v_ned[0].copy(), euler_to_quat(*tr.euler[0]),
+                  np.array([1e-4, -2e-4, 5e-5]), np.array([0.02, -0.01, 0.03]))
+    one, pth, pdv = s0, None, None
+    for k in range(n):
+        one, pth, pdv = mechanize_fast(one, th[k], dv[k], dts[k], pth, pdv)
+    run, rth, rdv, _, _ = mechanize_run(s0, th, dv, dts, None, None)
+    assert (run.lat, run.lon, run.h) == pytest.approx((one.lat, one.lon, one.h), rel=0, abs=1e-13)
+    np.testing.assert_allclose(run.v, one.v, atol=1e-12)
+    np.testing.assert_allclose(run.q, one.q, atol=1e-13)
+    assert rth == pytest.approx(pth, abs=1e-18) and rdv == pytest.approx(pdv, abs=1e-18)
+
+    P0 = np.diag(np.r_[np.full(3, 1e-4), np.full(3, 0.01), np.full(3, 4.0), np.full(3, 1e-8), np.full(3, 1e-4)])
+
+    def fresh() -> InsFilter:
+        return InsFilter(s0.copy(), P0.copy(), MEMS_NOISE, t=float(tr.t[0]), cov_interval=0.1,
+                         scale_factors=(1e-3, 1e-3, 100.0))
+
+    a, b = fresh(), fresh()
+    for k in range(n):
+        a.propagate(th[k], dv[k], dts[k])
+    for lo, hi in ((0, 7), (7, 333), (333, 334), (334, n)):  # runs across covariance steps
+        b.propagate_run(th[lo:hi], dv[lo:hi], dts[lo:hi])
+    assert b.t == a.t and b.stats.imu_samples == a.stats.imu_samples == n
+    assert b.stats.cov_steps == a.stats.cov_steps
+    np.testing.assert_allclose(b.P, a.P, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(b.state.v, a.state.v, atol=1e-12)
+    assert b.state.lat == pytest.approx(a.state.lat, abs=1e-13)
+    with pytest.raises(ValueError):
+        b.propagate_run([(0.0, 0.0, 0.0)], [(0.0, 0.0, 0.0)], [0.0])
