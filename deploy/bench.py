@@ -114,14 +114,19 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     return out
 
 
-def replay_factor(path: Path) -> dict | None:
-    """Real-time factor and accuracy of the SP replay of the rtklibexplorer drive (None if absent)."""
+def replay_factor(path: Path, repeats: int = 3) -> dict | None:
+    """Real-time factor (median of ``repeats`` runs) and accuracy of the SP replay of the
+    rtklibexplorer drive (None if absent)."""
     from .datasets.rtklib import load_drive
     from .replay import ReplayConfig, run_replay
 
     if not Path(path).is_dir():
         return None
-    res = run_replay(load_drive(path), ReplayConfig())
-    m = res.metrics
-    return {k: m[k] for k in ("realtime_factor", "imu_span_s", "wall_s", "outage_h_rms_m", "outage_h_end_mean_m",
-                              "outage_h_max_m")}
+    drive = load_drive(path)
+    runs = [run_replay(drive, ReplayConfig()).metrics for _ in range(repeats)]
+    # this VM's speed varies by ±25 % from run to run: report the median run, and all of them
+    m = sorted(runs, key=lambda r: r["wall_s"])[len(runs) // 2]
+    out = {k: m[k] for k in ("realtime_factor", "imu_span_s", "wall_s", "outage_h_rms_m", "outage_h_end_mean_m",
+                             "outage_h_max_m")}
+    out["realtime_factor_runs"] = [round(r["realtime_factor"], 1) for r in runs]
+    return out

@@ -206,6 +206,6 @@ def split_ci_update(P: np.ndarray, P_ind: np.ndarray, meas: Measurement, R_dep: 
         return dx, P, P_ind, UpdateResult(dx, res.nis, res.dof, False, res.name, None, omega)
     K = res.gain
     IKH = -(K @ meas.H)
-    IKH[np.diag_indices(P.shape[0])] += 1.0
+    IKH.flat[:: P.shape[0] + 1] += 1.0
     Pi = IKH @ P_ind @ IKH.T + K @ meas.R @ K.T
     return dx, P_post, 0.5 * (Pi + Pi.T), UpdateResult(dx, res.nis, res.dof, True, res.name, K, omega)

@@ -260,7 +260,7 @@ class InsFilter:
             if self.P_ind is not None:  # an own-sensor measurement: independent information
                 K = result.gain
                 IKH = -(K @ meas.H)
-                IKH[np.diag_indices(self.n)] += 1.0
+                IKH.flat[:: self.n + 1] += 1.0
                 Pi = IKH @ self.P_ind @ IKH.T + K @ meas.R @ K.T
                 self.P_ind = 0.5 * (Pi + Pi.T)
             self._feedback(dx)

@@ -154,7 +154,7 @@ def kalman_update(
     K = PHt @ Sinv
     dx = K @ z
     IKH = -(K @ H)
-    IKH[np.diag_indices(n)] += 1.0
+    IKH.flat[:: n + 1] += 1.0
     P_post = IKH @ P @ IKH.T + K @ R @ K.T
     P_post = 0.5 * (P_post + P_post.T)
     return dx, P_post, UpdateResult(dx, nis, meas.dim, True, meas.name, K)

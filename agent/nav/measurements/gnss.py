@@ -58,7 +58,7 @@ def gnss_velocity(
     """
     c = state.dcm
     w = np.asarray(omega_ib_b, float) - state.bg
-    v_rot = c @ np.cross(w, lever_arm_b)
+    v_rot = c @ (skew(w) @ np.asarray(lever_arm_b, float))  # np.cross is ~10x slower on 3-vectors
     z = state.v + v_rot - np.asarray(v_measured, float)
     H = np.zeros((3, N_STATES))
     H[:, VEL] = np.eye(3)
