@@ -85,3 +85,27 @@ def test_precomputed_trace_equals_the_explicit_posterior(m: int) -> None:
         P1, R1 = Pd / w + Pi, Rd / (1 - w) + Ri
         _, P_post, _ = kalman_update(P1, Measurement(np.zeros(m), H, R1))
         assert f(w) == pytest.approx(np.trace(P_post[np.ix_(IDX, IDX)]), rel=1e-9)
+
+
+@pytest.mark.parametrize("m", [1, 2])
+def test_plain_gain_bounds_split_ci_so_the_screen_changes_no_decision(m: int) -> None:
+    """Node selection screens a range by its plain Kalman gain before the ω search: that gain
+    bounds every ω's, so what the screen skips the search would have skipped too."""
+    from agent.nav.fusion import _trace_fn, naive_gain
+
+    rng = np.random.default_rng(7)
+    skipped = 0
+    for _ in range(200):
+        scale = 10.0 ** rng.uniform(-2, 1, 2)
+        Pd, Pi = _spd(rng, 6, scale[0]), _spd(rng, 6, scale[1])
+        H, Rd, Ri = rng.normal(size=(m, 6)), _spd(rng, m, rng.uniform(0.1, 5)), _spd(rng, m, 0.05)
+        P = Pd + Pi
+        prior = float(np.trace(P[np.ix_(IDX, IDX)]))
+        f = _trace_fn(Pd, Pi, H, Rd, Ri, IDX)
+        ci_gain = prior - f(best_omega(Pd, Pi, H, Rd, Ri, IDX))
+        assert naive_gain(P, H, Rd + Ri, IDX) >= ci_gain - 1e-9 * prior
+        for min_gain in (0.01, 0.1, 0.3):
+            res = split_ci_update(P, Pi, Measurement(np.zeros(m), H, Ri), Rd, IDX, min_gain=min_gain)[3]
+            assert res.skipped == (ci_gain < min_gain * prior)
+            skipped += res.skipped
+    assert 0 < skipped < 600  # both outcomes occur
