@@ -113,8 +113,9 @@ class MisbehaviourDetector:
         """Check a beacon (``stream``: the method it belongs to); returns the failed test's name
         (``"covariance"`` or ``"motion"``) or None."""
         b = _Beacon(float(t), np.asarray(llh, float), np.asarray(v_ned, float), np.asarray(cov_ned, float))
-        ch = b.cov[:2, :2]
-        eig = np.linalg.eigvalsh(0.5 * (ch + ch.T))
+        # smallest eigenvalue of the symmetric horizontal block, in closed form
+        c00, c11, c01 = float(b.cov[0, 0]), float(b.cov[1, 1]), 0.5 * float(b.cov[0, 1] + b.cov[1, 0])
+        eig_min = 0.5 * (c00 + c11) - math.hypot(0.5 * (c00 - c11), c01)
         prev = self._last.get((vehicle, stream))
         self._last[(vehicle, stream)] = b
         # ranges are checked against one stream per neighbour (the first seen, CP preferred):
@@ -123,10 +124,9 @@ class MisbehaviourDetector:
         if ref is None or (stream == self.preferred_stream and ref != stream):
             self._range_stream[vehicle] = ref = stream
             self._ranges.pop(vehicle, None)
-        self._range_stream.pop(vehicle, None)
         if stream == ref:
             self._latest[vehicle] = b
-        if not np.all(np.isfinite(eig)) or eig[0] < self.min_sigma**2:
+        if not math.isfinite(eig_min) or eig_min < self.min_sigma**2:
             self.counters["implausible_covariance"] += 1
             self._flag(vehicle, b.t, "implausible covariance", at_once=True)
             return "covariance"
@@ -143,8 +143,17 @@ class MisbehaviourDetector:
         moved = earth.ned_offset(*b.llh, *prev.llh)[:2]
         predicted = 0.5 * (b.v[:2] + prev.v[:2]) * dt
         e = moved - predicted
-        s = b.cov[:2, :2] + prev.cov[:2, :2] + np.eye(2) * (0.5 * self.accel * dt * dt) ** 2
-        if float(e @ np.linalg.solve(s, e)) > self.motion_chi2:
+        q = (0.5 * self.accel * dt * dt) ** 2
+        s00 = float(b.cov[0, 0] + prev.cov[0, 0]) + q
+        s11 = float(b.cov[1, 1] + prev.cov[1, 1]) + q
+        s01 = float(b.cov[0, 1] + prev.cov[0, 1])
+        s10 = float(b.cov[1, 0] + prev.cov[1, 0])
+        e0, e1 = float(e[0]), float(e[1])
+        det = s00 * s11 - s01 * s10
+        if not det > 0.0:  # only with an implausible previous covariance, flagged when it came
+            return None
+        # eᵀ S⁻¹ e of the 2×2 S written out
+        if (s11 * e0 * e0 - (s01 + s10) * e0 * e1 + s00 * e1 * e1) / det > self.motion_chi2:
             self.counters["motion_strikes"] += 1
             self._strike(vehicle, b.t, "motion")
             return "motion"
