@@ -96,6 +96,24 @@ def test_a_claimed_position_off_the_measured_range_is_flagged() -> None:
     assert det2.range("V9", 0.0, 22.9, at(0.0, 0.0), np.diag([0.25, 0.25, 1.0]), 0.1) is None
 
 
+@pytest.mark.parametrize("rate_test", [False, True])
+def test_a_range_jump_the_claims_do_not_show_fails_the_range_rate_test(rate_test: bool) -> None:
+    """A range that jumps by 7 m within half a second while the claimed distance stays (and
+    other beacon streams keep coming) is within the absolute test's bound (my own σ is 3 m) but
+    not the range-rate test's; the test runs only when enabled."""
+    det = MisbehaviourDetector(rate_test=rate_test)
+    cov = np.diag([1.0, 1.0, 4.0])
+    own_cov = np.diag([9.0, 9.0, 9.0])
+    for k in range(10):
+        t = 0.1 * k
+        if k % 2 == 0:
+            for stream in ("CP", "SL-CP"):  # two streams: the history is kept per neighbour
+                det.beacon("V9", stream, t, at(20.0, 0.0), np.zeros(3), cov)
+        assert det.range("V9", t, 20.0 + 0.05 * (-1) ** k, at(0.0, 0.0), own_cov, 0.1) is None
+    out = det.range("V9", 1.0, 27.0, at(0.0, 0.0), own_cov, 0.1)
+    assert out == ("range rate" if rate_test else None)
+
+
 @pytest.mark.parametrize("kind", ATTACKS)
 def test_each_attack_changes_the_beacon_as_veremi_defines_it(kind) -> None:
     rng = np.random.default_rng(0)
