@@ -14,6 +14,7 @@ No I/O here: the agent runtime (asyncio shell) feeds measurements in sensor-time
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -213,9 +214,14 @@ class MethodFilter:
         h = self._disp_hist
         if t >= self.filter.t or t < h[0][0]:
             return np.zeros(3)
-        ts = [x[0] for x in h]
-        past = [float(np.interp(t, ts, [x[i] for x in h])) for i in (1, 2, 3)]
-        return np.array(self._disp) - np.array(past)
+        i = bisect.bisect_right(h, t, key=lambda x: x[0])  # h[i-1][0] <= t < h[i][0]
+        d = self._disp
+        if i >= len(h):  # after the newest entry: its value (as np.interp would clamp)
+            p = h[-1]
+            return np.array([d[0] - p[1], d[1] - p[2], d[2] - p[3]])
+        p0, p1 = h[i - 1], h[i]
+        a = (t - p0[0]) / (p1[0] - p0[0])
+        return np.array([d[k - 1] - (p0[k] + a * (p1[k] - p0[k])) for k in (1, 2, 3)])
 
     def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float) -> None:
         st = self.filter.state
@@ -311,7 +317,8 @@ class MethodFilter:
                                     float(u @ (self.filter.state.v - neighbour.v_ned))):
             return self._count_range("gate_rate")
         m = range_measurement(self.filter.state, measured, s.sigma_uwb, nb_llh, neighbour.cov_ned,
-                              own_cov_ned=self.filter.position_cov, second_order=s.second_order_ranges)
+                              own_cov_ned=self.filter.position_cov, second_order=s.second_order_ranges,
+                              relative=d)
         if s.fusion == "paper":
             res = self.filter.update(m, s.range_gate)
         else:

@@ -109,3 +109,30 @@ def test_plain_gain_bounds_split_ci_so_the_screen_changes_no_decision(m: int) ->
             assert res.skipped == (ci_gain < min_gain * prior)
             skipped += res.skipped
     assert 0 < skipped < 600  # both outcomes occur
+
+
+def test_the_exact_scalar_screen_agrees_with_a_dense_search_over_omega() -> None:
+    """For a scalar measurement the screen decides "does some ω gain more than T" in closed form
+    (a cubic's maximum); a dense grid over ω must agree wherever the grid's best is clearly on
+    one side of T, including the common case where every ω loses (the best is ω → 1)."""
+    from agent.nav.fusion import OMEGA_MAX, OMEGA_MIN, _scalar_terms, _scalar_trace_fn, scalar_gain_exceeds
+
+    rng = np.random.default_rng(11)
+    grid = np.concatenate([np.geomspace(OMEGA_MIN, 0.5, 4000), 1.0 - np.geomspace(0.5, 1.0 - OMEGA_MAX, 4000)])
+    outcomes = set()
+    for _ in range(300):
+        scale = 10.0 ** rng.uniform(-3, 1, 2)
+        Pd, Pi = _spd(rng, 6, scale[0]), _spd(rng, 6, scale[1])
+        H = rng.normal(size=(1, 6))
+        Rd, Ri = np.array([[10.0 ** rng.uniform(-2, 2)]]), np.array([[10.0 ** rng.uniform(-3, 0)]])
+        terms = _scalar_terms(Pd, Pi, H, Rd, Ri, IDX)
+        f = _scalar_trace_fn(terms)
+        prior = terms[0] + terms[1]
+        best = prior - min(f(w) for w in grid)
+        for frac in (-0.01, 1e-4, 0.01, 0.1):
+            T = frac * prior
+            if abs(best - T) < 1e-6 * prior:
+                continue  # too close to call on a grid
+            assert scalar_gain_exceeds(terms, T) == (best > T)
+            outcomes.add(best > T)
+    assert outcomes == {True, False}

@@ -11,12 +11,12 @@ from scipy.linalg import block_diag
 
 from agent.nav import earth
 from agent.nav.kalman import Measurement, kalman_update, stack
-from agent.nav.measurements.common import point_llh
+from agent.nav.measurements.common import point_llh, point_position_jacobian
 from agent.nav.measurements.gnss import gnss_position, gnss_velocity
 from agent.nav.measurements.stop_line import (
     Line2D, StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement, stop_line_position,
 )
-from agent.nav.measurements.v2v_range import range_measurement
+from agent.nav.measurements.v2v_range import range_measurement, relative_position
 from agent.nav.measurements.vehicle import non_holonomic, zero_angular_rate, zero_velocity
 from agent.nav.state import N_STATES, apply_error
 
@@ -187,3 +187,25 @@ def test_nis_and_gating(rng: np.random.Generator) -> None:
     bad = Measurement(np.array([1.0, 1.0]), H, np.full((2, 2), np.nan), "nan")
     _, _, res = kalman_update(P, bad)
     assert not res.accepted
+
+
+def test_range_closed_forms_equal_the_matrix_forms(rng: np.random.Generator) -> None:
+    """The second-order terms in closed form equal ½tr(MQ) and ½tr((MQ)²) with the Hessian
+    M = (I - uuᵀ)/ρ, for a full covariance; the zero-lever Jacobian equals uᵀ∂p/∂x."""
+    s = moving_state()
+    nb = np.array(point_llh(s, np.zeros(3)))
+    nb[0] += 5.0 / (earth.radii(nb[0])[0] + nb[2])
+    nb[1] -= 3.0 / (earth.radii(nb[0])[1] * np.cos(nb[0]))
+    A, B = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+    Pj, Pi = A @ A.T + np.eye(3), B @ B.T + 0.5 * np.eye(3)
+    m1 = range_measurement(s, 6.0, 0.1, nb, Pj)
+    m2 = range_measurement(s, 6.0, 0.1, nb, Pj, own_cov_ned=Pi, second_order=True)
+    d = relative_position(s, np.zeros(3), nb)
+    rho = np.linalg.norm(d)
+    u = d / rho
+    MQ = (np.eye(3) - np.outer(u, u)) / rho @ (Pi + Pj)
+    assert m2.z[0] - m1.z[0] == pytest.approx(0.5 * np.trace(MQ), rel=1e-12)
+    assert m2.R[0, 0] - m1.R[0, 0] == pytest.approx(0.5 * np.trace(MQ @ MQ), rel=1e-12)
+    assert np.allclose(m1.H[0], u @ point_position_jacobian(s, np.zeros(3)), atol=0)
+    m3 = range_measurement(s, 6.0, 0.1, nb, Pj, relative=d)
+    assert np.array_equal(m3.z, m1.z) and np.array_equal(m3.R, m1.R)

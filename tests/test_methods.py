@@ -73,3 +73,25 @@ def test_range_rate_gate_follows_motion_and_restarts() -> None:
     assert not g.check("B", 0.4, 20.0, -5.0)    # a 2 m NLOS bias starts: one range lost...
     assert g.check("B", 0.5, 19.5, -5.0)        # ...then the new level is followed
     assert g.check("B", 5.0, 60.0, 0.0)         # after a long gap the track restarts
+
+
+def test_displacement_since_interpolates_the_recent_history() -> None:
+    """The INS displacement since a past time equals the displacement accumulated since then,
+    linearly interpolated in the 20 Hz history (checked against np.interp), zero outside it."""
+    f, _, _, _ = _stopped_filter("CP")
+    f.filter.state.v[:] = [3.0, -1.0, 0.2]
+    t0 = f.t
+    dth, dv = [0.0, 0.0, 0.0], [0.0, 0.0, -9.80665 * 0.01]  # specific force of a level body
+    for _ in range(150):
+        f.propagate(dth, dv, 0.01)
+    hist = list(f._disp_hist)
+    ts = [h[0] for h in hist]
+    for t in (t0 - 0.1, t0, t0 + 0.333, t0 + 1.0, ts[-1] + 0.004, f.t, f.t + 1):
+        got = f.displacement_since(t)
+        if t < t0 or t >= f.t:
+            assert np.array_equal(got, np.zeros(3))
+            continue
+        past = np.array([np.interp(t, ts, [h[k] for h in hist]) for k in (1, 2, 3)])
+        assert np.allclose(got, np.array(f._disp) - past, atol=1e-12)
+    # the vehicle moved about v·Δt (its velocity barely changes over 1.5 s of level coasting)
+    assert np.allclose(f.displacement_since(t0 + 0.5)[:2], f.filter.state.v[:2] * (f.t - t0 - 0.5), rtol=0.05, atol=0.05)

@@ -16,6 +16,7 @@ key                                            payload
 
 from __future__ import annotations
 
+import functools
 import re
 
 ROOT = "slcp/v1"
@@ -61,8 +62,12 @@ def alive(role: str, name: str) -> str:
     return f"{ROOT}/alive/{check_name(role)}/{check_name(name)}"
 
 
+@functools.lru_cache(maxsize=65536)
 def matches(expr: str, key: str) -> bool:
-    """Whether concrete ``key`` matches key expression ``expr`` (``*`` and ``**`` wildcards)."""
+    """Whether concrete ``key`` matches key expression ``expr`` (``*`` and ``**`` wildcards).
+
+    Memoised: the in-memory bus asks it for every subscription and message, with few
+    distinct pairs."""
     e, k = expr.split("/"), key.split("/")
 
     def rec(i: int, j: int) -> bool:

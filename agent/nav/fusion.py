@@ -33,31 +33,93 @@ from .kalman import Measurement, UpdateResult, kalman_update
 OMEGA_MIN, OMEGA_MAX = 1e-3, 1.0 - 1e-3
 
 
+def _scalar_terms(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri: np.ndarray,
+                  idx: np.ndarray) -> tuple[float, ...]:
+    """For a scalar measurement (``H`` of shape (1, n)): ``(tr_d, tr_i, aa, ab, bb, ha, hb, rd, ri)``.
+
+    With a = P_d Hᵀ and b = P_i Hᵀ restricted to ``idx``: aa = a·a, ab = a·b, bb = b·b;
+    ha = H a, hb = H b (over all states); tr_d, tr_i the traces of the ``idx`` blocks.
+    """
+    a, b = Pd @ H[0], Pi @ H[0]
+    h = H[0]
+    ai, bi = a[idx], b[idx]
+    return (float(Pd[idx, idx].sum()), float(Pi[idx, idx].sum()),  # traces (np.ix_ is slow)
+            float(ai @ ai), float(ai @ bi), float(bi @ bi), float(h @ a), float(h @ b),
+            float(Rd[0, 0]), float(Ri[0, 0]))
+
+
+def _scalar_trace_fn(terms: tuple[float, ...]):
+    """The posterior ``idx`` variance as a function of ω for a scalar measurement (see
+    :func:`_trace_fn`), from :func:`_scalar_terms`."""
+    tr_d, tr_i, aa, ab, bb, ha, hb, rd, ri = terms
+
+    def f(w: float) -> float:
+        s = ha / w + hb + rd / (1.0 - w) + ri
+        return tr_d / w + tr_i - (aa / (w * w) + 2.0 * ab / w + bb) / s
+    return f
+
+
 def _trace_fn(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri: np.ndarray, idx: np.ndarray):
     """The posterior variance over the states ``idx`` as a function of ω, precomputed.
 
     With a = P_d Hᵀ and b = P_i Hᵀ: P₁Hᵀ = a/ω + b, H P₁ Hᵀ = H a/ω + H b, and the posterior
     trace is tr(P₁[idx]) − tr(A S⁻¹ Aᵀ) with A = (a/ω + b)[idx], S = H P₁ Hᵀ + R₁(ω).
     """
+    if H.shape[0] == 1:  # scalar measurement: plain floats
+        return _scalar_trace_fn(_scalar_terms(Pd, Pi, H, Rd, Ri, idx))
     a, b = Pd @ H.T, Pi @ H.T
     Ha, Hb = H @ a, H @ b
-    tr_d = float(Pd[idx, idx].sum())  # the trace of the idx block (np.ix_ is slow)
+    tr_d = float(Pd[idx, idx].sum())
     tr_i = float(Pi[idx, idx].sum())
     ai, bi = a[idx], b[idx]
-    if H.shape[0] == 1:  # scalar measurement: plain floats
-        aa, ab, bb = float(ai[:, 0] @ ai[:, 0]), float(ai[:, 0] @ bi[:, 0]), float(bi[:, 0] @ bi[:, 0])
-        ha, hb, rd, ri = float(Ha[0, 0]), float(Hb[0, 0]), float(Rd[0, 0]), float(Ri[0, 0])
-
-        def f(w: float) -> float:
-            s = ha / w + hb + rd / (1.0 - w) + ri
-            return tr_d / w + tr_i - (aa / (w * w) + 2.0 * ab / w + bb) / s
-        return f
 
     def g(w: float) -> float:
         A = ai / w + bi
         S = Ha / w + Hb + Rd / (1.0 - w) + Ri
         return tr_d / w + tr_i - float(np.trace(A @ np.linalg.solve(S, A.T)))
     return g
+
+
+def scalar_gain_exceeds(terms: tuple[float, ...], threshold: float,
+                        lo: float = OMEGA_MIN, hi: float = OMEGA_MAX) -> bool:
+    """Whether some ω in [lo, hi] reduces the ``idx`` variance by more than ``threshold``
+    (a scalar measurement; ``terms`` from :func:`_scalar_terms`), decided exactly without a search.
+
+    With x = 1/ω the gain is G(x) = N(x)/s(x) − tr_d (x − 1), N(x) = aa x² + 2ab x + bb and
+    s(x) = D(x)/(x − 1), D(x) = (ha x + hb + ri)(x − 1) + rd x > 0. So G(x) > T exactly where the
+    cubic p(x) = N(x)(x − 1) − (tr_d (x − 1) + T) D(x) is positive, and the maximum of a cubic on
+    an interval lies at an end or where its derivative (a quadratic) vanishes. A small relative
+    margin against rounding errs towards True (the caller then runs the search).
+    """
+    tr_d, _, aa, ab, bb, ha, hb, rd, ri = terms
+    c = hb + ri
+    d1 = c - ha + rd
+    e = threshold - tr_d
+    # p(x) = A x³ + B x² + C x + E
+    A = aa - tr_d * ha
+    B = 2.0 * ab - aa - tr_d * d1 - e * ha
+    C = bb - 2.0 * ab + tr_d * c - e * d1
+    E = e * c - bb
+    x_lo, x_hi = 1.0 / hi, 1.0 / lo
+    xs = [x_lo, x_hi]
+    # p'(x) = 3A x² + 2B x + C
+    qa, qb, qc = 3.0 * A, 2.0 * B, C
+    if qa != 0.0:
+        disc = qb * qb - 4.0 * qa * qc
+        if disc >= 0.0:
+            r = math.sqrt(disc)
+            q = -0.5 * (qb + math.copysign(r, qb))  # numerically stable roots
+            xs += [q / qa] + ([qc / q] if q != 0.0 else [])
+    elif qb != 0.0:
+        xs.append(-qc / qb)
+    for x in xs:
+        if x_lo <= x <= x_hi:
+            w = x - 1.0
+            plus = (aa * x * x + 2.0 * ab * x + bb) * w
+            minus = (tr_d * w + threshold) * ((ha * x + c) * w + rd * x)
+            if plus - minus > -1e-9 * (abs(plus) + abs(minus)):
+                return True
+    return False
 
 
 def _posterior_trace(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri: np.ndarray,
@@ -206,17 +268,21 @@ def split_ci_update(P: np.ndarray, P_ind: np.ndarray, meas: Measurement, R_dep: 
         ``result.omega`` is the chosen ω. A rejected update returns the priors.
     """
     n = P.shape[0]
-    if min_gain > 0.0:
-        prior = float(P[idx, idx].sum())
-        # screen first: no ω gains more than the plain Kalman update (P1(ω) ≥ P, R1(ω) ≥ R, and
-        # the posterior grows with both), so an update whose plain gain is too small is skipped
-        # without the ω search; the decision is the same as after it
-        if naive_gain(P, meas.H, R_dep + meas.R, idx) < min_gain * prior:
-            return np.zeros(n), P, P_ind, UpdateResult(np.zeros(n), float("nan"), meas.dim, False, meas.name,
-                                                       None, float("nan"), skipped=True)
     Pd = P - P_ind
     Pd = 0.5 * (Pd + Pd.T)
-    f = _trace_fn(Pd, P_ind, meas.H, R_dep, meas.R, idx)
+    scalar = meas.dim == 1
+    terms = _scalar_terms(Pd, P_ind, meas.H, R_dep, meas.R, idx) if scalar else ()
+    if min_gain > 0.0:
+        prior = float(P[idx, idx].sum())
+        # screen first, so that an update no ω makes worth it is skipped without the ω search
+        # (the decision is the same as after it): for a scalar measurement exactly (the best
+        # gain over all ω exceeds the threshold or not); otherwise by the plain Kalman gain, an
+        # upper bound over all ω (P1(ω) ≥ P, R1(ω) ≥ R, and the posterior grows with both)
+        if (not scalar_gain_exceeds(terms, min_gain * prior) if scalar
+                else naive_gain(P, meas.H, R_dep + meas.R, idx) < min_gain * prior):
+            return np.zeros(n), P, P_ind, UpdateResult(np.zeros(n), float("nan"), meas.dim, False, meas.name,
+                                                       None, float("nan"), skipped=True)
+    f = _scalar_trace_fn(terms) if scalar else _trace_fn(Pd, P_ind, meas.H, R_dep, meas.R, idx)
     omega = _best(Pd, R_dep, f)
     if min_gain > 0.0 and prior - f(omega) < min_gain * prior:
         return np.zeros(n), P, P_ind, UpdateResult(np.zeros(n), float("nan"), meas.dim, False, meas.name,

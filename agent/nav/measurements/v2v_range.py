@@ -14,13 +14,16 @@ import numpy as np
 
 from .. import earth
 from ..kalman import Measurement
-from ..state import NavState
+from ..state import N_STATES, POS, NavState
 from .common import point_llh, point_position_jacobian
 
 
 def relative_position(state: NavState, lever_arm_b: np.ndarray, neighbour_llh: np.ndarray) -> np.ndarray:
     """NED vector [m] from the neighbour's antenna to this vehicle's antenna, shape (3,)."""
-    lat, lon, h = point_llh(state, lever_arm_b)
+    if lever_arm_b.any():
+        lat, lon, h = point_llh(state, lever_arm_b)
+    else:
+        lat, lon, h = state.lat, state.lon, state.h
     return earth.ned_offset(lat, lon, h, neighbour_llh[0], neighbour_llh[1], neighbour_llh[2])
 
 
@@ -33,6 +36,7 @@ def range_measurement(
     lever_arm_b: np.ndarray = np.zeros(3),
     own_cov_ned: np.ndarray | None = None,
     second_order: bool = False,
+    relative: np.ndarray | None = None,
 ) -> Measurement:
     """Range to a neighbour (1 row).
 
@@ -54,8 +58,10 @@ def range_measurement(
         This vehicle's position covariance; required for ``second_order``.
     second_order : bool
         Add the second-order noise and bias terms.
+    relative : ndarray, shape (3,), optional
+        :func:`relative_position` of the same arguments, if the caller has it already.
     """
-    d = relative_position(state, lever_arm_b, neighbour_llh)
+    d = relative_position(state, lever_arm_b, neighbour_llh) if relative is None else relative
     rho = float(np.linalg.norm(d))
     if rho < 1e-3:
         raise ValueError("vehicles coincide: range direction undefined")
@@ -66,9 +72,16 @@ def range_measurement(
     if second_order:
         if own_cov_ned is None:
             raise ValueError("second_order range model needs own_cov_ned")
-        M = (np.eye(3) - np.outer(u, u)) / rho
-        MP = M @ (Pj + np.asarray(own_cov_ned, float))
-        predicted += 0.5 * float(np.trace(MP))
-        r += 0.5 * float(np.trace(MP @ MP))
-    H = u @ point_position_jacobian(state, lever_arm_b)
+        # with M = Π/ρ, Π = I - u uᵀ and Q = P_i + P_j (symmetric): tr(MQ) = (tr Q - uᵀQu)/ρ,
+        # tr((MQ)²) = (tr(Q²) - 2 |Qu|² + (uᵀQu)²)/ρ² (Π² = Π)
+        Q = Pj + np.asarray(own_cov_ned, float)
+        Qu = Q @ u
+        uQu = float(u @ Qu)
+        predicted += 0.5 * (float(Q.trace()) - uQu) / rho
+        r += 0.5 * (float((Q * Q).sum()) - 2.0 * float(Qu @ Qu) + uQu * uQu) / (rho * rho)
+    if lever_arm_b.any():
+        H = u @ point_position_jacobian(state, lever_arm_b)
+    else:  # only the position columns
+        H = np.zeros(N_STATES)
+        H[POS] = u
     return Measurement(np.array([predicted - measured_range]), H[None, :], np.array([[r]]), "v2v_range")
