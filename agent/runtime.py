@@ -23,7 +23,7 @@ import numpy as np
 from transport import keys
 from transport.bus import Bus, Subscription
 from transport.codec import CodecError, decode, encode
-from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
+from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange, UwbRound
 
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
 from .misbehaviour import MisbehaviourDetector
@@ -245,6 +245,20 @@ class Agent:
             self.counters["uwb"] += 1
             if self.filters:
                 self._apply_now(self.seq.push(msg.t, "uwb", msg))
+        elif isinstance(msg, UwbRound):
+            if msg.vehicle != v:
+                self.counters["not_for_me"] += 1
+                return
+            if self._ahead(msg.t, "uwb") or self._duplicate("uwb", (msg.seq, msg.t)):
+                return
+            # each range as the UwbRange of its pair would be (the same sequencer path)
+            for peer, r in zip(msg.peers, msg.ranges.tolist()):
+                if peer == v:
+                    self.counters["not_for_me"] += 1
+                    continue
+                self.counters["uwb"] += 1
+                if self.filters:
+                    self._apply_now(self.seq.push(msg.t, "uwb", UwbRange(v, peer, msg.seq, msg.t, r)))
         elif isinstance(msg, Beacon):
             if msg.vehicle == v or msg.method not in self.tables:
                 self.counters["not_for_me"] += 1

@@ -24,7 +24,7 @@ from agent.nav import earth
 from transport import keys
 from transport.bus import Bus
 from transport.codec import CodecError, decode, encode
-from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, UwbRange
+from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, UwbRound
 
 from .emulate import emulate_uwb, emulate_vehicle_sensors
 from .faults import LINK_FAULTS
@@ -60,7 +60,8 @@ class EmulatorService:
     #: resume a scenario at this sensor time [s] (a restarted emulator): earlier events are skipped
     start_at: float | None = None
     radio_stats: RadioStats = field(default_factory=RadioStats)
-    published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "uwb": 0})
+    #: messages published per kind ("uwb": ranges, each to both ends in "uwb_rounds" messages)
+    published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "uwb": 0, "uwb_rounds": 0})
     agent_time: dict[str, float] = field(default_factory=dict)
     #: misbehaving vehicles (their beacons are falsified in the radio, see hw_emulation.attacks)
     attacks: list = field(default_factory=list)
@@ -208,10 +209,14 @@ class EmulatorService:
             for i in range(len(g.t)):
                 if g.t[i] > t[0] + 1e-9:
                     ev.append((float(g.t[i]), 0, "gnss", vid, i))
+        # one event per ranging round: every pair with a range at that time, (pair, index)
+        rounds: dict[float, list[tuple[tuple[str, str], int]]] = {}
         for pair, rr in self.ranges.items():
             for i in np.flatnonzero(np.isfinite(rr.range)):
                 if rr.t[i] > 0:
-                    ev.append((float(rr.t[i]), 0, "uwb", pair, int(i)))
+                    rounds.setdefault(float(rr.t[i]), []).append((pair, int(i)))
+        for t, members in rounds.items():
+            ev.append((t, 0, "uwb", members, members[0][1]))
         ev.sort(key=lambda e: (e[0], e[1]))
         return ev
 
@@ -261,14 +266,25 @@ class EmulatorService:
                     await self.bus.publish(keys.gnss(who), encode(msg))
                     self.published["gnss"] += 1
                 else:
-                    if self._sensor_fault("uwb_outage", t, who):
-                        continue
-                    a, b = who
-                    rr = self.ranges[who]
-                    payload = encode(UwbRange(a, b, idx, float(rr.t[idx]), float(rr.range[idx])))
-                    await self.bus.publish(keys.uwb(a), payload)
-                    await self.bus.publish(keys.uwb(b), payload)
-                    self.published["uwb"] += 1
+                    # a ranging round: each vehicle gets one message with its ranges of the round
+                    # (a range goes to both ends of its pair)
+                    per: dict[str, tuple[list[str], list[float]]] = {}
+                    for pair, i in who:
+                        if self._sensor_fault("uwb_outage", t, pair):
+                            continue
+                        r = float(self.ranges[pair].range[i])
+                        a, b = pair
+                        pa, pb = per.setdefault(a, ([], [])), per.setdefault(b, ([], []))
+                        pa[0].append(b)
+                        pa[1].append(r)
+                        pb[0].append(a)
+                        pb[1].append(r)
+                        self.published["uwb"] += 1
+                    for vid in sorted(per):
+                        peers, rs = per[vid]
+                        msg = UwbRound(vid, idx, t, tuple(peers), np.array(rs))
+                        await self.bus.publish(keys.uwb(vid), encode(msg))
+                        self.published["uwb_rounds"] += 1
             # let the last beacons and estimates through (agents hold back a fraction of a second)
             await self._pace(self.now, wall0, t0, stop, final=True)
         finally:

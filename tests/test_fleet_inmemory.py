@@ -93,3 +93,30 @@ def test_an_unusable_range_is_counted_and_the_agent_goes_on() -> None:
     agent._fuse_ranges()
     assert agent._deferred == [] and agent.counters["rejected_range"] == 1
     assert isinstance(agent.tables["CP"].at("V2", 10.0), NeighbourState)
+
+
+def test_a_ranging_round_reaches_the_filters_as_its_single_ranges_would() -> None:
+    """A UwbRound (one message per vehicle and round) is sequenced exactly as the UwbRange of
+    each of its pairs; a peer equal to the receiver and a repeated round are counted, not used."""
+    from transport.messages import UwbRange, UwbRound
+
+    scn = load_scenario("paper-1")
+
+    def sequenced(messages):
+        agent = Agent(agent_config(scn, "V1"), InMemoryNetwork().bus())
+        agent.filters = {"CP": object()}  # initialised: measurements go to the sequencer
+        agent._imu_newest = 10.0
+        pushed = []
+        agent.seq.push = lambda t, kind, msg: pushed.append(
+            (t, kind, msg.b if msg.a == "V1" else msg.a, msg.range_m)) or []
+        for m in messages:
+            asyncio.run(agent.handle(m))
+        return pushed, agent.counters
+
+    rnd = UwbRound("V1", 42, 9.9, ("V0", "V2", "V1"), np.array([7.5, 6.25, 3.0]))
+    singles = [UwbRange("V0", "V1", 42, 9.9, 7.5), UwbRange("V1", "V2", 42, 9.9, 6.25)]
+    by_round, counters = sequenced([rnd, rnd])
+    by_single, _ = sequenced(singles)
+    assert by_round == by_single == [(9.9, "uwb", "V0", 7.5), (9.9, "uwb", "V2", 6.25)]
+    assert counters["uwb"] == 2 and counters["not_for_me"] == 1 and counters["duplicate_uwb"] == 1
+    assert sequenced([UwbRound("V2", 1, 9.9, ("V1",), np.array([5.0]))])[0] == []  # not for V1

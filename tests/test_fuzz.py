@@ -179,9 +179,13 @@ def _example(key: str):
 def test_malformed_payloads_never_decode() -> None:
     """Each malformed kind, derived from each message type, is refused by the codec."""
     rng = np.random.default_rng(7)
-    for key in (keys.imu("V1"), keys.gnss("V1"), keys.uwb("V1"), keys.radio_rx("V1"), keys.estimate("V1", "CP"),
-                keys.diag("V1")):
+    from transport.messages import UwbRound
+
+    examples = [_example(key) for key in (keys.imu("V1"), keys.gnss("V1"), keys.uwb("V1"), keys.radio_rx("V1"),
+                                          keys.estimate("V1", "CP"), keys.diag("V1"))]
+    examples.append(UwbRound("V1", 0, 1.0, ("V0",), np.array([5.0])))
+    for example in examples:
         for kind in MALFORMED:
             for _ in range(30):
                 with pytest.raises(CodecError):
-                    decode(malformed(rng, _example(key), kind))
+                    decode(malformed(rng, example, kind))

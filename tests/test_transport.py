@@ -15,7 +15,7 @@ from conftest import free_port
 from transport import keys
 from transport.bus import InMemoryNetwork
 from transport.codec import SCHEMA_VERSION, CodecError, decode, encode
-from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
+from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange, UwbRound
 
 names = st.from_regex(r"[A-Za-z0-9_.\-]{1,20}", fullmatch=True)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64, min_value=-1e12, max_value=1e12)
@@ -33,8 +33,15 @@ def imu_batches(draw):
     return ImuBatch(draw(names), draw(seqs), draw(arr((n,))), draw(arr((n,))), draw(arr((n, 3))), draw(arr((n, 3))))
 
 
+@st.composite
+def uwb_rounds(draw):
+    peers = draw(st.lists(names, min_size=1, max_size=12))
+    return UwbRound(draw(names), draw(seqs), draw(finite), tuple(peers), draw(arr((len(peers),))))
+
+
 messages = st.one_of(
     imu_batches(),
+    uwb_rounds(),
     st.builds(GnssFix, names, seqs, finite, arr((3,)), arr((3,)), arr((3,)), finite, st.integers(0, 9)),
     st.builds(UwbRange, names, names, seqs, finite, finite),
     st.builds(Beacon, names, seqs, names, finite, arr((3,)), arr((3,)), arr((3, 3)), st.binary(max_size=100),
@@ -49,6 +56,15 @@ messages = st.one_of(
 @given(messages)
 def test_codec_round_trip(msg) -> None:
     assert decode(encode(msg)) == msg
+
+
+def test_a_ranging_round_needs_one_range_per_peer() -> None:
+    obj = msgpack.unpackb(encode(UwbRound("V1", 3, 2.0, ("V0", "V2"), np.array([5.0, 6.0]))))
+    for change, match in [({"ranges": np.array([5.0]).tobytes()}, "2 peers but 1 ranges"),
+                          ({"peers": []}, "list of 1-"), ({"peers": ["V0", 7]}, "string"),
+                          ({"peers": "V0"}, "list of 1-")]:
+        with pytest.raises(CodecError, match=match):
+            decode(msgpack.packb(dict(obj, **change), use_bin_type=True))
 
 
 def _beacon() -> Beacon:

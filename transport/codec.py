@@ -28,6 +28,7 @@ _ARRAYS: dict[str, dict[str, tuple]] = {
     "imu": {"t": (None,), "dt": (None,), "dtheta": (None, 3), "dvel": (None, 3)},
     "gnss": {"llh": (3,), "v_ned": (3,), "sigma_ned": (3,)},
     "uwb": {},
+    "uwb_round": {"ranges": (None,)},
     "beacon": {"llh": (3,), "v_ned": (3,), "cov_pos": (3, 3)},
     "estimate": {"llh": (3,), "v_ned": (3,), "rpy": (3,), "cov_pos": (3, 3)},
     "diag": {},
@@ -101,7 +102,13 @@ def _check_status(name: str, fname: str, val: Any) -> dict:
     return val
 
 
-_VALIDATORS = {"auth": _check_auth, "first_stopped": _check_bool, "counters": _check_counters,
+def _check_peers(name: str, fname: str, val: Any) -> tuple[str, ...]:
+    if not isinstance(val, (list, tuple)) or not 0 < len(val) <= MAX_SAMPLES:
+        raise CodecError(f"{name}.peers: must be a list of 1-{MAX_SAMPLES} ids")
+    return tuple(_check_str(name, fname, v) for v in val)
+
+
+_VALIDATORS = {"auth": _check_auth, "peers": _check_peers, "first_stopped": _check_bool, "counters": _check_counters,
                "status": _check_status}
 
 
@@ -160,6 +167,8 @@ def decode(payload: bytes) -> Message:
             kwargs[fname], n_lead = _array(name, fname, obj[fname], shape, n_lead)
         else:
             kwargs[fname] = check(name, fname, obj[fname])
+    if name == "uwb_round" and len(kwargs["peers"]) != len(kwargs["ranges"]):
+        raise CodecError(f"uwb_round: {len(kwargs['peers'])} peers but {len(kwargs['ranges'])} ranges")
     return cls(**kwargs)
 
 

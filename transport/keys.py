@@ -5,7 +5,8 @@ key                                            payload
 =============================================  =================================================
 ``slcp/v1/sensor/<vehicle>/imu``               :class:`ImuBatch` from the emulator or a driver
 ``slcp/v1/sensor/<vehicle>/gnss``              :class:`GnssFix`
-``slcp/v1/uwb/<vehicle>``                      :class:`UwbRange` delivered to one end of a pair
+``slcp/v1/uwb/<vehicle>``                      :class:`UwbRound` (its ranges of one round) or a
+                                               :class:`UwbRange` delivered to one end of a pair
 ``slcp/v1/radio/tx/<vehicle>``                 :class:`Beacon` sent by an agent to the V2V radio
 ``slcp/v1/radio/rx/<vehicle>``                 :class:`Beacon` delivered by the radio to a receiver
 ``slcp/v1/estimate/<vehicle>/<method>``        :class:`Estimate` for the recorder

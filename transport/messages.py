@@ -71,6 +71,19 @@ class UwbRange(Message):
 
 
 @dataclass(frozen=True, eq=False)
+class UwbRound(Message):
+    """One UWB ranging round of ``vehicle`` at ``t`` [s]: its ranges [m] to ``peers`` (n,),
+    ``ranges`` (n,). One message per vehicle and round instead of one per range and end: the
+    same information as the :class:`UwbRange` of each pair, in a fifth of the messages."""
+
+    vehicle: str
+    seq: int
+    t: float
+    peers: tuple[str, ...]
+    ranges: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class Beacon(Message):
     """A vehicle's broadcast estimate: time, id, sequence, method, position, velocity, covariance.
 
@@ -116,6 +129,6 @@ class Diagnostics(Message):
 
 #: message type names on the wire
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    "imu": ImuBatch, "gnss": GnssFix, "uwb": UwbRange, "beacon": Beacon,
+    "imu": ImuBatch, "gnss": GnssFix, "uwb": UwbRange, "uwb_round": UwbRound, "beacon": Beacon,
     "estimate": Estimate, "diag": Diagnostics,
 }
