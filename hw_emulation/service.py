@@ -173,7 +173,16 @@ class EmulatorService:
             except CodecError:
                 continue
             if isinstance(e, Estimate):
-                self.agent_time[e.vehicle] = max(self.agent_time.get(e.vehicle, -np.inf), e.t)
+                self.agent_progress(e.vehicle, e.t)
+
+    def agent_progress(self, vehicle: str, t: float) -> None:
+        """An estimate of ``vehicle`` at sensor time ``t`` [s] arrived: pace on it. Ignored while
+        the agent is away: an estimate its dead process sent just before its liveliness token
+        went (still queued here) would put it back in the pacing at its old time, and the clock
+        would then wait for a restarted agent that cannot start without new sensor data."""
+        if vehicle in self._away:
+            return
+        self.agent_time[vehicle] = max(self.agent_time.get(vehicle, -np.inf), t)
 
     def _fault_count(self, kind: str) -> None:
         self.fault_stats[kind] = self.fault_stats.get(kind, 0) + 1

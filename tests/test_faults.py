@@ -41,6 +41,8 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
+            # the launcher's children run in their own sessions: end them too
+            subprocess.run(["pkill", "-KILL", "-f", str(out)], check=False)
     m = json.loads((out / "metrics.json").read_text())
     restarts = m["processes"]["restarts"]
     print("restarts:", restarts)

@@ -120,3 +120,18 @@ def test_a_ranging_round_reaches_the_filters_as_its_single_ranges_would() -> Non
     assert by_round == by_single == [(9.9, "uwb", "V0", 7.5), (9.9, "uwb", "V2", 6.25)]
     assert counters["uwb"] == 2 and counters["not_for_me"] == 1 and counters["duplicate_uwb"] == 1
     assert sequenced([UwbRound("V2", 1, 9.9, ("V1",), np.array([5.0]))])[0] == []  # not for V1
+
+
+def test_a_late_estimate_of_a_departed_agent_does_not_hold_the_clock() -> None:
+    """An estimate the dead process sent just before its liveliness token went is ignored while
+    the agent is away (else the pacing would wait for its old time, for ever); the restarted
+    agent's estimates count again."""
+    truth = build_truth(load_scenario("paper-1"))
+    emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0)
+    emu.agent_progress("V2", 16.2)
+    emu.forget_agent("V2")
+    emu.agent_progress("V2", 16.2)  # still queued when the token went
+    assert "V2" not in emu.agent_time
+    emu.agent_back("V2")
+    emu.agent_progress("V2", 17.0)
+    assert emu.agent_time["V2"] == 17.0

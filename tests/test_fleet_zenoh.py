@@ -78,6 +78,7 @@ def test_sigterm_to_the_launcher_stops_every_child(tmp_path, extra, up) -> None:
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
+        subprocess.run(["pkill", "-KILL", "-f", str(out)], check=False)  # whatever a failure left
 
 
 def test_a_termination_signal_while_a_child_starts_still_leaves_it_to_be_stopped(monkeypatch) -> None:
