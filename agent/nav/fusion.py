@@ -95,11 +95,10 @@ def scalar_gain_exceeds(terms: tuple[float, ...], threshold: float,
     c = hb + ri
     d1 = c - ha + rd
     e = threshold - tr_d
-    # p(x) = A x³ + B x² + C x + E
+    # p(x) = A x³ + B x² + C x + (e c − bb); only its derivative's coefficients are needed
     A = aa - tr_d * ha
     B = 2.0 * ab - aa - tr_d * d1 - e * ha
     C = bb - 2.0 * ab + tr_d * c - e * d1
-    E = e * c - bb
     x_lo, x_hi = 1.0 / hi, 1.0 / lo
     xs = [x_lo, x_hi]
     # p'(x) = 3A x² + 2B x + C
