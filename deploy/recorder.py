@@ -1,6 +1,6 @@
 """The recorder: every estimate and diagnostics message of a run, as JSON lines.
 
-Append-only and flushed after every batch taken off the queue, so a message the recorder has
+Append-only and flushed after every batch taken off the queue (every 0.1 s), so a message the recorder has
 received survives a crash of the recorder (at most a last line cut short, which the evaluation
 skips) and a restarted recorder continues the same file. Bad payloads are counted and dropped.
 """
@@ -51,6 +51,7 @@ class Recorder:
         self.latest_t: dict[str, float] = {}
         self.last_wall: dict[str, float] = {}  #: vehicle -> monotonic time [s] of its newest estimate
         self.diag: dict[str, tuple[float, dict, dict]] = {}
+        self._subs: list[Subscription] = []
 
     def write(self, payloads: list[bytes]) -> None:
         """Decode, write and flush a batch of payloads."""
@@ -69,14 +70,18 @@ class Recorder:
                 self.diag[m.source] = (time.monotonic(), m.counters, m.status)
         self._file.flush()
 
-    async def run(self, sub: Subscription) -> None:
-        """Record everything ``sub`` delivers, until cancelled."""
+    async def run(self, sub: Subscription, poll_s: float = 0.1) -> None:
+        """Record everything ``sub`` delivers, taken off its queue every ``poll_s`` [s wall] (the
+        subscription should be non-waking: a fleet's estimates would otherwise wake the recorder
+        hundreds of times a second), until cancelled; :meth:`close` records the rest."""
+        import asyncio
+
+        self._subs.append(sub)
         while True:
-            _, payload = await sub.get()
-            batch = [payload]
-            while not sub.queue.empty():
-                batch.append(sub.queue.get_nowait()[1])
-            self.write(batch)
+            await asyncio.sleep(poll_s)
+            batch = [payload for _, payload in sub.drain()]
+            if batch:
+                self.write(batch)
 
     def start(self, bus) -> list:
         """Subscribe on ``bus`` to every estimate and diagnostics message and record them; returns
@@ -85,8 +90,13 @@ class Recorder:
 
         from transport import keys
 
-        return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000))),
-                asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000)))]
+        return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000, wake=False))),
+                asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False)))]
 
     def close(self) -> None:
+        """Record what is still queued, then close the file."""
+        for sub in self._subs:
+            batch = [payload for _, payload in sub.drain()]
+            if batch:
+                self.write(batch)
         self._file.close()

@@ -159,15 +159,18 @@ class EmulatorService:
         while True:
             _, payload = await sub.get()
             self._radio_send(payload)
+            for _, payload in sub.drain():  # the rest of a burst, from the same wake-up
+                self._radio_send(payload)
             # deliver at once what is due: beacons arrive after the radio's clock passed their
             # time (agents trail it by their IMU hold), so waiting for the next sensor event
             # would add up to a batch period of latency
             await self._radio_deliver()
 
-    async def _watch_agents(self) -> None:
-        sub = self._subs[1]
-        while True:
-            _, payload = await sub.get()
+    def _read_estimates(self) -> None:
+        """Pace on the agents' estimates queued since the last call (agent-paced mode only)."""
+        if self._subs is None or self._subs[1] is None:
+            return
+        for _, payload in self._subs[1].drain():
             try:
                 e = decode(payload)
             except CodecError:
@@ -230,18 +233,19 @@ class EmulatorService:
         return ev
 
     def prepare(self) -> None:
-        """Subscribe to the agents' beacons and estimates. Call it before waiting for the agents,
-        so that no early estimate is missed (pacing waits for them); :meth:`run` calls it if
-        needed."""
+        """Subscribe to the agents' beacons and, in agent-paced mode, to their estimates. Call it
+        before waiting for the agents, so that no early estimate is missed (pacing waits for
+        them); :meth:`run` calls it if needed. The estimates do not wake the emulator: the pacing
+        loop reads them when it looks (at a fixed speed they are not needed at all)."""
         if self._subs is None:
-            self._subs = (self.bus.subscribe(keys.ROOT + "/radio/tx/*", 65536),
-                          self.bus.subscribe(keys.ROOT + "/estimate/**", 65536))
+            est = (self.bus.subscribe(keys.ROOT + "/estimate/**", 65536, wake=False)
+                   if self.speed is None else None)
+            self._subs = (self.bus.subscribe(keys.ROOT + "/radio/tx/*", 65536), est)
 
     async def run(self, stop: asyncio.Event | None = None) -> None:
         stop = stop or asyncio.Event()
         self.prepare()
         radio = asyncio.create_task(self._radio_loop(), name="radio")
-        watch = asyncio.create_task(self._watch_agents(), name="agent-watch")
         self.bus.declare_alive(keys.alive("emulator", "main"))
         if self.start_at is not None:
             self.now = max(self.now, float(self.start_at))
@@ -298,7 +302,6 @@ class EmulatorService:
             await self._pace(self.now, wall0, t0, stop, final=True)
         finally:
             radio.cancel()
-            watch.cancel()
             self.done.set()
 
     async def _pace(self, t: float, wall0: float, t0: float, stop: asyncio.Event, final: bool = False) -> None:
@@ -318,6 +321,7 @@ class EmulatorService:
             await asyncio.sleep(0.01)  # an agent left: hold the clock while it restarts
         deadline = time.monotonic() + (5.0 if final else 30.0)
         while not stop.is_set():
+            self._read_estimates()
             # the slowest agent that reports (one that left is forgotten until it reports again,
             # so a dead agent never stalls the fleet and a restarted one rejoins the pacing)
             slow = min((self.agent_time[v] for v in self.ids if v in self.agent_time), default=-np.inf)

@@ -70,7 +70,7 @@ def test_link_and_sensor_faults_on_a_running_fleet() -> None:
         await emu.run()
         stop.set()
         await asyncio.gather(*tasks)
-        est = [decode(rec.queue.get_nowait()[1]) for _ in range(rec.queue.qsize())]
+        est = [decode(payload) for _, payload in rec.drain()]
         return agents, emu, est
 
     agents, emu, est = asyncio.run(main())

@@ -38,9 +38,7 @@ def test_fleet_on_the_in_memory_bus() -> None:
         await emu.run()
         stop.set()
         await asyncio.gather(*tasks)
-        records = []
-        while not rec.queue.empty():
-            records.append(decode((await rec.get())[1]))
+        records = [decode(payload) for _, payload in rec.drain()]
         return agents, emu, records
 
     agents, emu, records = asyncio.run(main())

@@ -382,7 +382,7 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
         est = bus.subscribe(f"{keys.ROOT}/estimate/V0/*", 4096)
         rows = []
         try:
-            while drv.poll() is None or not est.queue.empty():
+            while drv.poll() is None or len(est):
                 try:
                     rows.append(decode((await asyncio.wait_for(est.get(), 1.0))[1]))
                 except asyncio.TimeoutError:
@@ -457,9 +457,7 @@ def test_the_driver_reads_a_ubx_log_file_paced_by_its_time_stamps(tmp_path) -> N
         t0 = time.monotonic()
         await asyncio.wait_for(drv.run(asyncio.Event()), 10)
         wall = time.monotonic() - t0
-        got = []
-        while not sub.queue.empty():
-            got.append(decode((await sub.get())[1]))
+        got = [decode(payload) for _, payload in sub.drain()]
         return got, wall, drv.all_counters()
 
     got, wall, counters = asyncio.run(main())

@@ -1,51 +1,120 @@
 """The Bus interface and an in-memory implementation for unit tests.
 
-Subscriptions deliver ``(key, payload bytes)`` through a bounded asyncio queue. Drop policy: when
-the queue is full the *oldest* item is dropped (fresh data wins, as for sensor and beacon
-streams), and the drop is counted in :attr:`Subscription.dropped`.
+Subscriptions deliver ``(key, payload bytes)`` through a bounded queue. Drop policy: when the
+queue is full the *oldest* item is dropped (fresh data wins, as for sensor and beacon streams),
+and the drop is counted in :attr:`Subscription.dropped`. Waking the event loop is the dominant
+cost of a message on a busy machine, so a consumer is woken once per burst, and a subscription
+may be non-waking (drained when its consumer wakes for another one).
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections import defaultdict
+from collections import defaultdict, deque
 from typing import AsyncIterator, Protocol
 
 from .keys import matches
 
 
-class Subscription:
-    """A bounded queue of ``(key, payload)`` fed by the bus; iterate with ``async for``."""
+class Waker:
+    """Wakes the consumer of one or several subscriptions; safe to signal from any thread.
 
-    def __init__(self, expr: str, maxsize: int, loop: asyncio.AbstractEventLoop) -> None:
+    A signal that arrives while one is already pending costs nothing more: a burst of messages
+    wakes the event loop once, and the consumer drains everything queued.
+    """
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self._event = asyncio.Event()
+        self._pending = False
+
+    def signal(self, threadsafe: bool = False) -> None:
+        """Wake the consumer (``threadsafe``: called from a thread other than the loop's)."""
+        if self._pending:
+            return
+        self._pending = True
+        if threadsafe:
+            try:
+                self.loop.call_soon_threadsafe(self._event.set)
+            except RuntimeError:  # loop closed during shutdown
+                pass
+        else:
+            self._event.set()
+
+    async def wait(self) -> None:
+        """Wait for the next signal. The pending flag is cleared first, so that an item offered
+        while the consumer drains signals again (never lost, at worst one spare wake-up)."""
+        await self._event.wait()
+        self._event.clear()
+        self._pending = False
+
+
+class Subscription:
+    """A bounded queue of ``(key, payload)`` fed by the bus.
+
+    ``offer`` may be called from any thread (a deque's append and popleft are atomic). A *waking*
+    subscription signals its :class:`Waker` for every offer; a non-waking one (``wake=False``)
+    only queues, and signals once it is half full, so its consumer drains it whenever it is woken
+    for something else (an agent drains beacons when its IMU arrives). Several subscriptions may
+    share one waker. ``await get()`` and ``async for`` serve single-subscription consumers.
+    """
+
+    def __init__(self, expr: str, maxsize: int, loop: asyncio.AbstractEventLoop, wake: bool = True,
+                 waker: Waker | None = None) -> None:
         if maxsize < 1:
             raise ValueError("queue size must be >= 1")
         self.expr = expr
-        self.queue: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue(maxsize)
+        self.maxsize = maxsize
         self.loop = loop
+        self.wake = wake
+        self.waker = waker if waker is not None else Waker(loop)
+        self._items: deque[tuple[str, bytes]] = deque()
+        self._high_water = max(1, maxsize // 2)
         self.received = 0
         self.dropped = 0
         self.closed = False
 
-    def offer(self, key: str, payload: bytes) -> None:
-        """Enqueue from the event-loop thread, dropping the oldest item when full."""
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def offer(self, key: str, payload: bytes, threadsafe: bool = False) -> None:
+        """Enqueue, dropping (and counting) the oldest item when full."""
         if self.closed:
             return
         self.received += 1
-        if self.queue.full():
-            self.queue.get_nowait()
-            self.dropped += 1
-        self.queue.put_nowait((key, payload))
+        items = self._items
+        if len(items) >= self.maxsize:
+            try:
+                items.popleft()
+                self.dropped += 1
+            except IndexError:  # drained meanwhile by the consumer
+                pass
+        items.append((key, payload))
+        if self.wake or len(items) >= self._high_water:
+            self.waker.signal(threadsafe)
+
+    def drain(self) -> list[tuple[str, bytes]]:
+        """Everything queued now, oldest first."""
+        out = []
+        items = self._items
+        while items:
+            try:
+                out.append(items.popleft())
+            except IndexError:
+                break
+        return out
 
     async def get(self) -> tuple[str, bytes]:
-        return await self.queue.get()
+        while not self._items:
+            await self.waker.wait()
+        return self._items.popleft()
 
     def __aiter__(self) -> AsyncIterator[tuple[str, bytes]]:
         return self._iter()
 
     async def _iter(self) -> AsyncIterator[tuple[str, bytes]]:
         while not self.closed:
-            yield await self.queue.get()
+            yield await self.get()
 
 
 class Bus(Protocol):
@@ -53,7 +122,9 @@ class Bus(Protocol):
 
     async def publish(self, key: str, payload: bytes) -> None: ...
 
-    def subscribe(self, expr: str, maxsize: int = 1024) -> Subscription: ...
+    def subscribe(self, expr: str, maxsize: int = 1024, wake: bool = True,
+                  waker: Waker | None = None) -> Subscription:
+        """A subscription to ``expr`` (see :class:`Subscription` for ``wake`` and ``waker``)."""
 
     def declare_alive(self, key: str) -> None: ...
 
@@ -100,8 +171,9 @@ class InMemoryBus:
                 if matches(sub.expr, key):
                     sub.offer(key, bytes(payload))
 
-    def subscribe(self, expr: str, maxsize: int = 1024) -> Subscription:
-        sub = Subscription(expr, maxsize, asyncio.get_running_loop())
+    def subscribe(self, expr: str, maxsize: int = 1024, wake: bool = True,
+                  waker: Waker | None = None) -> Subscription:
+        sub = Subscription(expr, maxsize, asyncio.get_running_loop(), wake, waker)
         self.subs.append(sub)
         return sub
 

@@ -1,8 +1,9 @@
 """The Zenoh implementation of the Bus: the only module of slcp that imports zenoh.
 
 Zenoh (1.x) has no asyncio API and runs callbacks on its own threads, where calling Zenoh or
-blocking is forbidden: each callback copies the payload bytes and hands them to the event loop
-with ``loop.call_soon_threadsafe``. Sessions are closed explicitly.
+blocking is forbidden: each callback copies the payload bytes into the subscription's queue
+(thread-safe) and wakes the event loop with ``loop.call_soon_threadsafe`` only when no wake-up
+is pending already (see :class:`transport.bus.Waker`). Sessions are closed explicitly.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from .bus import Subscription
+from .bus import Subscription, Waker
 
 log = logging.getLogger(__name__)
 
@@ -79,15 +80,12 @@ class ZenohBus:
             pub = self._publishers[key] = self.session.declare_publisher(key)
         pub.put(payload)
 
-    def subscribe(self, expr: str, maxsize: int = 1024) -> Subscription:
-        sub = Subscription(expr, maxsize, self.loop)
-        loop = self.loop
+    def subscribe(self, expr: str, maxsize: int = 1024, wake: bool = True,
+                  waker: Waker | None = None) -> Subscription:
+        sub = Subscription(expr, maxsize, self.loop, wake, waker)
 
-        def on_sample(sample) -> None:  # zenoh thread: copy, hand over, never block
-            try:
-                loop.call_soon_threadsafe(sub.offer, str(sample.key_expr), sample.payload.to_bytes())
-            except RuntimeError:  # loop closed during shutdown
-                pass
+        def on_sample(sample) -> None:  # zenoh thread: copy, queue, wake the loop at most once
+            sub.offer(str(sample.key_expr), sample.payload.to_bytes(), threadsafe=True)
 
         self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
         self._subs.append(sub)
