@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from transport import keys
-from transport.bus import Bus, Subscription, Waker
+from transport.bus import Bus, Subscription, Waker, drain_in_arrival_order
 from transport.codec import CodecError, decode, encode
 from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange, UwbRound
 
@@ -131,10 +131,6 @@ class Agent:
                              if cfg.misbehaviour_detection else None)
 
     # ----------------------------------------------------------------- lifecycle
-    #: the order in which one wake-up drains the subscriptions: beacons and measurements are in
-    #: place before the IMU moves the filters past their times
-    DRAIN_ORDER = ("beacon", "uwb", "gnss", "imu")
-
     async def run(self, stop: asyncio.Event) -> None:
         v = self.cfg.vehicle
         waker = Waker(asyncio.get_running_loop())
@@ -197,9 +193,8 @@ class Agent:
             await self._drain(subs)
 
     async def _drain(self, subs: dict[str, Subscription]) -> None:
-        for kind in self.DRAIN_ORDER:
-            for _, payload in subs[kind].drain():
-                await self._receive(kind, payload)
+        for kind, _, payload in drain_in_arrival_order(subs):
+            await self._receive(kind, payload)
 
     async def _receive(self, kind: str, payload: bytes) -> None:
         try:

@@ -72,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     ag = sub.add_parser("agent", help="run one vehicle agent (Zenoh)")
     ag.add_argument("--vehicle", help="vehicle id (overrides the config file)")
     ag.add_argument("--config", type=Path, required=True, help="agent TOML (see README)")
+    ag.add_argument("--nice", type=int, choices=range(0, 20), default=0, metavar="0-19",
+                    help="lower this process's scheduling priority by N (default 0)")
     em = sub.add_parser("emulate", help="run the emulator service (sensors, UWB, V2V radio) over Zenoh")
     em.add_argument("scenario", help="shipped scenario name or .toml")
     em.add_argument("--seed", type=int, default=0)
@@ -125,6 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")
     rn.add_argument("--faults", type=Path, default=None,
                     help="fault schedule (TOML): link, sensor and process faults, shown on the report")
+    rn.add_argument("--agent-nice", type=int, choices=range(0, 20), default=5, metavar="0-19",
+                    help="run the agents this many steps below normal priority, so that the emulated "
+                         "sensors and radio and the Zenoh router are served first (default 5; 0: equal)")
     rn.add_argument("--no-sign", action="store_true",
                     help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
     ae = sub.add_parser("attack-eval", help="misbehaviour detection against the VeReMi attacks, and false alarms on clean runs")
@@ -348,7 +353,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
             k = int(30 * done / total)
             print(f"  [{'#' * k}{'.' * (30 - k)}] {done}/{total} (seed {seed} done)", flush=True)
 
-        study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign)
+        study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign,
+                          agent_nice=args.agent_nice)
         text = study_markdown(scn, study)
         (out / "report.md").write_text(text)
         print(text)
@@ -357,7 +363,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")
     m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
                   progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign,
-                  faults=args.faults)
+                  faults=args.faults, agent_nice=args.agent_nice)
     print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
     print((out / "report.md").read_text())
     return 0
@@ -654,7 +660,7 @@ def main(argv: list[str] | None = None) -> int:
 
             from .processes import agent_main
 
-            return asyncio.run(agent_main(args.config, args.vehicle))
+            return asyncio.run(agent_main(args.config, args.vehicle, args.nice))
         if args.command == "emulate":
             import asyncio
 

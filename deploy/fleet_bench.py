@@ -2,7 +2,9 @@
 
 For each N, a grid scenario (:mod:`hw_emulation.grid`: IMU 100 Hz, GNSS 5 Hz, UWB 10 Hz to the
 at most 7 other vehicles of an intersection, beacons 5 Hz) is run by the launcher at speed 1×
-(the emulator paces on the wall clock), with signed beacons and one method per agent. Measured:
+(the emulator paces on the wall clock), with signed beacons and one method per agent; the agents
+run at ``nice`` 5 (see :func:`deploy.launcher.run_fleet`) and the vehicles' IMU batches are
+staggered (:mod:`hw_emulation.grid`). Measured:
 
 * ``realtime_factor``: sensor time advanced by the fleet's median agent (its newest estimate)
   per second of wall time, over the steady part (once every agent publishes); below 1 the
@@ -172,7 +174,7 @@ class FleetMonitor:
 
 
 def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign: bool = True,
-                    out: Path | None = None) -> dict:
+                    out: Path | None = None, agent_nice: int = 5) -> dict:
     """One benchmark point: ``n`` agents on the grid at 1×; returns :meth:`FleetMonitor.result`."""
     from .launcher import run_fleet
 
@@ -184,9 +186,10 @@ def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign:
         mon = FleetMonitor([f"G{i}" for i in range(n)])
         wall0 = time.monotonic()
         stats = run_fleet(str(scn), methods=(method,), speed=1.0, seed=0, out=base / "run", sign=sign,
-                          monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n))
+                          monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n), agent_nice=agent_nice)
         res = mon.result()
         res["method"] = method
+        res["agent_nice"] = agent_nice
         res["duration_s"] = duration
         res["total_wall_s"] = time.monotonic() - wall0
         res["restarts"] = len(stats["processes"].get("restarts", []))

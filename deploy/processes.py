@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+import os
 import signal
 import tomllib
 from pathlib import Path
@@ -183,11 +184,16 @@ def _install_signals(stop: asyncio.Event) -> None:
             pass
 
 
-async def agent_main(config_path: Path, vehicle: str | None) -> int:
+async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> int:
     from agent.runtime import Agent
     from transport.zenoh_bus import ZenohBus
 
     cfg, zcfg = load_agent_config(config_path, vehicle)
+    if nice:  # a lower scheduling priority (launcher: emulated hardware first on a shared machine)
+        try:
+            os.nice(nice)
+        except OSError as exc:
+            log.warning("%s: could not lower the priority by %d: %s", cfg.vehicle, nice, exc)
     stop = asyncio.Event()
     _install_signals(stop)
     bus = ZenohBus(zcfg)

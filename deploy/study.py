@@ -33,18 +33,20 @@ def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[fl
     return float(chi2.ppf(a, dim * n_runs) / n_runs), float(chi2.ppf(1.0 - a, dim * n_runs) / n_runs)
 
 
-def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool) -> dict:
+def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
+         agent_nice: int = 5) -> dict:
     import logging
 
     from .launcher import interrupt_on_termination, run_fleet
 
     logging.basicConfig(level=logging.WARNING)
     interrupt_on_termination()
-    return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign)
+    return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice)
 
 
 def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHODS, out: Path = Path("runs/study"),
-              fusion: str = "split-ci", jobs: int | None = None, progress=None, sign: bool = True) -> dict:
+              fusion: str = "split-ci", jobs: int | None = None, progress=None, sign: bool = True,
+              agent_nice: int = 5) -> dict:
     """Run the seeds and aggregate; ``progress(done, total, seed)`` after each run."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -52,7 +54,8 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     per_seed: dict[int, dict] = {}
     pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"))
     try:
-        futs = {pool.submit(_one, scenario, methods, s, str(out / f"seed-{s}"), fusion, sign): s for s in seeds}
+        futs = {pool.submit(_one, scenario, methods, s, str(out / f"seed-{s}"), fusion, sign, agent_nice): s
+                for s in seeds}
         for fut in as_completed(futs):
             per_seed[futs[fut]] = fut.result()
             if progress:

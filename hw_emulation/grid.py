@@ -8,7 +8,9 @@ drive straight through, stopping at red. One signal plan for all: north-south gr
 first half of a 60 s cycle, east-west for the second. With the default spacing of 1,000 m no
 vehicle is within radio (300 m) or UWB (200 m) range of another intersection's, so each has at
 most ``per_intersection - 1`` neighbours. The radio's emulated latency, jitter and stale
-deliveries are off (latency measured on the benchmark is the system's own); loss stays.
+deliveries are off (latency measured on the benchmark is the system's own); loss stays. The
+vehicles' IMU batches are staggered (``imu_stagger``): independent vehicles' clocks are not
+synchronised, so a fleet does not process its sensor data in lockstep.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ LANE_WIDTH = 3.5
 
 
 def grid_scenario_toml(n_vehicles: int, duration: float = 40.0, per_intersection: int = 8,
-                       spacing: float = 1000.0, seed: int = 1) -> str:
+                       spacing: float = 1000.0, seed: int = 1, imu_stagger: bool = True) -> str:
     """The TOML text of a grid scenario with ``n_vehicles`` vehicles (see the module docstring)."""
     if n_vehicles < 1:
         raise ValueError("a grid needs at least one vehicle")
@@ -43,6 +45,7 @@ def grid_scenario_toml(n_vehicles: int, duration: float = 40.0, per_intersection
         f'name = "grid-{n_vehicles}"',
         f'description = "{n_vehicles} vehicles on a grid of {n_int} signalised intersections"',
         f"seed = {seed}",
+        f"imu_stagger = {'true' if imu_stagger else 'false'}",
         f"duration = {duration}",
         "imu_rate = 100.0",
         "origin = { lat = 39.9552, lon = 116.3194, h = 50.0 }",

@@ -133,6 +133,9 @@ class Scenario:
     windows: dict[str, tuple[str, str]]
     paper_table: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+    #: the vehicles' IMU batches start at evenly spread phases instead of all at once (clocks of
+    #: different vehicles are not synchronised; spreads a large fleet's load over time)
+    imu_stagger: bool = False
 
 
 # --------------------------------------------------------------------------- parsing helpers
@@ -208,7 +211,10 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
                             "events", "windows", "paper"}, "")
     sc = ctx.table(data, "scenario", "", required=True)
     _check_keys(ctx, sc, {"name", "description", "seed", "duration", "imu_rate", "origin",
-                          "common_mode_sigma", "common_mode_tau"}, "scenario")
+                          "common_mode_sigma", "common_mode_tau", "imu_stagger"}, "scenario")
+    imu_stagger = sc.get("imu_stagger", False)
+    if not isinstance(imu_stagger, bool):
+        raise ctx.fail("scenario.imu_stagger", f"must be true or false, got {imu_stagger!r}")
     name = ctx.string(sc, "name", "scenario")
     seed = sc.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -364,6 +370,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
         common_mode_sigma=ctx.number(sc, "common_mode_sigma", "scenario", 1.5, non_negative=True),
         common_mode_tau=ctx.number(sc, "common_mode_tau", "scenario", 600.0, positive=True),
         events=tuple(events), windows=windows, paper_table=ctx.table(data, "paper", ""), source=source,
+        imu_stagger=imu_stagger,
     )
 
 

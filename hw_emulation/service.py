@@ -1,7 +1,9 @@
 """The emulator service: publishes a scenario's sensor data on the bus and plays the V2V radio.
 
 Impure shell over the pure emulation. Sensor data go out in sensor-time order: per vehicle, IMU
-batches of ``batch`` samples, GNSS fixes, and UWB ranges to *both* ends of each pair. The radio
+batches of ``batch`` samples (all vehicles' batches end at the same sample times, or at evenly
+spread phases with the scenario's ``imu_stagger``), GNSS fixes, and UWB ranges to *both* ends of
+each pair. The radio
 subscribes to the agents' beacons (``radio/tx/*``) and delivers each to every other vehicle
 (``radio/rx/<receiver>``) with the scenario's loss, latency and range limit, on sensor time.
 
@@ -213,9 +215,12 @@ class EmulatorService:
     def _events(self):
         """(time, kind, vehicle or pair, index) in sensor-time order."""
         ev = []
-        for vid in self.ids:
+        stagger = self.truth.scenario.imu_stagger
+        for k, vid in enumerate(self.ids):
             t = self.sensors[vid].imu_t
-            for j in range(self.batch, len(t), self.batch):
+            # staggered: vehicle k's batches end ``k * batch / n`` samples later than the first's
+            first = self.batch + ((k * self.batch) // len(self.ids) if stagger else 0)
+            for j in range(first, len(t), self.batch):
                 ev.append((float(t[j]), 1, "imu", vid, j))
             g = self.sensors[vid].gnss
             for i in range(len(g.t)):

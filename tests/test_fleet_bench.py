@@ -40,6 +40,30 @@ def test_the_grid_has_the_vehicles_and_at_most_seven_neighbours_each(tmp_path) -
             grid_scenario_toml(*bad)
 
 
+@pytest.mark.parametrize("stagger", [True, False])
+def test_staggered_imu_batches_end_at_evenly_spread_phases(tmp_path, stagger) -> None:
+    from hw_emulation.service import EmulatorService
+    from hw_emulation.truth import build_truth
+
+    p = tmp_path / "grid.toml"
+    p.write_text(grid_scenario_toml(5, duration=3.0, imu_stagger=stagger))
+    truth = build_truth(load_scenario(p))
+
+    async def events():
+        emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0)
+        return emu, emu._events()
+
+    emu, ev = asyncio.run(events())
+    ends = {}
+    for t, _, kind, who, idx in ev:
+        if kind == "imu":
+            ends.setdefault(who, []).append(idx)
+    # every vehicle gets whole batches of 10 samples; staggered, vehicle k's end k*10//5 samples later
+    assert all(np.all(np.diff(v) == emu.batch) for v in ends.values())
+    first = [ends[v][0] for v in emu.ids]
+    assert first == ([10, 12, 14, 16, 18] if stagger else [10] * 5)
+
+
 def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None:
     class Rec:
         latest_t = {"G0": 1.0, "G1": 1.0}

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from conftest import free_port
 from transport import keys
-from transport.bus import InMemoryNetwork
+from transport.bus import InMemoryNetwork, Subscription, Waker, drain_in_arrival_order
 from transport.codec import SCHEMA_VERSION, CodecError, decode, encode
 from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange, UwbRound
 
@@ -145,6 +145,63 @@ def test_in_memory_bus_delivery_drops_and_liveliness() -> None:
         assert got == [6, 7, 8, 9] and sub.dropped == 6 and sub.received == 10
         await a.close()
         assert events == [("slcp/v1/alive/agent/V1", True), ("slcp/v1/alive/agent/V1", False)]
+
+    asyncio.run(main())
+
+
+def test_non_waking_queues_are_drained_with_the_waking_one_in_arrival_order() -> None:
+    async def main():
+        net = InMemoryNetwork()
+        pub, rx = net.bus(), net.bus()
+        waker = Waker(asyncio.get_running_loop())
+        subs = {"imu": rx.subscribe(keys.imu("V2"), 8, waker=waker),
+                "beacon": rx.subscribe(keys.radio_rx("V2"), 8, wake=False, waker=waker)}
+        await pub.publish(keys.radio_rx("V2"), b"b0")
+        # a beacon alone does not wake the consumer
+        with pytest.raises(asyncio.TimeoutError):
+            await asyncio.wait_for(waker.wait(), 0.05)
+        await pub.publish(keys.imu("V2"), b"i0")
+        await pub.publish(keys.radio_rx("V2"), b"b1")
+        await asyncio.wait_for(waker.wait(), 1.0)
+        assert [(n, p) for n, _, p in drain_in_arrival_order(subs)] == [("beacon", b"b0"), ("imu", b"i0"),
+                                                                        ("beacon", b"b1")]
+        # a non-waking queue wakes its consumer once half full, before anything is dropped
+        for i in range(4):
+            await pub.publish(keys.radio_rx("V2"), b"b%d" % i)
+        await asyncio.wait_for(waker.wait(), 1.0)
+        assert len(subs["beacon"]) == 4 and subs["beacon"].dropped == 0
+
+    asyncio.run(main())
+
+
+def test_a_burst_from_another_thread_wakes_the_loop_once() -> None:
+    import threading
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        sub = Subscription("k", 1000, loop)
+        wakes = 0
+        orig = loop.call_soon_threadsafe
+
+        def counting(*a):
+            nonlocal wakes
+            wakes += 1
+            return orig(*a)
+
+        loop.call_soon_threadsafe = counting
+        th = threading.Thread(target=lambda: [sub.offer("k", b"%d" % i, threadsafe=True) for i in range(200)])
+        th.start()
+        th.join()  # the loop is not running meanwhile: one wake-up is pending for the whole burst
+        got = [await sub.get() for _ in range(200)]
+        assert [p for _, p in got] == [b"%d" % i for i in range(200)]
+        assert wakes == 1
+        # once the consumer has waited again, the next offer wakes it again
+        th = threading.Thread(target=lambda: sub.offer("k", b"x", threadsafe=True))
+        task = asyncio.ensure_future(sub.get())
+        await asyncio.sleep(0)
+        th.start()
+        th.join()
+        assert (await asyncio.wait_for(task, 1.0)) == ("k", b"x") and wakes == 2
 
     asyncio.run(main())
 

@@ -10,10 +10,17 @@ may be non-waking (drained when its consumer wakes for another one).
 from __future__ import annotations
 
 import asyncio
+import heapq
+import itertools
 from collections import defaultdict, deque
 from typing import AsyncIterator, Protocol
 
 from .keys import matches
+
+
+#: arrival stamps shared by every subscription of the process (``next`` is atomic in CPython), so
+#: that a consumer of several queues can take their items in the order they arrived
+_arrival = itertools.count()
 
 
 class Waker:
@@ -68,7 +75,7 @@ class Subscription:
         self.loop = loop
         self.wake = wake
         self.waker = waker if waker is not None else Waker(loop)
-        self._items: deque[tuple[str, bytes]] = deque()
+        self._items: deque[tuple[int, str, bytes]] = deque()  # (arrival stamp, key, payload)
         self._high_water = max(1, maxsize // 2)
         self.received = 0
         self.dropped = 0
@@ -89,12 +96,11 @@ class Subscription:
                 self.dropped += 1
             except IndexError:  # drained meanwhile by the consumer
                 pass
-        items.append((key, payload))
+        items.append((next(_arrival), key, payload))
         if self.wake or len(items) >= self._high_water:
             self.waker.signal(threadsafe)
 
-    def drain(self) -> list[tuple[str, bytes]]:
-        """Everything queued now, oldest first."""
+    def _take(self) -> list[tuple[int, str, bytes]]:
         out = []
         items = self._items
         while items:
@@ -104,10 +110,22 @@ class Subscription:
                 break
         return out
 
+    def drain(self) -> list[tuple[str, bytes]]:
+        """Everything queued now, oldest first, as ``(key, payload)``."""
+        return [(k, p) for _, k, p in self._take()]
+
     async def get(self) -> tuple[str, bytes]:
         while not self._items:
             await self.waker.wait()
-        return self._items.popleft()
+        _, key, payload = self._items.popleft()
+        return key, payload
+
+
+def drain_in_arrival_order(subs: dict[str, Subscription]) -> list[tuple[str, str, bytes]]:
+    """Everything queued now in several subscriptions, as ``(name, key, payload)`` in the order
+    the messages arrived (``subs`` maps a name to its subscription)."""
+    runs = [[(stamp, name, key, payload) for stamp, key, payload in sub._take()] for name, sub in subs.items()]
+    return [(name, key, payload) for _, name, key, payload in heapq.merge(*runs)]
 
     def __aiter__(self) -> AsyncIterator[tuple[str, bytes]]:
         return self._iter()
