@@ -28,6 +28,7 @@ from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch,
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
 from .misbehaviour import MisbehaviourDetector
 from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
+from .nav import earth
 from .nav.measurements.stop_line import StopGapModel
 from .nav.motion import StationarityMonitor, ZuptGate
 from .nav.rotation import quat_to_euler
@@ -104,7 +105,8 @@ class Agent:
                                          "beacons_tx": 0, "estimates_tx": 0, "codec_errors": 0,
                                          "not_for_me": 0, "before_init": 0, "decisions": 0}
         self.decision_log: list[tuple[float, str, str]] = []
-        self._pending_fix: GnssFix | None = None
+        #: GNSS fixes received before the filters start (the newest few)
+        self._pending_fixes: deque[GnssFix] = deque(maxlen=32)
         self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
         self._subs: dict[str, Subscription] = {}
         self.rest = StationarityMonitor()
@@ -249,7 +251,7 @@ class Agent:
                 return
             self.counters["gnss"] += 1
             if not self.filters:
-                self._pending_fix = msg
+                self._pending_fixes.append(msg)
                 return
             self._apply_now(self.seq.push(msg.t, "gnss", msg))
         elif isinstance(msg, UwbRange):
@@ -380,10 +382,9 @@ class Agent:
 
     async def _imu(self, msg: ImuBatch) -> None:
         if not self.filters:
-            if self._pending_fix is None:
+            if not self._init(msg):
                 self.counters["before_init"] += 1
                 return
-            self._init(self._pending_fix, msg)
         ref = next(iter(self.filters.values()))
         filters = list(self.filters.values())
         seq = self.seq
@@ -422,20 +423,37 @@ class Agent:
         if self._deferred:
             self._fuse_ranges()
 
-    def _init(self, fix: GnssFix, batch: ImuBatch) -> None:
+    #: the GNSS fix that starts the filters is at most this far from the IMU start [s]
+    INIT_FIX_WINDOW = 1.0
+
+    def _init(self, batch: ImuBatch) -> bool:
+        """Start the filters at the start of IMU ``batch`` from the GNSS fix nearest in time,
+        moved to that time with its velocity (which fixes had arrived when the first batch is
+        processed depends on message timing; this choice does not); later fixes are applied as
+        measurements. False (nothing started) without a fix within ``INIT_FIX_WINDOW``."""
+        t0 = float(batch.t[0] - batch.dt[0])
+        near = [g for g in self._pending_fixes if abs(g.t - t0) <= self.INIT_FIX_WINDOW]
+        if not near:
+            return False
+        fix = min(near, key=lambda g: (abs(g.t - t0), g.t))
+        later = sorted((g for g in self._pending_fixes if g.t > t0 and g is not fix), key=lambda g: g.t)
+        self._pending_fixes.clear()
         f_b = batch.dvel.sum(axis=0) / max(float(batch.dt.sum()), 1e-3)
-        st0 = initial_state(fix.llh, fix.v_ned, f_b)
+        llh0 = earth.offset_llh(fix.llh, np.asarray(fix.v_ned, float) * (t0 - fix.t))
+        st0 = initial_state(llh0, fix.v_ned, f_b)
         moving = math.hypot(fix.v_ned[0], fix.v_ned[1]) > 1.0
         for m in self.cfg.methods:
             self.filters[m] = MethodFilter(MethodSpec.of(m), st0.copy(), fix.sigma_ned, self.cfg.settings,
-                                           float(batch.t[0] - batch.dt[0]), self.cfg.gap, self.cfg.origin_llh,
-                                           heading_known=moving)
-        self.seq.t = float(batch.t[0] - batch.dt[0])
+                                           t0, self.cfg.gap, self.cfg.origin_llh, heading_known=moving)
+        self.seq.t = t0
         for name, rate in (("beacon", self.cfg.beacon_rate), ("estimate", self.cfg.estimate_rate),
                            ("decision", self.cfg.decision_rate), ("diag", 1.0)):
             self._next[name] = self.seq.t + 1.0 / rate
         self._timer_due = min(self._next.values())
         log.info("%s: initialised %s at t=%.2f", self.cfg.vehicle, ",".join(self.cfg.methods), self.seq.t)
+        for g in later:
+            self._apply_now(self.seq.push(g.t, "gnss", g))
+        return True
 
     def _apply_now(self, steps: list[Apply]) -> None:
         for s in steps:

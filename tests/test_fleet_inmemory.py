@@ -133,3 +133,38 @@ def test_a_late_estimate_of_a_departed_agent_does_not_hold_the_clock() -> None:
     emu.agent_back("V2")
     emu.agent_progress("V2", 17.0)
     assert emu.agent_time["V2"] == 17.0
+
+
+def test_the_filters_start_from_the_fix_nearest_the_first_imu_sample_whatever_had_arrived() -> None:
+    """Which GNSS fixes an agent holds when its first IMU batch is processed depends on message
+    timing; the start does not: the fix nearest in time, moved to the IMU start by its velocity."""
+    from agent.nav import earth
+    from transport.messages import GnssFix, ImuBatch
+
+    scn = load_scenario("paper-1")
+    cfg = agent_config(scn, "V1", methods=("SP",))
+    llh0, v = np.array(scn.origin_llh), np.array([10.0, 0.0, 0.0])
+
+    def fix(seq: int, t: float) -> GnssFix:
+        return GnssFix("V1", seq, t, earth.offset_llh(llh0, v * t), v, np.array([1.0, 1.0, 2.0]), 0.1)
+
+    n = 10
+    batch = ImuBatch("V1", 0, np.arange(1, n + 1) * 0.01, np.full(n, 0.01), np.zeros((n, 3)),
+                     np.tile([0.0, 0.0, -9.8 * 0.01], (n, 1)))
+
+    async def start(fixes):
+        a = Agent(cfg, InMemoryNetwork().bus())
+        for g in fixes:
+            await a.handle(g)
+        await a._imu(batch)
+        return a
+
+    starts = [asyncio.run(start(fs)) for fs in ([fix(0, 0.0)], [fix(0, 0.0), fix(1, 0.2), fix(2, 0.4)],
+                                                [fix(1, 0.2)], [fix(2, 0.4), fix(1, 0.2)])]
+    llh = [a.filters["SP"].filter.state.llh for a in starts]
+    for other in llh[1:]:
+        assert np.allclose(earth.ned_offset(*llh[0], *other), 0.0, atol=1e-3)
+    # the later fixes wait in the sequencer as measurements; a fix too far from the IMU starts nothing
+    assert starts[1].seq.counters.get("late_dropped", 0) == 0 and len(starts[1].seq._heap) == 2
+    far = asyncio.run(start([fix(0, 5.0)]))
+    assert not far.filters and far.counters["before_init"] == 1
