@@ -149,9 +149,11 @@ class Agent:
         self.bus.declare_alive(keys.alive("agent", v))
         self.bus.watch_alive(keys.ROOT + "/alive/agent/*", self._on_alive)
         consumer = asyncio.create_task(self._consume(waker, subs), name=f"{v}-consume")
-        try:
-            await stop.wait()
+        stopped = asyncio.create_task(stop.wait())
+        try:  # until the stop, or until the consumer fails (its exception is raised here)
+            await asyncio.wait((consumer, stopped), return_when=asyncio.FIRST_COMPLETED)
         finally:
+            stopped.cancel()
             consumer.cancel()
             try:
                 await consumer

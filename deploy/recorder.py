@@ -1,8 +1,8 @@
 """The recorder: every estimate and diagnostics message of a run, as JSON lines.
 
-Append-only and flushed after every batch taken off the queue (every 0.1 s), so a message the recorder has
-received survives a crash of the recorder (at most a last line cut short, which the evaluation
-skips) and a restarted recorder continues the same file. Bad payloads are counted and dropped.
+Append-only and flushed after every batch taken off the queue (every 0.1 s), so a message the
+recorder has taken survives a crash of the recorder (at most a last line cut short, which the
+evaluation skips) and a restarted recorder continues the same file. Bad payloads are counted and dropped.
 """
 
 from __future__ import annotations
