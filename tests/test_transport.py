@@ -141,7 +141,11 @@ def test_in_memory_bus_delivery_drops_and_liveliness() -> None:
         for i in range(10):
             await a.publish(keys.radio_rx("V2"), encode(Beacon("V1", i, "SP", float(i), np.zeros(3), np.zeros(3), np.eye(3))))
         await a.publish(keys.imu("V2"), b"not for this subscriber")
-        got = [decode((await sub.get())[1]).seq for _ in range(4)]
+        got = []
+        async for _, payload in sub:  # (a subscription is an async iterator too)
+            got.append(decode(payload).seq)
+            if len(got) == 4:
+                break
         assert got == [6, 7, 8, 9] and sub.dropped == 6 and sub.received == 10
         await a.close()
         assert events == [("slcp/v1/alive/agent/V1", True), ("slcp/v1/alive/agent/V1", False)]

@@ -120,19 +120,19 @@ class Subscription:
         _, key, payload = self._items.popleft()
         return key, payload
 
-
-def drain_in_arrival_order(subs: dict[str, Subscription]) -> list[tuple[str, str, bytes]]:
-    """Everything queued now in several subscriptions, as ``(name, key, payload)`` in the order
-    the messages arrived (``subs`` maps a name to its subscription)."""
-    runs = [[(stamp, name, key, payload) for stamp, key, payload in sub._take()] for name, sub in subs.items()]
-    return [(name, key, payload) for _, name, key, payload in heapq.merge(*runs)]
-
     def __aiter__(self) -> AsyncIterator[tuple[str, bytes]]:
         return self._iter()
 
     async def _iter(self) -> AsyncIterator[tuple[str, bytes]]:
         while not self.closed:
             yield await self.get()
+
+
+def drain_in_arrival_order(subs: dict[str, Subscription]) -> list[tuple[str, str, bytes]]:
+    """Everything queued now in several subscriptions, as ``(name, key, payload)`` in the order
+    the messages arrived (``subs`` maps a name to its subscription)."""
+    runs = [[(stamp, name, key, payload) for stamp, key, payload in sub._take()] for name, sub in subs.items()]
+    return [(name, key, payload) for _, name, key, payload in heapq.merge(*runs)]
 
 
 class Bus(Protocol):
