@@ -7,6 +7,7 @@ evaluation skips) and a restarted recorder continues the same file. Bad payloads
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from pathlib import Path
@@ -74,8 +75,6 @@ class Recorder:
         """Record everything ``sub`` delivers, taken off its queue every ``poll_s`` [s wall] (the
         subscription should be non-waking: a fleet's estimates would otherwise wake the recorder
         hundreds of times a second), until cancelled; :meth:`close` records the rest."""
-        import asyncio
-
         self._subs.append(sub)
         while True:
             await asyncio.sleep(poll_s)
@@ -86,8 +85,6 @@ class Recorder:
     def start(self, bus) -> list:
         """Subscribe on ``bus`` to every estimate and diagnostics message and record them; returns
         the two recording tasks (cancel them, then :meth:`close`)."""
-        import asyncio
-
         from transport import keys
 
         return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000, wake=False))),

@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from .kalman import Measurement, UpdateResult, kalman_update
+from .kalman import Measurement, UpdateResult, joseph, kalman_update
 
 OMEGA_MIN, OMEGA_MAX = 1e-3, 1.0 - 1e-3
 
@@ -292,7 +292,5 @@ def split_ci_update(P: np.ndarray, P_ind: np.ndarray, meas: Measurement, R_dep: 
     if not res.accepted:
         return dx, P, P_ind, UpdateResult(dx, res.nis, res.dof, False, res.name, None, omega)
     K = res.gain
-    IKH = -(K @ meas.H)
-    IKH.flat[:: P.shape[0] + 1] += 1.0
-    Pi = IKH @ P_ind @ IKH.T + K @ meas.R @ K.T
-    return dx, P_post, 0.5 * (Pi + Pi.T), UpdateResult(dx, res.nis, res.dof, True, res.name, K, omega)
+    P_ind_post = joseph(P_ind, K, meas.H, meas.R)
+    return dx, P_post, P_ind_post, UpdateResult(dx, res.nis, res.dof, True, res.name, K, omega)

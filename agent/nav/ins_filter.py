@@ -15,7 +15,7 @@ import numpy as np
 
 from .error_model import ImuNoise, discretize_density, process_noise_density, system_matrix
 from .fusion import split_ci_update
-from .kalman import Measurement, UpdateResult, kalman_update, stack
+from .kalman import Measurement, UpdateResult, joseph, kalman_update, stack
 from .mechanization import mechanize_run
 from .rotation import euler_to_quat, quat_to_euler, wrap_angle
 from .state import ATT, N_STATES, POS, VEL, NavState, remove_error
@@ -258,11 +258,7 @@ class InsFilter:
         dx, P, result = kalman_update(self.P, meas, gate_probability)
         if result.accepted:
             if self.P_ind is not None:  # an own-sensor measurement: independent information
-                K = result.gain
-                IKH = -(K @ meas.H)
-                IKH.flat[:: self.n + 1] += 1.0
-                Pi = IKH @ self.P_ind @ IKH.T + K @ meas.R @ K.T
-                self.P_ind = 0.5 * (Pi + Pi.T)
+                self.P_ind = joseph(self.P_ind, result.gain, meas.H, meas.R)
             self._feedback(dx)
             self.P = P
         self.stats.count(result)

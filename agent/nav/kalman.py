@@ -152,8 +152,14 @@ def kalman_update(
         return np.zeros(n), P, UpdateResult(np.zeros(n), nis, meas.dim, False, meas.name)
     K = PHt @ Sinv
     dx = K @ z
+    return dx, joseph(P, K, H, R), UpdateResult(dx, nis, meas.dim, True, meas.name, K)
+
+
+def joseph(P: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Joseph-form posterior ``(I - K H) P (I - K H)ᵀ + K R Kᵀ``, symmetrised: prior ``P`` (n, n),
+    gain ``K`` (n, m), Jacobian ``H`` (m, n), noise ``R`` (m, m). Valid for any gain, so it also
+    carries a covariance part (e.g. split CI's independent part) through another update's gain."""
     IKH = -(K @ H)
-    IKH.flat[:: n + 1] += 1.0
+    IKH.flat[:: P.shape[0] + 1] += 1.0
     P_post = IKH @ P @ IKH.T + K @ R @ K.T
-    P_post = 0.5 * (P_post + P_post.T)
-    return dx, P_post, UpdateResult(dx, nis, meas.dim, True, meas.name, K)
+    return 0.5 * (P_post + P_post.T)
