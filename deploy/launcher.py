@@ -48,6 +48,7 @@ from transport.security import create_fleet
 
 from .bound import posterior_crlb
 from .detection import score_first_stopped
+from .processes import SUPERVISOR_ENV
 from .recorder import Recorder
 
 log = logging.getLogger(__name__)
@@ -297,7 +298,8 @@ def _spawn(procs: dict[str, subprocess.Popen], name: str, args: list[str], log) 
     """Start ``args`` in its own session with output to ``log`` and enter it in ``procs`` before
     any termination signal can interrupt (see `_termination_deferred`)."""
     with _termination_deferred():
-        p = procs[name] = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        p = procs[name] = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                                           env={**os.environ, SUPERVISOR_ENV: str(os.getpid())})
     return p
 
 

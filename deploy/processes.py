@@ -19,6 +19,7 @@ Agent configuration file (TOML)::
     connect = ["tcp/127.0.0.1:7447"]
     listen = []
     lease_ms = 2000
+    autoconnect_strategy = "greater-zid"        # greater-zid | always: how peers dial the peers they learn of
     config_file = ""                            # optional Zenoh JSON5 (TLS, ACL)
     tls = false                                 # true: mutual TLS to the fleet router (`slcp router`) with
                                                 # this vehicle's certificate from [security]; connect must
@@ -35,7 +36,7 @@ import signal
 import tomllib
 from pathlib import Path
 
-from transport.zenoh_bus import ZenohConfig
+from transport.zenoh_bus import AUTOCONNECT_STRATEGIES, ZenohConfig
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +46,7 @@ class ConfigError(ValueError):
 
 
 def zenoh_config(d: dict, source: str) -> ZenohConfig:
-    allowed = {"mode", "connect", "listen", "lease_ms", "config_file", "multicast_scouting"}
+    allowed = {"mode", "connect", "listen", "lease_ms", "autoconnect_strategy", "config_file", "multicast_scouting"}
     for k in d:
         if k not in allowed:
             raise ConfigError(f"{source}: zenoh.{k}: unknown field (known: {', '.join(sorted(allowed))})")
@@ -59,8 +60,12 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
     lease = d.get("lease_ms", 2000)
     if isinstance(lease, bool) or not isinstance(lease, int) or lease < 100:
         raise ConfigError(f"{source}: zenoh.lease_ms: must be an integer >= 100")
+    strategy = d.get("autoconnect_strategy", "greater-zid")
+    if strategy not in AUTOCONNECT_STRATEGIES:
+        raise ConfigError(f"{source}: zenoh.autoconnect_strategy: must be one of "
+                          f"{', '.join(AUTOCONNECT_STRATEGIES)}, got {strategy!r}")
     return ZenohConfig(mode=mode, connect=tuple(d.get("connect", [])), listen=tuple(d.get("listen", [])),
-                       lease_ms=lease, config_file=d.get("config_file") or None,
+                       lease_ms=lease, autoconnect_strategy=strategy, config_file=d.get("config_file") or None,
                        multicast_scouting=bool(d.get("multicast_scouting", False)))
 
 
@@ -175,13 +180,34 @@ def security_config(d: dict, path: Path, vehicle: str) -> dict:
     return {"signer": signer, "trust": trust, "trust_dir": trust_dir}
 
 
+#: environment variable with the pid of the launcher that started this process (`slcp run`)
+SUPERVISOR_ENV = "SLCP_SUPERVISOR_PID"
+
+
 def _install_signals(stop: asyncio.Event) -> None:
+    """``stop`` is set on SIGINT/SIGTERM, and when the launcher that started this process
+    (:data:`SUPERVISOR_ENV`) is gone: a launcher killed with SIGKILL leaves no process behind."""
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         try:
             loop.add_signal_handler(sig, stop.set)
         except (NotImplementedError, RuntimeError):  # pragma: no cover - non-main thread / platform
             pass
+    supervisor = os.environ.get(SUPERVISOR_ENV, "")
+    if supervisor.isdigit():
+        _watch_tasks.add(loop.create_task(_stop_when_orphaned(int(supervisor), stop)))
+
+
+_watch_tasks: set[asyncio.Task] = set()
+
+
+async def _stop_when_orphaned(supervisor: int, stop: asyncio.Event, period: float = 0.5) -> None:
+    while not stop.is_set():
+        if os.getppid() != supervisor:
+            log.warning("the launcher (pid %d) is gone; stopping", supervisor)
+            stop.set()
+            return
+        await asyncio.sleep(period)
 
 
 async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> int:

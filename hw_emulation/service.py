@@ -59,6 +59,9 @@ class EmulatorService:
     max_speed: float = 20.0
     #: agent-paced mode: how long [s wall] the clock waits for an agent that left to come back
     rejoin_grace: float = 10.0
+    #: agent-paced mode: how long [s wall] the clock waits for an agent that reports nothing new;
+    #: then it goes on without that agent until the agent reports a later time
+    stall_timeout: float = 30.0
     #: resume a scenario at this sensor time [s] (a restarted emulator): earlier events are skipped
     start_at: float | None = None
     radio_stats: RadioStats = field(default_factory=RadioStats)
@@ -87,6 +90,9 @@ class EmulatorService:
         self.done = asyncio.Event()
         self._subs: tuple | None = None
         self._away: dict[str, float] = {}  #: vehicle -> monotonic time its agent left
+        #: vehicle -> sensor time [s] of its last estimate when it stalled the clock; the clock no
+        #: longer waits for it until it reports a later time
+        self.stalled: dict[str, float] = {}
 
     # ----------------------------------------------------------------- radio
     def _positions(self, t: float) -> dict[str, np.ndarray]:
@@ -187,6 +193,11 @@ class EmulatorService:
         would then wait for a restarted agent that cannot start without new sensor data."""
         if vehicle in self._away:
             return
+        if vehicle in self.stalled:
+            if t <= self.stalled[vehicle]:
+                return
+            log.warning("agent %s reports again (t=%.2f); pacing on it", vehicle, t)
+            del self.stalled[vehicle]
         self.agent_time[vehicle] = max(self.agent_time.get(vehicle, -np.inf), t)
 
     def _fault_count(self, kind: str) -> None:
@@ -324,18 +335,24 @@ class EmulatorService:
         while not stop.is_set() and not final and any(
                 time.monotonic() - left < self.rejoin_grace for left in self._away.values()):
             await asyncio.sleep(0.01)  # an agent left: hold the clock while it restarts
-        deadline = time.monotonic() + (5.0 if final else 30.0)
+        deadline = time.monotonic() + (5.0 if final else self.stall_timeout)
         while not stop.is_set():
             self._read_estimates()
             # the slowest agent that reports (one that left is forgotten until it reports again,
             # so a dead agent never stalls the fleet and a restarted one rejoins the pacing)
             slow = min((self.agent_time[v] for v in self.ids if v in self.agent_time), default=-np.inf)
-            if slow >= t - self.lead or (not final and slow == -np.inf and t - t0 < self.lead):
-                break
+            if slow >= t - self.lead or (not final and slow == -np.inf and (t - t0 < self.lead or self.stalled)):
+                break  # (with every agent set aside, the clock runs at max_speed until one reports)
             if time.monotonic() > deadline:
                 if final:
                     break
-                log.warning("agents stalled at t=%.2f (slowest %.2f); continuing", t, slow)
+                # set the laggards aside (a hung agent, or one whose estimates no longer get
+                # through): the clock would otherwise wait this long again at every event
+                behind = sorted(v for v in self.ids if self.agent_time.get(v, np.inf) < t - self.lead)
+                for v in behind:
+                    self.stalled[v] = self.agent_time.pop(v)
+                log.warning("agents stalled at t=%.2f (%s at %s); continuing without them until they report",
+                            t, ", ".join(behind), ", ".join(f"{self.stalled[v]:.2f}" for v in behind))
                 break
             await asyncio.sleep(0.001)
         await asyncio.sleep(0)

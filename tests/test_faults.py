@@ -4,6 +4,7 @@ SIGKILL in the middle of the run is restarted by the launcher and rejoins; its n
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -11,10 +12,11 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
-from conftest import free_port
+from conftest import free_port, run_group
 
 
 @pytest.mark.timeout(240)
@@ -77,8 +79,8 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
 
     schedule = Path(__file__).resolve().parents[1] / "deploy" / "faults" / "paper-1.toml"
     out = tmp_path / "run"
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--faults", str(schedule),
-                        "--out", str(out)], capture_output=True, text=True, timeout=200)
+    r = run_group([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--faults", str(schedule),
+                   "--out", str(out)], timeout=200)
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert [f["kind"] for f in m["faults"]] == ["v2v_blackout", "burst_loss", "latency_spike", "uwb_outage",
@@ -172,3 +174,43 @@ def test_a_killed_recorder_keeps_what_it_wrote_and_a_restarted_one_continues(tmp
     assert set(range(0, 200)) <= set(t)  # all flushed before the kill
     assert set(range(250, 450)) <= set(t)  # the restarted recorder got everything after it
     assert not set(range(200, 250)) & set(t)
+
+
+@pytest.mark.timeout(120)
+def test_a_launcher_killed_with_sigkill_leaves_no_process_behind(tmp_path) -> None:
+    """`slcp run` killed with SIGKILL cannot stop its processes; they notice it is gone (their
+    parent changes) and stop by themselves within about a second."""
+    out = tmp_path / "run"
+    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--speed", "1", "--out", str(out)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+
+    def children() -> set[int]:
+        return {int(x) for x in subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True,
+                                               text=True).stdout.split()}
+
+    def running(pids: set[int]) -> set[int]:  # not gone and not a zombie left to a non-reaping init
+        alive = set()
+        for pid in pids:
+            with contextlib.suppress(OSError):
+                state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+                if state != "Z":
+                    alive.add(pid)
+        return alive
+
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(children()) < 4:  # 3 agents, emulator
+            time.sleep(0.2)
+        time.sleep(2.0)
+        kids = children()
+        assert len(kids) == 4, kids
+        os.kill(p.pid, signal.SIGKILL)
+        p.wait()
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and running(kids):
+            time.sleep(0.2)
+        assert not running(kids)
+        for log in ("agent-V1.log", "emulator.log"):
+            assert "the launcher" in (out / "logs" / log).read_text()
+    finally:
+        subprocess.run(["pkill", "-KILL", "-f", str(out)], check=False)

@@ -4,6 +4,7 @@ the radio, ranges fused, the first stopped vehicle found, bad payloads counted, 
 from __future__ import annotations
 
 import asyncio
+import time
 
 import numpy as np
 import pytest
@@ -133,6 +134,31 @@ def test_a_late_estimate_of_a_departed_agent_does_not_hold_the_clock() -> None:
     emu.agent_back("V2")
     emu.agent_progress("V2", 17.0)
     assert emu.agent_time["V2"] == 17.0
+
+
+def test_an_agent_that_stalls_the_clock_is_waited_for_once_then_set_aside_until_it_reports() -> None:
+    """Agent-paced clock: an agent whose estimates stop arriving (hung, or its messages no longer
+    get through) holds the clock for ``stall_timeout`` once, not at every later event; it is paced
+    on again as soon as it reports a time later than the one it stalled at."""
+    truth = build_truth(load_scenario("paper-1"))
+    emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0, stall_timeout=0.3)
+    wall0, stop = time.monotonic() - 1e3, asyncio.Event()  # far behind max_speed: no rate limit
+
+    def pace(t: float) -> float:
+        w = time.monotonic()
+        asyncio.run(emu._pace(t, wall0, 0.0, stop))
+        return time.monotonic() - w
+
+    for v, t in (("V0", 5.0), ("V1", 10.0), ("V2", 10.0)):
+        emu.agent_progress(v, t)
+    assert pace(10.2) >= 0.3 and emu.stalled == {"V0": 5.0} and "V0" not in emu.agent_time
+    emu.agent_progress("V0", 5.0)  # nothing new: still aside
+    assert pace(10.3) < 0.1 and pace(10.4) < 0.1
+    emu.agent_progress("V0", 10.1)
+    assert emu.stalled == {} and emu.agent_time["V0"] == 10.1
+    assert pace(10.5) < 0.1  # everyone within the lead
+    assert 0.3 <= pace(11.5) < 1.0 and emu.stalled == {"V0": 10.1, "V1": 10.0, "V2": 10.0}
+    assert pace(11.6) < 0.1  # nobody left to wait for: the clock runs on
 
 
 def test_the_filters_start_from_the_fix_nearest_the_first_imu_sample_whatever_had_arrived() -> None:

@@ -4,6 +4,9 @@ and two Zenoh peers on loopback."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
+import os
 
 import msgpack
 import numpy as np
@@ -244,3 +247,74 @@ def test_two_zenoh_peers_on_loopback() -> None:
             await b.close()
 
     asyncio.run(main())
+
+
+def test_zenoh_peer_settings_and_a_bad_strategy() -> None:
+    from transport.zenoh_bus import ZenohConfig
+
+    got = json.loads(ZenohConfig().to_zenoh().get_json("scouting/gossip/autoconnect_strategy"))
+    assert got == {"peer": {"to_router": "always", "to_peer": "greater-zid"}}
+    with pytest.raises(ValueError, match="autoconnect_strategy"):
+        ZenohConfig(autoconnect_strategy="sometimes").to_zenoh()
+
+
+@pytest.mark.timeout(120)
+def test_zenoh_peers_recover_both_ways_after_a_freeze_longer_than_the_lease(tmp_path) -> None:
+    """Three peers behind a router on loopback (lease 1 s); one is frozen (SIGSTOP) for 1.3 s and
+    then 2.2 s, so the others expire it. After each freeze every peer hears every peer again,
+    both ways. (With both peers of a pair dialling each other this could leave a pair split,
+    data one way only, for good -- eclipse-zenoh/zenoh#2806; seen in about 1 run of 20 of a
+    6-peer version of this test, so this test guards the recovery rather than reproducing that.)"""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from conftest import wait_for_port
+
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    helper = Path(__file__).with_name("_probe_peer.py")
+    names = ["A", "B", "C"]
+    procs = [subprocess.Popen([sys.executable, "-m", "deploy.cli", "router", "--listen", ep],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
+
+    def heard(n: str, last: int = 2) -> list[set[str]]:
+        p = tmp_path / f"{n}.jsonl"
+        lines = p.read_text().splitlines()[-last:] if p.exists() else []
+        return [set(json.loads(x)) for x in lines]
+
+    def all_hear_all(timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if all(len(h) == 2 and all(s == set(names) for s in h) for h in map(heard, names)):
+                return True
+            time.sleep(0.25)
+        return False
+
+    try:
+        wait_for_port(port)
+        for n in names:
+            procs.append(subprocess.Popen([sys.executable, str(helper), n, ep, "1000", "greater-zid",
+                                           str(tmp_path / f"{n}.jsonl")], start_new_session=True,
+                                          stderr=subprocess.DEVNULL))
+        assert all_hear_all(20.0), {n: heard(n) for n in names}
+        frozen = procs[2]
+        for pause in (1.3, 2.2):
+            os.kill(frozen.pid, signal.SIGSTOP)
+            time.sleep(pause)
+            assert "B" not in heard("A", 1)[0]  # the others noticed: B was silent
+            os.kill(frozen.pid, signal.SIGCONT)
+            assert all_hear_all(15.0), (pause, {n: heard(n) for n in names})
+    finally:
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(p.pid, signal.SIGCONT)
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()

@@ -20,6 +20,9 @@ from .bus import Subscription, Waker
 log = logging.getLogger(__name__)
 
 
+AUTOCONNECT_STRATEGIES = ("greater-zid", "always")
+
+
 @dataclass(frozen=True)
 class ZenohConfig:
     """Session settings.
@@ -33,6 +36,13 @@ class ZenohConfig:
         Off by default (tests and deployments name their endpoints).
     lease_ms : int
         Transport lease; a frozen peer is declared gone after about this long.
+    autoconnect_strategy : {"greater-zid", "always"}
+        How a peer dials the peers it learns of (gossip, multicast scouting). ``"greater-zid"``
+        (default): of two peers only one dials the other, so a pair never holds two links that
+        can expire one at a time. With ``"always"`` both dial, and a lease that expires on one
+        side only (a process frozen for about a lease) can leave a pair split for good: data
+        one way, nothing back, no liveliness change (eclipse-zenoh/zenoh#2806). Routers are
+        always dialled.
     config_file : str, optional
         A Zenoh JSON5 configuration file (TLS, ACL, ...) loaded first; the fields above
         override it.
@@ -43,6 +53,7 @@ class ZenohConfig:
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
     lease_ms: int = 2000
+    autoconnect_strategy: str = "greater-zid"
     config_file: str | None = None
     extra: dict = field(default_factory=dict)
 
@@ -53,6 +64,12 @@ class ZenohConfig:
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         conf.insert_json5("transport/link/tx/lease", json.dumps(int(self.lease_ms)))
+        if self.autoconnect_strategy not in AUTOCONNECT_STRATEGIES:
+            raise ValueError(f"zenoh autoconnect_strategy must be one of {', '.join(AUTOCONNECT_STRATEGIES)}, "
+                             f"got {self.autoconnect_strategy!r}")
+        strategy = json.dumps({"peer": {"to_router": "always", "to_peer": self.autoconnect_strategy}})
+        conf.insert_json5("scouting/gossip/autoconnect_strategy", strategy)
+        conf.insert_json5("scouting/multicast/autoconnect_strategy", strategy)
         if self.listen:
             conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         if self.connect:
