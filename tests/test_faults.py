@@ -75,7 +75,6 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
 def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
     """The shipped example schedule (every fault kind: link and sensor faults, an agent frozen, an
     agent killed, the emulator killed) on `slcp run`."""
-    from pathlib import Path
 
     schedule = Path(__file__).resolve().parents[1] / "deploy" / "faults" / "paper-1.toml"
     out = tmp_path / "run"
