@@ -23,6 +23,8 @@ async def main(name: str, endpoint: str, lease_ms: int, strategy: str, out: Path
     asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
     bus = ZenohBus(ZenohConfig(mode="peer", connect=(endpoint,), lease_ms=lease_ms, autoconnect_strategy=strategy))
     sub = bus.subscribe("probe/*", wake=False)
+    bus.declare_alive(f"probe-alive/{name}")  # as agents do: liveliness declarations in the traffic
+    bus.watch_alive("probe-alive/*", lambda key, up: None)
     heard: dict[str, float] = {}
     k = 0
     with out.open("a") as f:

@@ -259,12 +259,16 @@ def test_zenoh_peer_settings_and_a_bad_strategy() -> None:
 
 
 @pytest.mark.timeout(120)
-def test_zenoh_peers_recover_both_ways_after_a_freeze_longer_than_the_lease(tmp_path) -> None:
-    """Three peers behind a router on loopback (lease 1 s); one is frozen (SIGSTOP) for 1.3 s and
-    then 2.2 s, so the others expire it. After each freeze every peer hears every peer again,
-    both ways. (With both peers of a pair dialling each other this could leave a pair split,
-    data one way only, for good -- eclipse-zenoh/zenoh#2806; seen in about 1 run of 20 of a
-    6-peer version of this test, so this test guards the recovery rather than reproducing that.)"""
+def test_zenoh_peers_recover_both_ways_after_a_freeze_about_a_lease_long(tmp_path) -> None:
+    """Six peers behind a router on loopback (lease 2 s, as slcp's default); one is frozen
+    (SIGSTOP) for 1.8 s, then 1.9 s, so the others may expire it before it can expire them. After
+    each freeze every peer hears every peer again, both ways.
+
+    This guards the recovery; it does not reproduce the split that Zenoh's default dialling can
+    leave (eclipse-zenoh/zenoh#2806): in a separate script (six peers started at once, frozen
+    3 s after the start for 1.6-2.5 s) that split happened in 4 of 15 runs with both peers of a
+    pair dialling and in 0 of 14 with ``greater-zid``, but this test passed 3 times of 3 with
+    ``SLCP_TEST_AUTOCONNECT=always`` (four freezes each)."""
     import signal
     import subprocess
     import sys
@@ -276,7 +280,8 @@ def test_zenoh_peers_recover_both_ways_after_a_freeze_longer_than_the_lease(tmp_
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     helper = Path(__file__).with_name("_probe_peer.py")
-    names = ["A", "B", "C"]
+    strategy = os.environ.get("SLCP_TEST_AUTOCONNECT", "greater-zid")
+    names = ["A", "C", "D", "E", "F", "B"]  # B, started last, is frozen
     procs = [subprocess.Popen([sys.executable, "-m", "deploy.cli", "router", "--listen", ep],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
 
@@ -296,17 +301,17 @@ def test_zenoh_peers_recover_both_ways_after_a_freeze_longer_than_the_lease(tmp_
     try:
         wait_for_port(port)
         for n in names:
-            procs.append(subprocess.Popen([sys.executable, str(helper), n, ep, "1000", "greater-zid",
+            procs.append(subprocess.Popen([sys.executable, str(helper), n, ep, "2000", strategy,
                                            str(tmp_path / f"{n}.jsonl")], start_new_session=True,
                                           stderr=subprocess.DEVNULL))
-        assert all_hear_all(20.0), {n: heard(n) for n in names}
-        frozen = procs[2]
-        for pause in (1.3, 2.2):
+        assert all_hear_all(30.0), {n: heard(n) for n in names}
+        frozen = procs[-1]
+        for pause in (1.8, 1.9):
             os.kill(frozen.pid, signal.SIGSTOP)
             time.sleep(pause)
             assert "B" not in heard("A", 1)[0]  # the others noticed: B was silent
             os.kill(frozen.pid, signal.SIGCONT)
-            assert all_hear_all(15.0), (pause, {n: heard(n) for n in names})
+            assert all_hear_all(12.0), (pause, {n: heard(n, 1) for n in names})
     finally:
         for p in procs:
             with contextlib.suppress(ProcessLookupError):
