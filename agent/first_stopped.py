@@ -14,7 +14,13 @@ fix, so the decision is conservative:
    ``behind_margin``), and no such neighbour claiming to be first, *unless* it stopped clearly
    after me (``order_tol``): in a queue the leader stops before its followers, so a neighbour
    that came to rest after me is behind me or in another lane. A neighbour first heard already
-   stopped counts as stopped before me.
+   stopped counts as stopped before me. Nor does a neighbour count whose UWB ranges of the last
+   ``range_window`` seconds (at least three) have a median shorter than ``min_queue_spacing`` by
+   ``k_sigma`` range σ: two vehicles queued in one lane stand at least a vehicle length plus
+   the standstill gap apart, so that neighbour stands beside me, in another lane. The range is
+   relative, so errors common to both GNSS positions do not enter; it settles side-by-side
+   queues on multi-lane approaches, where the beacon positions cannot tell the lanes apart and
+   each head would otherwise hold the other off its stop line.
 
 :class:`StopTracker` keeps the bookkeeping around the detector (own stationarity, when each
 neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
@@ -26,6 +32,7 @@ the decision is *along-only*: the stop line fixes the along-track position, not 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +59,11 @@ class DetectorSettings:
     order_tol: float = 0.5  #: [s] a neighbour at rest this much later than me is behind me
     stop_speed: float = 0.1  #: [m/s] own filter speed below which the vehicle is at rest
     neighbour_stop_speed: float = 0.3  #: [m/s] beacon speed below which a neighbour is at rest
+    #: [m] smallest distance between the reference points of two vehicles queued in one lane
+    #: (the leader's length behind its reference point, the standstill gap, my reference point's
+    #: distance behind my front: 2.1 + 2.0 + 2.5 = 6.6 m for the scenarios' 4.6 m cars)
+    min_queue_spacing: float = 5.0
+    range_window: float = 1.0  #: [s] UWB ranges this recent say whether a neighbour is beside me
 
 
 @dataclass(frozen=True)
@@ -65,6 +77,8 @@ class NeighbourView:
     #: sensor time [s] at which it came to rest; -inf if first heard at rest, None if moving
     stopped_since: float | None = None
     cov_ne: np.ndarray | None = None  #: (2, 2) [m²] its beacon's horizontal covariance
+    #: its recent UWB ranges prove it closer than two vehicles queued in one lane can stand
+    beside: bool = False
 
 
 @dataclass(frozen=True)
@@ -124,7 +138,7 @@ class FirstStoppedDetector:
             return Decision(False, None, False, "not near a stop line")
         reach = self.s.neighbour_range + self.s.k_sigma * math.sqrt(max(float(np.trace(cov_ne)), 0.0))
         for nb in neighbours:
-            if not nb.stopped or float(np.hypot(*(nb.ne - ne))) > reach:
+            if not nb.stopped or nb.beside or float(np.hypot(*(nb.ne - ne))) > reach:
                 continue
             if (stopped_since is not None and nb.stopped_since is not None
                     and nb.stopped_since > stopped_since + self.s.order_tol):
@@ -170,6 +184,23 @@ class StopTracker:
         self.along_only = False
         self.vetoed: str | None = None  #: neighbour that was ahead of me during this stop
         self._nb: dict[str, _NeighbourStop] = {}
+        self._ranges: dict[str, deque[tuple[float, float]]] = {}  #: vehicle -> (t, range + k σ)
+
+    def observe_range(self, vehicle: str, t: float, range_m: float, sigma: float) -> None:
+        """A UWB range [m] to ``vehicle`` at sensor time ``t`` [s] with noise σ ``sigma`` [m]."""
+        if not math.isfinite(range_m):
+            return
+        q = self._ranges.setdefault(vehicle, deque(maxlen=32))
+        q.append((t, range_m + self.s.k_sigma * sigma))
+        while q and q[0][0] < t - self.s.range_window:
+            q.popleft()
+
+    def beside(self, vehicle: str, t: float) -> bool:
+        """Whether ``vehicle``'s recent ranges prove it closer than a same-lane queue allows."""
+        recent = [r for tr, r in self._ranges.get(vehicle, ()) if t - self.s.range_window <= tr <= t + 0.5]
+        # the median: a gross outlier (either sign) cannot move it; an NLOS bias (positive) only
+        # makes the neighbour look farther, which errs on the safe side
+        return len(recent) >= 3 and float(np.median(recent)) < self.s.min_queue_spacing
 
     def observe_neighbour(self, vehicle: str, t: float, speed: float, claims_first: bool) -> None:
         """A beacon of ``vehicle`` at sensor time ``t`` [s] with horizontal ``speed`` [m/s]."""
@@ -187,6 +218,7 @@ class StopTracker:
 
     def forget(self, vehicle: str) -> None:
         self._nb.pop(vehicle, None)
+        self._ranges.pop(vehicle, None)
 
     def decide(self, t: float, ne: np.ndarray, cov_ne: np.ndarray, yaw: float, speed: float,
                neighbour_ne: dict[str, np.ndarray],
@@ -199,6 +231,8 @@ class StopTracker:
                 self.since, self.vetoed = t, None
         elif speed >= 2.0 * self.s.stop_speed:
             self.since, self.vetoed = None, None
+        if self.vetoed is not None and self.beside(self.vetoed, t):
+            self.vetoed = None  # the ranges now show it beside me, not ahead of me in my lane
         if self.vetoed is not None:
             # a vehicle that stopped behind a leader stays off the stop line when the leader leaves
             dec = Decision(False, None, False, f"stopped behind {self.vetoed}")
@@ -210,7 +244,7 @@ class StopTracker:
             st = self._nb.get(v)
             if st is not None:
                 nbs.append(NeighbourView(v, p, st.stopped_since is not None, st.claims_first, st.stopped_since,
-                                         (neighbour_cov or {}).get(v)))
+                                         (neighbour_cov or {}).get(v), self.beside(v, t)))
         # a claim ends as soon as the vehicle moves (the stop itself has hysteresis)
         still = t - self.since if self.since is not None and speed < self.s.stop_speed else 0.0
         dec = self.detector.decide(ne, cov_ne, yaw, still, nbs, self.since)

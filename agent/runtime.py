@@ -480,6 +480,8 @@ class Agent:
                         self._exclude(other)
                     self._count("range_excluded")
                     return
+            for tr in self.trackers.values():  # who stands beside me (first-stopped decisions)
+                tr.observe_range(other, step.t, msg.range_m, self.cfg.settings.sigma_uwb)
             for m, f in self.filters.items():
                 if f.spec.ranges:
                     self._deferred.append((step.t, m, other, msg.range_m))

@@ -57,6 +57,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
 
     filters: dict[tuple[str, str], MethodFilter] = {}
     detectors = {}
+    sigma_uwb: dict[str, float] = {}
     for vid in ids:
         g = sensors[vid].gnss
         f_b = sensors[vid].imu.dvel[:10].mean(axis=0) / dt[0]
@@ -64,6 +65,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
         cfg = agent_config(scn, vid, methods, fusion)
         gap, settings = cfg.gap, cfg.settings
         detectors[vid] = FirstStoppedDetector(lanes, gap)
+        sigma_uwb[vid] = settings.sigma_uwb
         for m in methods:
             filters[(vid, m)] = MethodFilter(MethodSpec.of(m), st0.copy(), g.sigma_ned[0], settings, float(t[0]),
                                              gap, scn.origin_llh, heading_known=np.hypot(*g.v_ned[0, :2]) > 1.0)
@@ -149,6 +151,8 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                     continue
                 for me, other in ((a, b), (b, a)):
                     for m in methods:
+                        if (me, m) in trackers:
+                            trackers[(me, m)].observe_range(other, tk, float(rr.range[r_i]), sigma_uwb[me])
                         if MethodSpec.of(m).ranges:
                             nb = tables[(me, m)].at(other, tk)
                             if nb is not None:

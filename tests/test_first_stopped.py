@@ -139,3 +139,36 @@ def test_imu_rest_is_told_from_constant_acceleration_and_turning() -> None:
     assert not gate.due(11.0, rest, 5.0)     # the INS says "moving": cruising looks like rest
     assert gate.due(11.0, rest, 0.3)
     assert not gate.due(11.05, rest, 0.3)    # at most every 0.1 s
+
+
+def test_side_by_side_heads_of_two_lanes_both_claim_when_their_ranges_show_them_abreast() -> None:
+    """Eastbound, two lanes, lateral σ 3 m (either could be in either lane). E1 (left lane) claims
+    first; E3 beside it stopped a little earlier. On beacons alone E1 may be ahead of E3 in E3's
+    lane, so E3 is held off (and the hold sticks). UWB ranges of 3.5 m -- no two cars of one lane
+    stand that close -- show E1 beside E3: E3 claims, and a hold taken before the ranges came
+    is lifted. A gross short outlier among range samples of a real leader 7 m ahead changes
+    nothing (the median)."""
+    e3, e1 = np.array([-5.25, -12.0]), np.array([-1.75, -12.0])
+    cov = np.diag([9.0, 1.0])
+    sigma_uwb = 0.1
+
+    def run(ranges: list[float] | None, t0: float = 0.0, tr: StopTracker | None = None):
+        tr = tr or StopTracker(FirstStoppedDetector(_lanes(), GAP))
+        for k in range(10):
+            t = t0 + 0.1 * k
+            tr.observe_neighbour("E1", t, 0.0, True)
+            if ranges is not None:
+                tr.observe_range("E1", t, ranges[k % len(ranges)], sigma_uwb)
+            dec, _ = tr.decide(t, e3, cov, math.pi / 2, 0.0, {"E1": e1})
+        return dec, tr
+
+    dec, tr = run(None)
+    assert not dec.first and tr.vetoed == "E1"
+    dec, _ = run([3.5, 3.6, 3.45])
+    assert dec.first and dec.along_only
+    dec, tr = run([3.5, 3.6, 3.45], t0=2.0, tr=tr)  # the earlier hold is lifted by the ranges
+    assert dec.first and tr.vetoed is None
+    dec, _ = run([7.0, 1.2, 7.1, 6.9])  # a real leader, one short outlier: still held off
+    assert not dec.first
+    dec, _ = run([4.9])  # 4.9 m + 2.5 σ is not surely shorter than a same-lane queue: held off
+    assert not dec.first
