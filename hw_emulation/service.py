@@ -351,8 +351,11 @@ class EmulatorService:
                 behind = sorted(v for v in self.ids if self.agent_time.get(v, np.inf) < t - self.lead)
                 for v in behind:
                     self.stalled[v] = self.agent_time.pop(v)
-                log.warning("agents stalled at t=%.2f (%s at %s); continuing without them until they report",
-                            t, ", ".join(behind), ", ".join(f"{self.stalled[v]:.2f}" for v in behind))
+                if behind:
+                    log.warning("agents stalled at t=%.2f (%s at %s); continuing without them until they report",
+                                t, ", ".join(behind), ", ".join(f"{self.stalled[v]:.2f}" for v in behind))
+                else:
+                    log.warning("no agent reports at t=%.2f; continuing", t)
                 break
             await asyncio.sleep(0.001)
         await asyncio.sleep(0)
