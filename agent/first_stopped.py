@@ -26,7 +26,11 @@ fix, so the decision is conservative:
 neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
 
 If several adjacent lanes sharing the stop line match (lateral uncertainty larger than a lane),
-the decision is *along-only*: the stop line fixes the along-track position, not the lane.
+the lane markings the camera settled on (:mod:`agent.lane_markings`) pick the lane whose
+classes they match; the candidates they rule out are no longer "my lane" for the neighbour rule
+either. Without a settled camera report that names one lane, the decision is *along-only*: the
+stop line fixes the along-track position, not the lane. A stop's lane, once named by the
+markings, is kept until the vehicle moves (a camera error later in the stop cannot move it).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .lane_markings import UNSEEN, LaneEdges, MarkingWindow, consistent, marking_classes
 from .nav.measurements.stop_line import StopGapModel, StopLineApproach
 from .nav.rotation import wrap_angle
 
@@ -96,6 +101,10 @@ class FirstStoppedDetector:
         self.lanes = lanes
         self.gap = gap
         self.s = settings
+        #: (left, right) marking classes each approach lane implies (see :mod:`agent.lane_markings`)
+        self.marks = marking_classes({lid: LaneEdges(np.asarray(ln.approach.left_lane_line.point),
+                                                     ln.approach.travel_direction, ln.width)
+                                      for lid, ln in lanes.items()})
 
     def _geometry(self, lane: ApproachLane, ne: np.ndarray) -> tuple[float, float]:
         """Distance behind the stop line and distance right of the left lane line [m]."""
@@ -127,15 +136,20 @@ class FirstStoppedDetector:
         return out
 
     def decide(self, ne: np.ndarray, cov_ne: np.ndarray, yaw: float, stationary_for: float,
-               neighbours: list[NeighbourView], stopped_since: float | None = None) -> Decision:
+               neighbours: list[NeighbourView], stopped_since: float | None = None,
+               markings: tuple[int, int] = (UNSEEN, UNSEEN)) -> Decision:
         """Decide for a vehicle at ``ne`` (map NED [m], (2,)) with covariance ``cov_ne`` (2, 2)
         [m²], heading ``yaw`` [rad], at rest for ``stationary_for`` s since ``stopped_since``
-        (sensor time; None disables the queue-order rule)."""
+        (sensor time; None disables the queue-order rule), its camera having settled on the
+        (left, right) marking classes ``markings``."""
         if stationary_for < self.s.min_stationary:
             return Decision(False, None, False, "moving")
         cands = self.candidates(ne, cov_ne, yaw)
         if not cands:
             return Decision(False, None, False, "not near a stop line")
+        if len(cands) > 1:
+            named = [c for c in cands if consistent(self.marks[c[0]], markings)]
+            cands = named or cands
         reach = self.s.neighbour_range + self.s.k_sigma * math.sqrt(max(float(np.trace(cov_ne)), 0.0))
         for nb in neighbours:
             if not nb.stopped or nb.beside or float(np.hypot(*(nb.ne - ne))) > reach:
@@ -185,6 +199,12 @@ class StopTracker:
         self.vetoed: str | None = None  #: neighbour that was ahead of me during this stop
         self._nb: dict[str, _NeighbourStop] = {}
         self._ranges: dict[str, deque[tuple[float, float]]] = {}  #: vehicle -> (t, range + k σ)
+        self.markings = MarkingWindow()  #: the camera's recent lane-marking reports
+        self._stop_marks: tuple[int, int] | None = None  #: markings that named this stop's lane
+
+    def observe_markings(self, t: float, left: int, right: int) -> None:
+        """The camera's (left, right) lane-marking classes at sensor time ``t`` [s]."""
+        self.markings.observe(t, left, right)
 
     def observe_range(self, vehicle: str, t: float, range_m: float, sigma: float) -> None:
         """A UWB range [m] to ``vehicle`` at sensor time ``t`` [s] with noise σ ``sigma`` [m]."""
@@ -228,9 +248,9 @@ class StopTracker:
         Returns the decision and whether the claim changed."""
         if speed < self.s.stop_speed:
             if self.since is None:
-                self.since, self.vetoed = t, None
+                self.since, self.vetoed, self._stop_marks = t, None, None
         elif speed >= 2.0 * self.s.stop_speed:
-            self.since, self.vetoed = None, None
+            self.since, self.vetoed, self._stop_marks = None, None, None
         if self.vetoed is not None and self.beside(self.vetoed, t):
             self.vetoed = None  # the ranges now show it beside me, not ahead of me in my lane
         if self.vetoed is not None:
@@ -247,9 +267,12 @@ class StopTracker:
                                          (neighbour_cov or {}).get(v), self.beside(v, t)))
         # a claim ends as soon as the vehicle moves (the stop itself has hysteresis)
         still = t - self.since if self.since is not None and speed < self.s.stop_speed else 0.0
-        dec = self.detector.decide(ne, cov_ne, yaw, still, nbs, self.since)
+        marks = self._stop_marks or self.markings.settled(t)
+        dec = self.detector.decide(ne, cov_ne, yaw, still, nbs, self.since, marks)
         if dec.vetoed_by is not None:
             self.vetoed = dec.vetoed_by
+        if dec.first and not dec.along_only and marks != (UNSEEN, UNSEEN):
+            self._stop_marks = marks
         changed = dec.first != self.claim or (dec.first and dec.lane != self.lane)
         self.claim, self.lane, self.along_only = dec.first, dec.lane, dec.along_only
         return dec, changed

@@ -23,7 +23,7 @@ import numpy as np
 from transport import keys
 from transport.bus import Bus, Subscription, Waker, drain_in_arrival_order
 from transport.codec import CodecError, decode, encode
-from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange, UwbRound
+from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRange, UwbRound
 
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
 from .misbehaviour import MisbehaviourDetector
@@ -101,7 +101,7 @@ class Agent:
         self.tables = {m: NeighbourTable(timeout=cfg.neighbour_timeout) for m in cfg.methods}
         self.detector = FirstStoppedDetector(cfg.lanes, cfg.gap)
         self.trackers = {m: StopTracker(self.detector) for m in cfg.methods if MethodSpec.of(m).stop_line}
-        self.counters: dict[str, int] = {"imu_batches": 0, "gnss": 0, "uwb": 0, "beacons_rx": 0,
+        self.counters: dict[str, int] = {"imu_batches": 0, "gnss": 0, "lane": 0, "uwb": 0, "beacons_rx": 0,
                                          "beacons_tx": 0, "estimates_tx": 0, "codec_errors": 0,
                                          "not_for_me": 0, "before_init": 0, "decisions": 0}
         self.decision_log: list[tuple[float, str, str]] = []
@@ -143,7 +143,7 @@ class Agent:
         subs = {
             kind: self.bus.subscribe(key, self.cfg.queue_size, wake=kind == "imu", waker=waker)
             for kind, key in (("beacon", keys.radio_rx(v)), ("uwb", keys.uwb(v)), ("gnss", keys.gnss(v)),
-                              ("imu", keys.imu(v)))
+                              ("lane", keys.lane(v)), ("imu", keys.imu(v)))
         }
         self._subs = subs
         self.bus.declare_alive(keys.alive("agent", v))
@@ -256,6 +256,15 @@ class Agent:
                 self._pending_fixes.append(msg)
                 return
             self._apply_now(self.seq.push(msg.t, "gnss", msg))
+        elif isinstance(msg, LaneMarkings):
+            if msg.vehicle != v:
+                self.counters["not_for_me"] += 1
+                return
+            if self._ahead(msg.t, "lane") or self._duplicate("lane", (msg.seq, msg.t)):
+                return
+            self.counters["lane"] += 1
+            if self.filters:
+                self._apply_now(self.seq.push(msg.t, "lane", msg))
         elif isinstance(msg, UwbRange):
             if v not in (msg.a, msg.b) or msg.a == msg.b:
                 self.counters["not_for_me"] += 1
@@ -467,6 +476,9 @@ class Agent:
             self.zupt_gate.gnss(step.t)
             for f in self.filters.values():
                 f.gnss(msg.llh, msg.v_ned, msg.sigma_ned, msg.sigma_v)
+        elif step.kind == "lane":
+            for tr in self.trackers.values():
+                tr.observe_markings(step.t, msg.left, msg.right)
         elif step.kind == "uwb":
             other = msg.b if msg.a == self.cfg.vehicle else msg.a
             mb = self.misbehaviour

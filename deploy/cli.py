@@ -198,7 +198,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
     from hw_emulation.truth import build_truth
 
     scn = load_scenario(args.name)
-    truth = build_truth(scn)
+    # evaluate: a run's seed also redraws where the drivers stop, as in `slcp run --seed`
+    truth = build_truth(scn, stop_seed=args.seed if args.scenario_command == "evaluate" else None)
     if args.scenario_command == "sp-check":
         return _sp_check(args, scn, truth)
     if args.scenario_command == "evaluate":

@@ -96,6 +96,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     uwb_step = int(round(scn.imu_rate / scn.uwb.rate))
     dec_step = int(round(scn.imu_rate / DECISION_RATE))
     gnss_i = {vid: 0 for vid in ids}
+    lane_i = {vid: 0 for vid in ids}
     imu = {vid: (sensors[vid].imu.dtheta.tolist(), sensors[vid].imu.dvel.tolist()) for vid in ids}
     dts = dt.tolist()
     rec_t, err, sig, first = [], {k: [] for k in filters}, {k: [] for k in filters}, {k: [] for k in filters}
@@ -115,6 +116,14 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                     for m in methods:
                         filters[(vid, m)].gnss(g.llh[i], g.v_ned[i], g.sigma_ned[i], g.sigma_v)
                 gnss_i[vid] += 1
+            cam = sensors[vid].lane
+            while cam is not None and lane_i[vid] < len(cam.t) and cam.t[lane_i[vid]] <= tk + 1e-6:
+                i = lane_i[vid]
+                for m in methods:
+                    if (vid, m) in trackers:
+                        trackers[(vid, m)].observe_markings(float(cam.t[i]), int(cam.classes[i, 0]),
+                                                            int(cam.classes[i, 1]))
+                lane_i[vid] += 1
             rest[vid].push(th, dv, dts[k], filters[(vid, methods[0])].filter.state.dcm)
             v = filters[(vid, methods[0])].filter.state.v
             if zupt_gate[vid].due(tk, rest[vid], math.hypot(v[0], v[1])):

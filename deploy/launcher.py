@@ -107,7 +107,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}
-    truth = build_truth(scn)
+    truth = build_truth(scn, stop_seed=seed)
     metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods, schedule)
     metrics["wall_s"] = wall
     metrics["seed"] = seed
@@ -539,7 +539,9 @@ def rebuild_report(run_dir: Path) -> dict:
     (run_dir / "estimates").mkdir(exist_ok=True)
     fpath = run_dir / "config" / "faults.toml"
     schedule = load_faults(fpath, {v.id for v in scn.vehicles}) if fpath.exists() else []
-    metrics = evaluate_recording(build_truth(scn), rec, run_dir, METHODS, schedule)
+    seed = old.get("seed")
+    truth = build_truth(scn, stop_seed=seed if isinstance(seed, int) and seed >= 0 else None)
+    metrics = evaluate_recording(truth, rec, run_dir, METHODS, schedule)
     for k in ("wall_s", "seed", "fusion", "processes"):
         if k in old:
             metrics[k] = old[k]

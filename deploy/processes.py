@@ -279,7 +279,7 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
     from transport.zenoh_bus import ZenohBus
 
     scn = load_scenario(scenario)
-    truth = build_truth(scn)
+    truth = build_truth(scn, stop_seed=seed)
     faults = []
     if faults_path is not None:
         from hw_emulation.faults import load_faults

@@ -1,18 +1,23 @@
 """Sensor data of a scenario's vehicles from its truth (pure: everything comes from the rng).
 
 IMU increments at the scenario's IMU rate; GNSS fixes at each vehicle's GNSS rate with the
-urban error model (one common-mode realisation shared by all vehicles); UWB ranges for every
-pair. The service that publishes these on the bus (issue "Distributed fleet") consumes this.
+urban error model (one common-mode realisation shared by all vehicles); the camera's lane-marking
+classes; UWB ranges for every pair. The service that publishes these on the bus (issue "Distributed fleet") consumes this.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
 
+from agent.lane_markings import UNSEEN, LaneEdges, marking_classes
 from agent.nav import earth
+from .geometry import offset_polyline
+from .scenario import Scenario
+from .sensors.camera import simulate_markings
 from .sensors.gnss import GnssErrors, common_mode_error, simulate_gnss
 from .sensors.imu import ImuErrors, corrupt_increments
 from .sensors.uwb import UwbRanges, simulate_pair
@@ -48,14 +53,44 @@ class GnssFixes:
 
 
 @dataclass(frozen=True)
+class LaneMarkingReports:
+    """The camera's lane-marking classes: ``t`` (n,) [s], ``classes`` (n, 2) ints (left,
+    right; see :mod:`agent.lane_markings`), ``truth`` (n, 2) the true classes."""
+
+    t: np.ndarray
+    classes: np.ndarray
+    truth: np.ndarray
+
+
+@dataclass(frozen=True)
 class VehicleSensors:
     imu_t: np.ndarray  #: IMU sample times [s]; interval k spans imu_t[k]..imu_t[k+1]
     imu: ImuErrors
     gnss: GnssFixes
+    lane: LaneMarkingReports | None = None  #: None if the scenario's vehicles have no camera
+
+
+def true_marking_classes(scn: Scenario) -> dict[str, tuple[int, int]]:
+    """The (left, right) marking classes of every lane of the scenario's map."""
+    edges = {}
+    for lane in scn.lanes.values():
+        c = lane.centerline[-2:]
+        d = (c[1] - c[0]) / np.hypot(*(c[1] - c[0]))
+        edges[lane.id] = LaneEdges(offset_polyline(c, -lane.width / 2)[-1], d, lane.width)
+    return marking_classes(edges)
+
+
+def _lane_reports(scn: Scenario, vt, classes: dict[str, tuple[int, int]],
+                  rng: np.random.Generator) -> LaneMarkingReports:
+    tr = vt.truth
+    t = np.arange(tr.t[0], tr.t[-1] + 1e-9, 1.0 / scn.camera.rate)
+    k = np.clip(np.searchsorted(tr.t, t - 1e-9), 0, len(tr.t) - 1)
+    truth = np.array([classes.get(str(seg), (UNSEEN, UNSEEN)) for seg in vt.segment[k]], dtype=np.int64)
+    return LaneMarkingReports(t, simulate_markings(scn.camera, truth, rng), truth)
 
 
 def emulate_vehicle_sensors(truth: ScenarioTruth, rng: np.random.Generator) -> dict[str, VehicleSensors]:
-    """IMU and GNSS of every vehicle."""
+    """IMU, GNSS and lane-marking camera of every vehicle."""
     scn = truth.scenario
     specs = {v.id: v for v in scn.vehicles}
     first = next(iter(truth.vehicles.values())).truth
@@ -82,6 +117,11 @@ def emulate_vehicle_sensors(truth: ScenarioTruth, rng: np.random.Generator) -> d
         fixes = GnssFixes(tg[ok], llh[ok], v[ok], err.reported_sigma[ok],
                           max(spec.gnss.velocity_white, 0.02), err)
         out[vid] = VehicleSensors(tr.t, imu, fixes)
+    if scn.camera.enabled:  # a stream of its own: the camera leaves every other draw as it was
+        cam_rng = rng.spawn(1)[0]
+        classes = true_marking_classes(scn)
+        for vid, vt in truth.vehicles.items():
+            out[vid] = dataclasses.replace(out[vid], lane=_lane_reports(scn, vt, classes, cam_rng))
     return out
 
 

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .geometry import polyline_length
+from .sensors.camera import LaneCameraModel
 from .sensors.gnss import GnssModel
 from .sensors.imu import ImuModel
 from .sensors.radio import RadioModel
@@ -136,6 +137,7 @@ class Scenario:
     #: the vehicles' IMU batches start at evenly spread phases instead of all at once (clocks of
     #: different vehicles are not synchronised; spreads a large fleet's load over time)
     imu_stagger: bool = False
+    camera: LaneCameraModel = field(default_factory=LaneCameraModel)  #: every vehicle's lane camera
 
 
 # --------------------------------------------------------------------------- parsing helpers
@@ -277,9 +279,10 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
                       ctx.number(sg, "offset", "signals", 0.0), tuple(phases))
 
     sensors = ctx.table(data, "sensors", "")
-    _check_keys(ctx, sensors, {"imu", "gnss"}, "sensors")
+    _check_keys(ctx, sensors, {"imu", "gnss", "camera"}, "sensors")
     imu_base = ctx.model(ImuModel, ctx.table(sensors, "imu", "sensors"), "sensors.imu")
     gnss_base = ctx.model(GnssModel, ctx.table(sensors, "gnss", "sensors"), "sensors.gnss")
+    camera = ctx.model(LaneCameraModel, ctx.table(sensors, "camera", "sensors"), "sensors.camera")
     uwb = ctx.model(UwbModel, ctx.table(data, "uwb", ""), "uwb")
     radio = ctx.model(RadioModel, ctx.table(data, "radio", ""), "radio")
 
@@ -370,7 +373,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
         common_mode_sigma=ctx.number(sc, "common_mode_sigma", "scenario", 1.5, non_negative=True),
         common_mode_tau=ctx.number(sc, "common_mode_tau", "scenario", 600.0, positive=True),
         events=tuple(events), windows=windows, paper_table=ctx.table(data, "paper", ""), source=source,
-        imu_stagger=imu_stagger,
+        imu_stagger=imu_stagger, camera=camera,
     )
 
 

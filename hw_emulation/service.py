@@ -26,7 +26,7 @@ from agent.nav import earth
 from transport import keys
 from transport.bus import Bus
 from transport.codec import CodecError, decode, encode
-from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, UwbRound
+from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRound
 
 from .emulate import emulate_uwb, emulate_vehicle_sensors
 from .faults import LINK_FAULTS
@@ -66,7 +66,8 @@ class EmulatorService:
     start_at: float | None = None
     radio_stats: RadioStats = field(default_factory=RadioStats)
     #: messages published per kind ("uwb": ranges, each to both ends in "uwb_rounds" messages)
-    published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "uwb": 0, "uwb_rounds": 0})
+    published: dict[str, int] = field(default_factory=lambda: {"imu": 0, "gnss": 0, "lane": 0, "uwb": 0,
+                                                                          "uwb_rounds": 0})
     agent_time: dict[str, float] = field(default_factory=dict)
     #: misbehaving vehicles (their beacons are falsified in the radio, see hw_emulation.attacks)
     attacks: list = field(default_factory=list)
@@ -237,6 +238,9 @@ class EmulatorService:
             for i in range(len(g.t)):
                 if g.t[i] > t[0] + 1e-9:
                     ev.append((float(g.t[i]), 0, "gnss", vid, i))
+            cam = self.sensors[vid].lane
+            if cam is not None:
+                ev.extend((float(tc), 0, "lane", vid, i) for i, tc in enumerate(cam.t) if tc > t[0] + 1e-9)
         # one event per ranging round: every pair with a range at that time, (pair, index)
         rounds: dict[float, list[tuple[tuple[str, str], int]]] = {}
         for pair, rr in self.ranges.items():
@@ -294,6 +298,11 @@ class EmulatorService:
                     msg = GnssFix(who, idx, float(g.t[idx]), g.llh[idx], g.v_ned[idx], g.sigma_ned[idx], g.sigma_v)
                     await self.bus.publish(keys.gnss(who), encode(msg))
                     self.published["gnss"] += 1
+                elif kind == "lane":
+                    cam = self.sensors[who].lane
+                    left, right = (int(c) for c in cam.classes[idx])
+                    await self.bus.publish(keys.lane(who), encode(LaneMarkings(who, idx, float(cam.t[idx]), left, right)))
+                    self.published["lane"] += 1
                 else:
                     # a ranging round: each vehicle gets one message with its ranges of the round
                     # (a range goes to both ends of its pair)

@@ -79,9 +79,17 @@ class ScenarioTruth:
     vehicles: dict[str, VehicleTruth]
 
 
-def build_truth(scn: Scenario, rng: np.random.Generator | None = None) -> ScenarioTruth:
-    """Simulate traffic and generate every vehicle's truth (seeded by the scenario if no rng)."""
-    rng = rng if rng is not None else np.random.default_rng(scn.seed)
+def build_truth(scn: Scenario, rng: np.random.Generator | None = None,
+                stop_seed: int | None = None) -> ScenarioTruth:
+    """Simulate traffic and generate every vehicle's truth.
+
+    The traffic model's only random draws are where each driver stands in its lane: the stop
+    gap d_s and the lateral offset d_l (the stop-line fix's noise). They come from ``rng``, else
+    from the scenario's seed, combined with ``stop_seed`` (a run's seed) if given: a Monte-Carlo
+    over runs then redraws them with the sensors instead of replaying one draw per scenario.
+    """
+    if rng is None:
+        rng = np.random.default_rng(scn.seed if stop_seed is None else [scn.seed, stop_seed])
     traffic = simulate_traffic(scn, rng)
     fs = first_stopped_flags(scn, traffic)
     out = {}

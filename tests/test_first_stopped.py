@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView, StopTracker
+from agent.lane_markings import BOUNDARY, DIVIDER, UNSEEN, LaneEdges, MarkingWindow, marking_classes
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
 
 GAP = StopGapModel(1.5, 0.3, 1.75, 0.15, 2.5)
@@ -172,3 +173,61 @@ def test_side_by_side_heads_of_two_lanes_both_claim_when_their_ranges_show_them_
     assert not dec.first
     dec, _ = run([4.9])  # 4.9 m + 2.5 σ is not surely shorter than a same-lane queue: held off
     assert not dec.first
+
+
+def test_map_marking_classes_name_the_lanes_of_a_two_lane_approach() -> None:
+    det = FirstStoppedDetector(_lanes(), GAP)
+    assert det.marks == {"NB": (BOUNDARY, BOUNDARY), "EB_L": (BOUNDARY, DIVIDER), "EB_R": (DIVIDER, BOUNDARY)}
+    # three lanes of one direction: the middle one has dividers on both sides
+    edges = {f"L{k}": LaneEdges(np.array([0.0, -3.5 * k]), np.array([1.0, 0.0]), 3.5) for k in range(3)}
+    assert marking_classes(edges) == {"L0": (DIVIDER, BOUNDARY), "L1": (DIVIDER, DIVIDER), "L2": (BOUNDARY, DIVIDER)}
+    # an opposing lane beside mine (its left line is my left line) is no divider
+    edges["opp"] = LaneEdges(np.array([0.0, -7.0]), np.array([-1.0, 0.0]), 3.5)
+    assert marking_classes(edges)["L2"] == (BOUNDARY, DIVIDER)
+
+
+def test_marking_window_settles_on_a_clear_majority_of_enough_frames() -> None:
+    w = MarkingWindow(window=2.0, min_frames=5, agreement=0.8)
+    for k in range(4):
+        w.observe(0.2 * k, BOUNDARY, DIVIDER)
+    assert w.settled(0.6) == (UNSEEN, UNSEEN)  # four frames are not enough
+    w.observe(0.8, BOUNDARY, 7)  # a class the receiver does not know counts as unseen
+    assert w.settled(0.8) == (BOUNDARY, UNSEEN)
+    for k in range(5, 10):
+        w.observe(0.2 * k, BOUNDARY, BOUNDARY)  # the right side now split 4 : 5
+    assert w.settled(1.8) == (BOUNDARY, UNSEEN)
+    assert w.settled(10.0) == (UNSEEN, UNSEEN)  # nothing recent
+
+
+def test_camera_markings_pick_the_lane_an_ambiguous_stop_line_fix_could_not() -> None:
+    det = FirstStoppedDetector(_lanes(), GAP)
+    p, cov = np.array([-1.75, -12.0]), np.diag([9.0, 1.0])  # 3 m lateral σ: either lane
+    d = det.decide(p, cov, math.pi / 2, 3.0, [], markings=(BOUNDARY, DIVIDER))
+    assert d.first and not d.along_only and d.lane == "EB_L"
+    d = det.decide(p, cov, math.pi / 2, 3.0, [], markings=(DIVIDER, UNSEEN))  # one side suffices
+    assert d.first and not d.along_only and d.lane == "EB_R"
+    for marks in ((UNSEEN, UNSEEN), (BOUNDARY, BOUNDARY)):  # silent, or matching no candidate
+        d = det.decide(p, cov, math.pi / 2, 3.0, [], markings=marks)
+        assert d.first and d.along_only
+
+
+def test_a_stops_lane_named_by_the_markings_holds_until_the_vehicle_moves() -> None:
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    p, cov = np.array([-1.75, -12.0]), np.diag([9.0, 1.0])
+
+    def drive(t0: float, t1: float, marks: tuple[int, int], speed: float):
+        dec = None
+        for k in range(int(round((t1 - t0) / 0.1))):
+            t = t0 + 0.1 * k
+            if k % 2 == 0:
+                tr.observe_markings(t, *marks)
+            dec, _ = tr.decide(t, p, cov, math.pi / 2, speed, {})
+        return dec
+
+    dec = drive(0.0, 3.0, (BOUNDARY, DIVIDER), 0.0)
+    assert dec.first and dec.lane == "EB_L" and not dec.along_only
+    dec = drive(3.0, 8.0, (DIVIDER, BOUNDARY), 0.0)  # a long camera error during the stop
+    assert dec.first and dec.lane == "EB_L"
+    drive(8.0, 8.5, (DIVIDER, BOUNDARY), 5.0)  # moves off, and stops again
+    dec = drive(8.5, 11.0, (DIVIDER, BOUNDARY), 0.0)
+    assert dec.first and dec.lane == "EB_R"

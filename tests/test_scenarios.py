@@ -9,7 +9,10 @@ import tomllib
 import numpy as np
 import pytest
 
+from agent.first_stopped import FirstStoppedDetector
+from agent.lane_markings import BOUNDARY, DIVIDER
 from agent.nav import earth
+from agent.nav.measurements.stop_line import StopGapModel
 from hw_emulation.events import event_times
 from hw_emulation.scenario import ScenarioError, load_scenario, parse_scenario, shipped_scenarios
 from hw_emulation.truth import build_truth
@@ -110,6 +113,32 @@ def test_truth_is_bit_identical(paper1) -> None:
         assert np.array_equal(again.vehicles[vid].truth.dtheta, paper1.vehicles[vid].truth.dtheta)
 
 
+def test_a_run_seed_redraws_where_drivers_stop_and_nothing_else(paper1) -> None:
+    scn = load_scenario("paper-1")
+    a, b = build_truth(scn, stop_seed=1), build_truth(scn, stop_seed=1)
+    c = build_truth(scn, stop_seed=2)
+    assert a.traffic.stop_gap == b.traffic.stop_gap and a.traffic.lateral == b.traffic.lateral
+    assert a.traffic.stop_gap != c.traffic.stop_gap and a.traffic.lateral != c.traffic.lateral
+    assert a.traffic.stop_gap != paper1.traffic.stop_gap
+    for vid in paper1.vehicles:  # the same routes and departures: the stops move by decimetres
+        assert abs(a.traffic.s[vid][-1] - paper1.traffic.s[vid][-1]) < 2.0
+
+
+def test_the_camera_sees_the_marking_classes_the_agents_map_implies(paper2) -> None:
+    from deploy.agent_configs import approach_lanes
+    from hw_emulation.emulate import emulate_vehicle_sensors, true_marking_classes
+
+    scn = paper2.scenario
+    agent_view = FirstStoppedDetector(approach_lanes(scn), StopGapModel(1.5, 0.2, 1.75, 0.12, 2.5)).marks
+    truth_view = true_marking_classes(scn)
+    assert agent_view == {k: v for k, v in truth_view.items() if k in agent_view}
+    assert truth_view["EB_in_L"] == (BOUNDARY, DIVIDER) and truth_view["NB_in"] == (BOUNDARY, BOUNDARY)
+    cam = emulate_vehicle_sensors(paper2, np.random.default_rng(0))["V2"].lane
+    on_lane = np.array([s == "EB_in_L" for s in paper2.vehicles["V2"].segment[
+        np.clip(np.searchsorted(paper2.vehicles["V2"].truth.t, cam.t - 1e-9), 0, None)]])
+    assert np.all(cam.truth[on_lane] == (BOUNDARY, DIVIDER)) and np.all(cam.truth[~on_lane] != (BOUNDARY, DIVIDER))
+
+
 def _base() -> dict:
     from importlib import resources
     return tomllib.loads(resources.files("hw_emulation.scenarios").joinpath("paper-1.toml").read_text())
@@ -128,6 +157,7 @@ def _base() -> dict:
     (lambda d: d["windows"].update(w=["t_s1", "nope"]), r"windows.w: must be \[start_event, end_event\]"),
     (lambda d: d["signals"]["phases"][0].update(lanes=["NB_out"]), r"lane 'NB_out' has no stop line"),
     (lambda d: d.update(extra=1), r"extra: unknown field"),
+    (lambda d: d.setdefault("sensors", {}).update(camera={"rate": 0.0}), r"sensors.camera: LaneCameraModel.rate"),
 ])
 def test_bad_scenarios_name_the_field(mutate, match) -> None:
     d = _base()

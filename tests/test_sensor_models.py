@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from agent.lane_markings import BOUNDARY, DIVIDER, UNSEEN
+from hw_emulation.sensors.camera import LaneCameraModel, simulate_markings
 from hw_emulation.sensors.gnss import GnssModel, common_mode_error, simulate_gnss
 from hw_emulation.sensors.imu import ImuModel, corrupt_increments
 from hw_emulation.sensors.processes import gauss_markov, gauss_markov_varying, two_state_markov
@@ -116,6 +118,25 @@ def test_radio_loss_burstiness_latency_and_range(rng) -> None:
     assert not simulate_link(model, t[:100], np.full(100, model.max_range + 1), rng).delivered.any()
 
 
+def test_lane_camera_error_share_episodes_and_unseen(rng) -> None:
+    model = LaneCameraModel(error=0.05, error_tau=2.0, unseen=0.1)
+    n = 400_000
+    truth = np.tile([BOUNDARY, DIVIDER], (n, 1))
+    truth[:1000] = UNSEEN  # inside the junction: nothing to see, nothing reported
+    out = simulate_markings(model, truth, rng)
+    assert np.all(out[:1000] == UNSEEN)
+    seen = out[1000:, 0] != UNSEEN
+    assert (~seen).mean() == pytest.approx(0.1, abs=0.005)
+    wrong = out[1000:, 0] == DIVIDER
+    assert wrong[seen].mean() == pytest.approx(0.05, rel=0.15)
+    # episodes: a wrong frame is followed by another wrong one with P = exp(-dt/tau)-ish
+    w = np.zeros(n - 1000, bool)  # errors before the unseen mask (re-simulate with unseen = 0)
+    w[:] = simulate_markings(LaneCameraModel(error=0.05, error_tau=2.0, unseen=0.0), truth[1000:],
+                             np.random.default_rng(3))[:, 0] == DIVIDER
+    runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[0], w.astype(int), [0]]))))[::2]
+    assert runs.mean() / model.rate == pytest.approx(2.0, rel=0.15)
+
+
 def test_seeded_models_are_bit_identical() -> None:
     t = np.arange(0, 600, 0.2)
     a = simulate_gnss(GnssModel(), t, np.ones(len(t), bool), np.random.default_rng(5))
@@ -133,6 +154,8 @@ def test_seeded_models_are_bit_identical() -> None:
     (UwbModel, "outlier_prob", 1.5, "UwbModel.outlier_prob must be in"),
     (UwbModel, "rate", 500.0, "<= 100 Hz"),
     (RadioModel, "loss", float("nan"), "RadioModel.loss must be a number"),
+    (LaneCameraModel, "error", 0.5, r"LaneCameraModel.error must be in \[0, 0.5\)"),
+    (LaneCameraModel, "enabled", 1, "LaneCameraModel.enabled must be true or false"),
 ])
 def test_bad_parameters_name_the_field(cls, field, value, match) -> None:
     with pytest.raises(ValueError, match=match):

@@ -18,7 +18,7 @@ from conftest import free_port
 from transport import keys
 from transport.bus import InMemoryNetwork, Subscription, Waker, drain_in_arrival_order
 from transport.codec import SCHEMA_VERSION, CodecError, decode, encode
-from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange, UwbRound
+from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRange, UwbRound
 
 names = st.from_regex(r"[A-Za-z0-9_.\-]{1,20}", fullmatch=True)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64, min_value=-1e12, max_value=1e12)
@@ -47,6 +47,7 @@ messages = st.one_of(
     uwb_rounds(),
     st.builds(GnssFix, names, seqs, finite, arr((3,)), arr((3,)), arr((3,)), finite, st.integers(0, 9)),
     st.builds(UwbRange, names, names, seqs, finite, finite),
+    st.builds(LaneMarkings, names, seqs, finite, st.integers(0, 2), st.integers(0, 2)),
     st.builds(Beacon, names, seqs, names, finite, arr((3,)), arr((3,)), arr((3, 3)), st.binary(max_size=100),
               st.booleans()),
     st.builds(Estimate, names, names, finite, arr((3,)), arr((3,)), arr((3,)), arr((3, 3)), st.booleans()),
@@ -127,6 +128,7 @@ def test_keys() -> None:
     assert keys.matches("slcp/v1/sensor/*/imu", keys.imu("V7"))
     assert keys.matches("slcp/v1/**", keys.estimate("V1", "SL-CP"))
     assert not keys.matches("slcp/v1/sensor/*/imu", keys.gnss("V1"))
+    assert keys.lane("V1") == "slcp/v1/sensor/V1/lane" and keys.matches("slcp/v1/sensor/V1/*", keys.lane("V1"))
     assert keys.matches("a/**/b", "a/b") and keys.matches("a/**/b", "a/x/y/b")
     for bad in ("", "a/b", "V*", "x" * 65, "sp ace"):
         with pytest.raises(ValueError):

@@ -27,6 +27,7 @@ _TYPE_NAME = {cls: name for name, cls in MESSAGE_TYPES.items()}
 _ARRAYS: dict[str, dict[str, tuple]] = {
     "imu": {"t": (None,), "dt": (None,), "dtheta": (None, 3), "dvel": (None, 3)},
     "gnss": {"llh": (3,), "v_ned": (3,), "sigma_ned": (3,)},
+    "lane": {},
     "uwb": {},
     "uwb_round": {"ranges": (None,)},
     "beacon": {"llh": (3,), "v_ned": (3,), "cov_pos": (3, 3)},
@@ -34,7 +35,7 @@ _ARRAYS: dict[str, dict[str, tuple]] = {
     "diag": {},
 }
 _STRINGS = {"vehicle", "method", "a", "b", "source"}
-_INTS = {"seq", "quality"}
+_INTS = {"seq", "quality", "left", "right"}
 _FLOATS = {"t", "sigma_v", "range_m"}
 
 

@@ -5,6 +5,7 @@ key                                            payload
 =============================================  =================================================
 ``slcp/v1/sensor/<vehicle>/imu``               :class:`ImuBatch` from the emulator or a driver
 ``slcp/v1/sensor/<vehicle>/gnss``              :class:`GnssFix`
+``slcp/v1/sensor/<vehicle>/lane``              :class:`LaneMarkings` from the forward camera
 ``slcp/v1/uwb/<vehicle>``                      :class:`UwbRound` (its ranges of one round) or a
                                                :class:`UwbRange` delivered to one end of a pair
 ``slcp/v1/radio/tx/<vehicle>``                 :class:`Beacon` sent by an agent to the V2V radio
@@ -37,6 +38,10 @@ def imu(vehicle: str) -> str:
 
 def gnss(vehicle: str) -> str:
     return f"{ROOT}/sensor/{check_name(vehicle)}/gnss"
+
+
+def lane(vehicle: str) -> str:
+    return f"{ROOT}/sensor/{check_name(vehicle)}/lane"
 
 
 def uwb(vehicle: str) -> str:

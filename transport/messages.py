@@ -60,6 +60,19 @@ class GnssFix(Message):
 
 
 @dataclass(frozen=True, eq=False)
+class LaneMarkings(Message):
+    """The camera's classes of the markings left and right of the ego lane at ``t`` [s]:
+    0 unseen, 1 divider (a lane of my direction beyond it), 2 boundary (centre line, road edge).
+    See :mod:`agent.lane_markings`; receivers treat any other value as unseen."""
+
+    vehicle: str
+    seq: int
+    t: float
+    left: int
+    right: int
+
+
+@dataclass(frozen=True, eq=False)
 class UwbRange(Message):
     """A two-way range between vehicles ``a`` and ``b`` measured at ``t`` [s]; both ends receive it."""
 
@@ -129,6 +142,6 @@ class Diagnostics(Message):
 
 #: message type names on the wire
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    "imu": ImuBatch, "gnss": GnssFix, "uwb": UwbRange, "uwb_round": UwbRound, "beacon": Beacon,
+    "imu": ImuBatch, "gnss": GnssFix, "lane": LaneMarkings, "uwb": UwbRange, "uwb_round": UwbRound, "beacon": Beacon,
     "estimate": Estimate, "diag": Diagnostics,
 }
