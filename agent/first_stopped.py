@@ -9,7 +9,7 @@ fix, so the decision is conservative:
    lane up to ``k_sigma`` position σ, and behind the stop line by no more than
    ``l0 + m_xb + 3 σ_xb + k_sigma σ_along + margin``;
 3. no stopped neighbour within ``neighbour_range`` (beacon distance, widened by my σ) inside
-   one of those lanes (laterally, and not past its stop line, gates widened by both σ) that is
+   one of those lanes (laterally, and not past its stop line, gates widened by its σ) that is
    not clearly behind (its distance to the stop line must exceed mine by
    ``behind_margin``), and no such neighbour claiming to be first, *unless* it stopped clearly
    after me (``order_tol``): in a queue the leader stops before its followers, so a neighbour
@@ -55,7 +55,7 @@ class ApproachLane:
 
 @dataclass(frozen=True)
 class DetectorSettings:
-    min_stationary: float = 0.3  #: [s] at rest before a claim
+    min_stationary: float = 0.2  #: [s] at rest before a claim
     heading_tol: float = math.radians(30.0)
     k_sigma: float = 2.5
     margin: float = 2.0
@@ -160,8 +160,10 @@ class FirstStoppedDetector:
             for lid, behind in cands:
                 lane = self.lanes[lid]
                 nb_behind, nb_right = self._geometry(lane, nb.ne)
-                # only a neighbour inside this lane and not past its stop line can be ahead of me
-                c = cov_ne + (nb.cov_ne if nb.cov_ne is not None else 0.0)
+                # only a neighbour inside this lane and not past its stop line can be ahead of me:
+                # where it stands against the map is uncertain by its own covariance (mine
+                # if its beacon carries none)
+                c = nb.cov_ne if nb.cov_ne is not None else cov_ne
                 n_s, n_r = lane.approach.stop_line_normal(), lane.approach.left_lane_line.right_normal
                 tol_a = self.s.k_sigma * math.sqrt(max(float(n_s @ c @ n_s), 0.0)) + self.s.margin
                 tol_l = self.s.k_sigma * math.sqrt(max(float(n_r @ c @ n_r), 0.0))

@@ -42,7 +42,7 @@ def test_moving_wrong_heading_or_far_from_the_line() -> None:
     det = FirstStoppedDetector(_lanes(), GAP)
     cov = np.eye(2)
     p = np.array([-15.0, 1.75])
-    assert det.decide(p, cov, 0.0, 0.2, []).reason == "moving"
+    assert det.decide(p, cov, 0.0, 0.1, []).reason == "moving"
     assert not det.decide(p, cov, math.pi, 3.0, []).first           # heading south: not this approach
     assert not det.decide(np.array([-60.0, 1.75]), cov, 0.0, 3.0, []).first
 
@@ -231,3 +231,18 @@ def test_a_stops_lane_named_by_the_markings_holds_until_the_vehicle_moves() -> N
     drive(8.0, 8.5, (DIVIDER, BOUNDARY), 5.0)  # moves off, and stops again
     dec = drive(8.5, 11.0, (DIVIDER, BOUNDARY), 0.0)
     assert dec.first and dec.lane == "EB_R"
+
+
+def test_a_lane_head_beside_me_that_claims_with_a_tight_fix_does_not_hold_me_off() -> None:
+    """E3 (right lane, lateral σ 3 m) knows its lane from the camera. E1, head of the left lane,
+    claims first: with the σ of a stop-line fix (0.2 m) its beacon is plainly in the other lane
+    and E3 claims too; with a GNSS-level σ it might stand in E3's lane, so E3 holds off."""
+    det = FirstStoppedDetector(_lanes(), GAP)
+    e3, e1 = np.array([-5.25, -12.0]), np.array([-1.75, -12.0])
+    cov = np.diag([9.0, 1.0])
+    for nb_cov, first in ((np.eye(2) * 0.04, True), (np.diag([9.0, 1.0]), False)):
+        nb = NeighbourView("E1", e1, True, claims_first=True, stopped_since=-math.inf, cov_ne=nb_cov)
+        d = det.decide(e3, cov, math.pi / 2, 3.0, [nb], stopped_since=0.0, markings=(DIVIDER, BOUNDARY))
+        assert d.first is first
+        if first:
+            assert d.lane == "EB_R" and not d.along_only

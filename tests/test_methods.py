@@ -24,7 +24,7 @@ def test_method_specs() -> None:
         MethodSpec.of("XP")
 
 
-def _stopped_filter(method: str, offset_ne=(3.0, -2.0)) -> tuple[MethodFilter, StopLineApproach, StopGapModel, np.ndarray]:
+def _stopped_filter(method: str, offset_ne=(3.0, -2.0), **settings) -> tuple[MethodFilter, StopLineApproach, StopGapModel, np.ndarray]:
     approach = StopLineApproach(Line2D((0.0, 0.0), (0.0, 1.0)), Line2D((0.0, -1.75), (1.0, 0.0)))  # north-bound
     gap = StopGapModel(1.5, 0.2, 1.75, 0.1, 2.5)
     p_true, _ = stop_line_position(approach, gap)
@@ -32,7 +32,7 @@ def _stopped_filter(method: str, offset_ne=(3.0, -2.0)) -> tuple[MethodFilter, S
     true_llh = np.array([ORIGIN[0] + p_true[0] / (rm + 50), ORIGIN[1] + p_true[1] / ((rn + 50) * math.cos(ORIGIN[0])), 50.0])
     est_llh = true_llh + np.array([offset_ne[0] / (rm + 50), offset_ne[1] / ((rn + 50) * math.cos(ORIGIN[0])), 0.0])
     st = initial_state(est_llh, np.zeros(3), np.array([0.0, 0.0, -9.8]))
-    f = MethodFilter(MethodSpec.of(method), st, np.array([4.0, 4.0, 6.0]), FilterSettings(MEMS_NOISE), 0.0, gap, ORIGIN)
+    f = MethodFilter(MethodSpec.of(method), st, np.array([4.0, 4.0, 6.0]), FilterSettings(MEMS_NOISE, **settings), 0.0, gap, ORIGIN)
     return f, approach, gap, true_llh
 
 
@@ -95,3 +95,29 @@ def test_displacement_since_interpolates_the_recent_history() -> None:
         assert np.allclose(got, np.array(f._disp) - past, atol=1e-12)
     # the vehicle moved about v·Δt (its velocity barely changes over 1.5 s of level coasting)
     assert np.allclose(f.displacement_since(t0 + 0.5)[:2], f.filter.state.v[:2] * (f.t - t0 - 0.5), rtol=0.05, atol=0.05)
+
+
+def test_a_gnss_jump_is_rejected_and_a_fix_rejected_for_long_re_anchors_the_position() -> None:
+    """A standing vehicle with fixes at the truth, then a 30 m NLOS jump: the χ² gate rejects
+    it; if the jump lasts longer than ``gnss_reset_after``, the filter re-anchors on it (the
+    right call when it was the filter that was wrong), and the counters say so."""
+    f, _, _, true_llh = _stopped_filter("SP", offset_ne=(0.0, 0.0), gnss_gate=0.999)
+    rm, _ = earth.radii(ORIGIN[0])
+    jump = true_llh + np.array([30.0 / (rm + 50), 0.0, 0.0])
+    zero, dt = np.zeros(3), 0.01
+    g = np.array([0.0, 0.0, -earth.gravity(ORIGIN[0], 50.0)]) * dt
+
+    def run(llh, seconds):
+        for k in range(int(round(seconds / 0.2))):
+            for _ in range(20):
+                f.propagate(zero, g, dt)
+            f.gnss(llh, np.zeros(3), np.full(3, 0.5), 0.05)
+
+    run(true_llh, 10.0)
+    run(jump, 10.0)
+    e = earth.ned_offset(*f.filter.state.llh, *true_llh)
+    assert math.hypot(e[0], e[1]) < 1.5 and f.counters["gnss_rejected"] == 50 and f.counters["gnss_reanchored"] == 0
+    run(jump, f.settings.gnss_reset_after)
+    e = earth.ned_offset(*f.filter.state.llh, *jump)
+    assert math.hypot(e[0], e[1]) < 1.5 and f.counters["gnss_reanchored"] == 1
+    assert f.filter.position_cov[0, 0] < 9.0  # and it is sure of it again after a few fixes

@@ -325,6 +325,15 @@ class InsFilter:
             self.P_ind[:, 2] = 0.0
             self.P_ind[2, 2] = sigma**2
 
+    def inflate_position(self, variance: np.ndarray) -> None:
+        """Add ``variance`` (3,) [m²] to the NED position error variances: uncertainty of the
+        vehicle's own (independent) kind, e.g. before re-anchoring on a fix long rejected."""
+        self.flush_covariance()
+        idx = np.arange(POS.start, POS.stop)
+        self.P[idx, idx] += variance
+        if self.P_ind is not None:
+            self.P_ind[idx, idx] += variance
+
     @property
     def position_cov(self) -> np.ndarray:
         """NED position error covariance, shape (3, 3) [m²]."""
