@@ -9,9 +9,13 @@ fix, so the decision is conservative:
    lane up to ``k_sigma`` position σ, and behind the stop line by no more than
    ``l0 + m_xb + 3 σ_xb + k_sigma σ_along + margin``;
 3. no stopped neighbour within ``neighbour_range`` (beacon distance, widened by my σ) inside
-   one of those lanes (laterally, and not past its stop line, gates widened by its σ) that is
+   one of those lanes (laterally, and not past its stop line, gates widened by both σ) that is
    not clearly behind (its distance to the stop line must exceed mine by
-   ``behind_margin``), and no such neighbour claiming to be first, *unless* it stopped clearly
+   ``behind_margin``, or by less when both estimates are good: a vehicle ahead of me in my
+   lane stands at least ``min_queue_spacing`` closer to the line, so a neighbour whose
+   distance exceeds mine by ``ahead_k_sigma`` σ of the difference minus that spacing cannot be
+   it),
+   and no such neighbour claiming to be first, *unless* it stopped clearly
    after me (``order_tol``): in a queue the leader stops before its followers, so a neighbour
    that came to rest after me is behind me or in another lane. A neighbour first heard already
    stopped counts as stopped before me. Nor does a neighbour count whose UWB ranges of the last
@@ -61,6 +65,9 @@ class DetectorSettings:
     margin: float = 2.0
     neighbour_range: float = 15.0  #: [m] plus k_sigma times my horizontal σ
     behind_margin: float = 3.0
+    #: [σ] a neighbour less than behind_margin farther from the line than me is ruled out as a
+    #: car ahead of me in my lane if ahead_k_sigma σ of the difference is less than the spacing
+    ahead_k_sigma: float = 3.5
     order_tol: float = 0.5  #: [s] a neighbour at rest this much later than me is behind me
     stop_speed: float = 0.1  #: [m/s] own filter speed below which the vehicle is at rest
     neighbour_stop_speed: float = 0.3  #: [m/s] beacon speed below which a neighbour is at rest
@@ -160,16 +167,21 @@ class FirstStoppedDetector:
             for lid, behind in cands:
                 lane = self.lanes[lid]
                 nb_behind, nb_right = self._geometry(lane, nb.ne)
-                # only a neighbour inside this lane and not past its stop line can be ahead of me:
-                # where it stands against the map is uncertain by its own covariance (mine
-                # if its beacon carries none)
-                c = nb.cov_ne if nb.cov_ne is not None else cov_ne
+                # only a neighbour inside this lane and not past its stop line can be ahead of me
+                # (gates widened by both σ: estimates 3 σ off happen, and a leader that dropped
+                # out of my lane on its estimate would let me claim wrongly)
+                c = cov_ne + (nb.cov_ne if nb.cov_ne is not None else 0.0)
                 n_s, n_r = lane.approach.stop_line_normal(), lane.approach.left_lane_line.right_normal
-                tol_a = self.s.k_sigma * math.sqrt(max(float(n_s @ c @ n_s), 0.0)) + self.s.margin
+                s_diff = math.sqrt(max(float(n_s @ c @ n_s), 0.0))
+                tol_a = self.s.k_sigma * s_diff + self.s.margin
                 tol_l = self.s.k_sigma * math.sqrt(max(float(n_r @ c @ n_r), 0.0))
                 if not (-tol_l <= nb_right <= lane.width + tol_l and nb_behind >= -tol_a):
                     continue
-                if nb.claims_first or nb_behind < behind + self.s.behind_margin:
+                # ahead of me in my lane, it would stand at least min_queue_spacing closer to the
+                # line: it holds me off while the estimates allow that (ahead_k_sigma σ of the
+                # difference), and never when it is behind_margin or more farther back
+                ahead_by = min(self.s.behind_margin, self.s.ahead_k_sigma * s_diff - self.s.min_queue_spacing)
+                if nb.claims_first or nb_behind < behind + ahead_by:
                     return Decision(False, None, False, f"neighbour {nb.vehicle} may be ahead", nb.vehicle)
         lid = min(cands, key=lambda c: c[1])[0]
         return Decision(True, lid, len(cands) > 1, "first stopped" + (" (lane ambiguous)" if len(cands) > 1 else ""))

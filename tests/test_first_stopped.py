@@ -233,16 +233,17 @@ def test_a_stops_lane_named_by_the_markings_holds_until_the_vehicle_moves() -> N
     assert dec.first and dec.lane == "EB_R"
 
 
-def test_a_lane_head_beside_me_that_claims_with_a_tight_fix_does_not_hold_me_off() -> None:
-    """E3 (right lane, lateral σ 3 m) knows its lane from the camera. E1, head of the left lane,
-    claims first: with the σ of a stop-line fix (0.2 m) its beacon is plainly in the other lane
-    and E3 claims too; with a GNSS-level σ it might stand in E3's lane, so E3 holds off."""
+def test_a_neighbour_a_little_behind_me_holds_me_off_only_while_the_estimates_are_poor() -> None:
+    """E3 heads the right lane with a stop-line fix (σ 0.15 / 0.3 m). E2, second in the left lane
+    (lateral σ 1.5 m: it might be in E3's lane), looks 2.5 m farther from the line. A car ahead
+    of E3 in its lane would stand ≥ 5 m closer: with E2's along σ of 1.2 m that is ruled out, so
+    E3 stays first; with a GNSS-level 3.5 m it is not, and E3 is held off. E2 looking 2.5 m
+    *closer* holds E3 off even with good estimates."""
     det = FirstStoppedDetector(_lanes(), GAP)
-    e3, e1 = np.array([-5.25, -12.0]), np.array([-1.75, -12.0])
-    cov = np.diag([9.0, 1.0])
-    for nb_cov, first in ((np.eye(2) * 0.04, True), (np.diag([9.0, 1.0]), False)):
-        nb = NeighbourView("E1", e1, True, claims_first=True, stopped_since=-math.inf, cov_ne=nb_cov)
+    e3 = np.array([-5.25, -12.0])
+    cov = np.diag([0.15**2, 0.3**2])
+    for e2_east, along_sigma, first in ((-14.5, 1.2, True), (-14.5, 3.5, False), (-9.5, 1.2, False)):
+        nb = NeighbourView("E2", np.array([-1.75, e2_east]), True, stopped_since=-math.inf,
+                           cov_ne=np.diag([1.5**2, along_sigma**2]))
         d = det.decide(e3, cov, math.pi / 2, 3.0, [nb], stopped_since=0.0, markings=(DIVIDER, BOUNDARY))
-        assert d.first is first
-        if first:
-            assert d.lane == "EB_R" and not d.along_only
+        assert d.first is first, (e2_east, along_sigma)
