@@ -251,7 +251,10 @@ class StopTracker:
         self._nb[vehicle] = _NeighbourStop(t, speed, claims_first, since)
 
     def forget(self, vehicle: str) -> None:
-        self._nb.pop(vehicle, None)
+        """``vehicle`` is gone (silent, its process lost, or excluded): its ranges are dropped,
+        but not when it came to rest, so that a neighbour heard again, or remembered as a ghost,
+        keeps its place in the order of the queue (a short radio gap made the second of a queue
+        "first heard at rest", i.e. stopped before the head, and held the head off)."""
         self._ranges.pop(vehicle, None)
 
     def decide(self, t: float, ne: np.ndarray, cov_ne: np.ndarray, yaw: float, speed: float,

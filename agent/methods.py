@@ -383,8 +383,9 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
     for o, (llh, cov) in (ghosts or {}).items():
         if o not in known:
             known[o] = (llh, cov)
-            if o not in tracker._nb:
-                tracker.observe_neighbour(o, t, 0.0, False)  # unknown since when: stopped "forever"
+            # standing there: since it was last seen coming to rest, since now if it was last
+            # seen moving, or "forever" if it was never seen (observe_neighbour's rules)
+            tracker.observe_neighbour(o, t, 0.0, False)
     nb_ne = {}
     if known:  # one vectorised conversion for all neighbours
         llh = np.array([v[0] for v in known.values()])

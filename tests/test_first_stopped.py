@@ -247,3 +247,22 @@ def test_a_neighbour_a_little_behind_me_holds_me_off_only_while_the_estimates_ar
                            cov_ne=np.diag([1.5**2, along_sigma**2]))
         d = det.decide(e3, cov, math.pi / 2, 3.0, [nb], stopped_since=0.0, markings=(DIVIDER, BOUNDARY))
         assert d.first is first, (e2_east, along_sigma)
+
+
+def test_a_follower_lost_for_a_moment_keeps_its_place_in_the_queue_order() -> None:
+    """Head H stops first; F stops behind it 2 s later, its beacon 2 m behind H's (σ 3 m: not
+    clearly behind). F's radio goes silent, F is forgotten, then heard again at rest: it still
+    came to rest after H, so H stays first (it used to become "first heard at rest", i.e.
+    stopped before H, and hold H off)."""
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    h, f = np.array([-15.0, 1.75]), np.array([-17.0, 1.75])
+    cov = np.eye(2) * 9.0
+    dec = None
+    for k in range(60):
+        t = 0.1 * k
+        if t < 3.0 or t >= 4.0:
+            tr.observe_neighbour("F", t, 5.0 if t < 2.0 else 0.0, False)
+        if abs(t - 3.0) < 1e-9:
+            tr.forget("F")
+        dec, _ = tr.decide(t, h, cov, 0.0, 0.0, {"F": f} if not 3.0 <= t < 4.0 else {}, {"F": cov})
+    assert dec.first and tr.vetoed is None
