@@ -245,26 +245,18 @@ class Agent:
             newest = self._imu_newest
             while self._imu_buffer and float(self._imu_buffer[0].t[-1]) <= newest - self.cfg.imu_hold:
                 await self._imu(self._imu_buffer.pop(0))
-        elif isinstance(msg, GnssFix):
+        elif isinstance(msg, (GnssFix, LaneMarkings)):  # own sensors, one sample per message
+            kind = "gnss" if isinstance(msg, GnssFix) else "lane"
             if msg.vehicle != v:
                 self.counters["not_for_me"] += 1
                 return
-            if self._ahead(msg.t, "gnss") or self._duplicate("gnss", (msg.seq, msg.t)):
+            if self._ahead(msg.t, kind) or self._duplicate(kind, (msg.seq, msg.t)):
                 return
-            self.counters["gnss"] += 1
-            if not self.filters:
-                self._pending_fixes.append(msg)
-                return
-            self._apply_now(self.seq.push(msg.t, "gnss", msg))
-        elif isinstance(msg, LaneMarkings):
-            if msg.vehicle != v:
-                self.counters["not_for_me"] += 1
-                return
-            if self._ahead(msg.t, "lane") or self._duplicate("lane", (msg.seq, msg.t)):
-                return
-            self.counters["lane"] += 1
+            self.counters[kind] += 1
             if self.filters:
-                self._apply_now(self.seq.push(msg.t, "lane", msg))
+                self._apply_now(self.seq.push(msg.t, kind, msg))
+            elif kind == "gnss":  # the filters start from these
+                self._pending_fixes.append(msg)
         elif isinstance(msg, UwbRange):
             if v not in (msg.a, msg.b) or msg.a == msg.b:
                 self.counters["not_for_me"] += 1
