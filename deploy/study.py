@@ -44,6 +44,23 @@ def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: s
     return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice)
 
 
+def _stop_with_parent(period: float = 0.5) -> None:
+    """Pool-worker initializer: when the study process is gone (killed), terminate this worker
+    (a running fleet gets SIGTERM, i.e. its own cleanup; see :func:`_one`) instead of running on
+    with the seeds still queued."""
+    import threading
+    import time
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="stop-with-parent", daemon=True).start()
+
+
 def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHODS, out: Path = Path("runs/study"),
               fusion: str = "split-ci", jobs: int | None = None, progress=None, sign: bool = True,
               agent_nice: int = 5) -> dict:
@@ -52,7 +69,7 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     out.mkdir(parents=True, exist_ok=True)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(seeds)))
     per_seed: dict[int, dict] = {}
-    pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"))
+    pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
     try:
         futs = {pool.submit(_one, scenario, methods, s, str(out / f"seed-{s}"), fusion, sign, agent_nice): s
                 for s in seeds}

@@ -83,3 +83,37 @@ def test_bench_prints_every_figure(capsys) -> None:
               "stop_line_update_us", "beacon_encode_us", "beacon_decode_us"):
         assert out["steps"][k] > 0.0
     assert out["replay"] is None
+
+
+def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
+    """A study killed with SIGKILL must not leave its pool workers running its queued seeds."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    pid_file = tmp_path / "worker.pid"
+    probe = subprocess.Popen([sys.executable, str(Path(__file__).with_name("_pool_probe.py")), str(pid_file)],
+                             cwd=Path(__file__).parents[1])
+    try:
+        deadline = time.monotonic() + 60
+        while not (pid_file.exists() and pid_file.read_text()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        worker = int(pid_file.read_text())
+        probe.send_signal(signal.SIGKILL)
+        probe.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            os.kill(worker, signal.SIGKILL)
+            raise AssertionError("the pool worker outlived the study process by 10 s")
+    finally:
+        if probe.poll() is None:
+            probe.kill()
