@@ -6,7 +6,7 @@ fix, so the decision is conservative:
 
 1. stationary for at least ``min_stationary`` seconds;
 2. associated to approach lanes: heading within ``heading_tol`` of the lane, laterally inside the
-   lane up to ``k_sigma`` position σ, and behind the stop line by no more than
+   lane up to ``lane_k_sigma`` position σ, and behind the stop line by no more than
    ``l0 + m_xb + 3 σ_xb + k_sigma σ_along + margin``;
 3. no stopped neighbour within ``neighbour_range`` (beacon distance, widened by my σ) inside
    one of those lanes (laterally, and not past its stop line, gates widened by both σ) that is
@@ -62,6 +62,10 @@ class DetectorSettings:
     min_stationary: float = 0.2  #: [s] at rest before a claim
     heading_tol: float = math.radians(30.0)
     k_sigma: float = 2.5
+    #: [σ] how far outside a lane (across it) my own estimate may stand and still be in it: a
+    #: GNSS estimate 3 σ to the side of a single-lane approach kept paper-1's V1 off its stop
+    #: line for 4 s; heading, the along-track gate and the neighbour rules still apply
+    lane_k_sigma: float = 3.5
     margin: float = 2.0
     neighbour_range: float = 15.0  #: [m] plus k_sigma times my horizontal σ
     behind_margin: float = 3.0
@@ -137,7 +141,8 @@ class FirstStoppedDetector:
             gate = g.l0 + g.m_xb + 3 * g.sigma_xb + self.s.k_sigma * s_along + self.s.margin
             if not -self.s.margin - self.s.k_sigma * s_along <= behind <= gate:
                 continue
-            if not -self.s.k_sigma * s_lat <= right <= lane.width + self.s.k_sigma * s_lat:
+            k_lat = self.s.lane_k_sigma
+            if not -k_lat * s_lat <= right <= lane.width + k_lat * s_lat:
                 continue
             out.append((lid, behind))
         return out

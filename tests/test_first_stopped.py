@@ -266,3 +266,11 @@ def test_a_follower_lost_for_a_moment_keeps_its_place_in_the_queue_order() -> No
             tr.forget("F")
         dec, _ = tr.decide(t, h, cov, 0.0, 0.0, {"F": f} if not 3.0 <= t < 4.0 else {}, {"F": cov})
     assert dec.first and tr.vetoed is None
+
+
+def test_my_own_estimate_3_sigma_to_the_side_of_a_single_lane_still_finds_its_stop_line() -> None:
+    det = FirstStoppedDetector(_lanes(), GAP)
+    p = np.array([-15.0, 1.75 + 3.0 * 3.0 + 1.75])  # 3 σ (σ 3 m) right of the lane's right edge
+    d = det.decide(p, np.eye(2) * 9.0, 0.0, 3.0, [])
+    assert d.first and d.lane == "NB"
+    assert not det.decide(p + np.array([0.0, 2.0 * 3.0]), np.eye(2) * 9.0, 0.0, 3.0, []).first  # 5 σ: no
