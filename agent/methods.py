@@ -166,7 +166,8 @@ class MethodFilter:
         self.heading_known = heading_known
         self.last_stop_line = -math.inf
         self._gnss_rejected_since: float | None = None  #: sensor time of the first fix rejected in a row
-        self.counters = {"gnss": 0, "gnss_rejected": 0, "gnss_reanchored": 0, "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "ranges_gate_physical": 0,
+        self.counters = {"gnss": 0, "gnss_rejected": 0, "gnss_reanchored": 0,
+                         "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "ranges_gate_physical": 0,
                          "ranges_gate_rate": 0, "ranges_gate_nis": 0, "stop_line": 0}
         self.rate_gate = RangeRateGate()
         # INS displacement (NED, m) integrated from the nominal velocity, unaffected by updates:

@@ -2,7 +2,8 @@
 
 IMU increments at the scenario's IMU rate; GNSS fixes at each vehicle's GNSS rate with the
 urban error model (one common-mode realisation shared by all vehicles); the camera's lane-marking
-classes; UWB ranges for every pair. The service that publishes these on the bus (issue "Distributed fleet") consumes this.
+classes; UWB ranges for every pair. The service that publishes these on the bus (issue
+"Distributed fleet") consumes this.
 """
 
 from __future__ import annotations
