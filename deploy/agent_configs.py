@@ -5,14 +5,12 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import numpy as np
 
 from agent.first_stopped import ApproachLane
 from agent.methods import METHODS, FilterSettings
 from agent.nav.error_model import ImuNoise
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
 from agent.runtime import AgentConfig
-from hw_emulation.geometry import offset_polyline
 from hw_emulation.scenario import Scenario
 from hw_emulation.sensors.imu import ImuModel
 
@@ -30,11 +28,8 @@ def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:
     for lane in scn.lanes.values():
         if not lane.stop_line:
             continue
-        c = lane.centerline
-        d = c[-1] - c[-2]
-        d = d / np.hypot(*d)
-        left = offset_polyline(c[-2:], -lane.width / 2)
-        approach = StopLineApproach(Line2D(tuple(c[-1]), (-d[1], d[0])), Line2D(tuple(left[-1]), tuple(d)))
+        left, d = lane.end_left_line()
+        approach = StopLineApproach(Line2D(tuple(lane.centerline[-1]), (-d[1], d[0])), Line2D(tuple(left), tuple(d)))
         out[lane.id] = ApproachLane(lane.id, approach, lane.width)
     return out
 

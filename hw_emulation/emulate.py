@@ -16,7 +16,6 @@ import numpy as np
 
 from agent.lane_markings import UNSEEN, LaneEdges, marking_classes
 from agent.nav import earth
-from .geometry import offset_polyline
 from .scenario import Scenario
 from .sensors.camera import simulate_markings
 from .sensors.gnss import GnssErrors, common_mode_error, simulate_gnss
@@ -73,12 +72,7 @@ class VehicleSensors:
 
 def true_marking_classes(scn: Scenario) -> dict[str, tuple[int, int]]:
     """The (left, right) marking classes of every lane of the scenario's map."""
-    edges = {}
-    for lane in scn.lanes.values():
-        c = lane.centerline[-2:]
-        d = (c[1] - c[0]) / np.hypot(*(c[1] - c[0]))
-        edges[lane.id] = LaneEdges(offset_polyline(c, -lane.width / 2)[-1], d, lane.width)
-    return marking_classes(edges)
+    return marking_classes({lane.id: LaneEdges(*lane.end_left_line(), lane.width) for lane in scn.lanes.values()})
 
 
 def _lane_reports(scn: Scenario, vt, classes: dict[str, tuple[int, int]],

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .geometry import polyline_length
+from .geometry import offset_polyline, polyline_length
 from .sensors.camera import LaneCameraModel
 from .sensors.gnss import GnssModel
 from .sensors.imu import ImuModel
@@ -49,6 +49,13 @@ class Lane:
     def start_heading(self) -> float:
         d = self.centerline[1] - self.centerline[0]
         return math.atan2(d[1], d[0])
+
+    def end_left_line(self) -> tuple[np.ndarray, np.ndarray]:
+        """The left lane line at the lane's end: its end point (north, east) [m], (2,), and the
+        unit direction of travel of the last centre-line segment, (2,)."""
+        c = self.centerline[-2:]
+        d = (c[1] - c[0]) / np.hypot(*(c[1] - c[0]))
+        return offset_polyline(c, -self.width / 2)[-1], d
 
 
 @dataclass(frozen=True)
