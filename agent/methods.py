@@ -66,13 +66,14 @@ class FilterSettings:
     sigma_uwb: float = 0.1
     range_gate: float = 0.999  #: chi-square probability of the NIS gate for ranges
     second_order_ranges: bool = True
-    #: χ² probability of the NIS gate on GNSS positions (NLOS jumps of metres to tens of metres);
-    #: None accepts every fix. Off by default: on rush-hour (seed 1, in process) a 0.999 gate
-    #: made the mean SP RMSE worse (6.06 -> 7.49 m; fixes rejected while the INS drifted)
-    gnss_gate: float | None = None
+    #: χ² probability of the NIS gate on GNSS positions (NLOS jumps of metres to tens of metres,
+    #: while the GNSS velocity keeps the INS honest); None accepts every fix
+    gnss_gate: float | None = 0.999
     #: after this long [s] with every fix rejected, the position is re-anchored on the fix
-    #: (its covariance widened by the innovation): a wrong solution is not kept for ever
-    gnss_reset_after: float = 20.0
+    #: (its covariance widened by the innovation): a wrong solution is not kept for ever. It
+    #: must outlast NLOS episodes: re-anchoring after 20 s followed 5-60 s jumps and made
+    #: rush-hour's SP worse than no gate (6.06 -> 7.49 m, seed 1); 60 s gave 2.37 m
+    gnss_reset_after: float = 60.0
     init_att_sigma: tuple[float, float, float] = (math.radians(2.0), math.radians(2.0), math.radians(5.0))
     init_vel_sigma: float = 0.3
     #: initial bias uncertainty (the IMU's turn-on bias repeatability) [rad/s], [m/s²];

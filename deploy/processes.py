@@ -148,8 +148,10 @@ def _gnss_table(d, path: Path) -> dict:
             raise ConfigError(f"{path}: gnss.{k}: unknown field (known: {', '.join(sorted(GNSS_FIELDS))})")
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0 or v == float("inf"):
             raise ConfigError(f"{path}: gnss.{k}: must be a finite number >= 0, got {v!r}")
-        if k.endswith("tau") and v <= 0:
+        if (k.endswith("tau") or k == "reset_after") and v <= 0:
             raise ConfigError(f"{path}: gnss.{k}: must be > 0, got {v!r}")
+        if k == "gate" and v >= 1:
+            raise ConfigError(f"{path}: gnss.gate: a χ² probability below 1 (0: no gate), got {v!r}")
         out[k] = float(v)
     return out
 

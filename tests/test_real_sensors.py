@@ -205,14 +205,21 @@ def test_a_site_less_agent_config_takes_the_vehicles_imu_and_gnss(tmp_path) -> N
     assert cfg.vehicle == "V0" and cfg.methods == ("SP",) and cfg.lanes == {}
     assert cfg.settings.noise.arw == pytest.approx(2 * math.radians(0.0038), rel=1e-3)
     assert cfg.settings.gnss_multipath_sigma is None  # the receiver's σ as white noise
+    assert cfg.settings.gnss_gate is None  # ... and no χ² gate on it
     assert z.listen == ("tcp/127.0.0.1:7460",)
     p = tmp_path / "a.toml"
     for text, where in (("[imu]\narw = -1\n", "imu"), ("[imu]\nbogus = 1\n", "imu.bogus"),
                         ("[gnss]\nmultipath_tau = 0\n", "gnss.multipath_tau"), ("[gnss]\nwhite = 1\n", "gnss.white"),
+                        ("[gnss]\ngate = 1\n", "gnss.gate"), ("[gnss]\nreset_after = 0\n", "gnss.reset_after"),
                         ("[site]\n", "[site]")):
         p.write_text('[agent]\nvehicle = "car1"\n' + text)
         with pytest.raises(ConfigError, match=str(p).replace(".", r"\.") + ".*" + where.replace("[", r"\[").replace(".", r"\.")):
             load_agent_config(p, None)
+    p.write_text('[agent]\nvehicle = "car1"\n[gnss]\ngate = 0.9999\nreset_after = 90\n')
+    s = load_agent_config(p, None)[0].settings
+    assert (s.gnss_gate, s.gnss_reset_after) == (0.9999, 90.0)
+    p.write_text('[agent]\nvehicle = "car1"\n[gnss]\ngate = 0\n')
+    assert load_agent_config(p, None)[0].settings.gnss_gate is None
 
 
 # ------------------------------------------------------------------ driver and live agents
