@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-
 from agent.first_stopped import ApproachLane
 from agent.methods import METHODS, FilterSettings
 from agent.nav.error_model import ImuNoise
