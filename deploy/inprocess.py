@@ -114,7 +114,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                 if g.t[i] > t[0] + 1e-6:
                     zupt_gate[vid].gnss(float(g.t[i]))
                     for m in methods:
-                        filters[(vid, m)].gnss(g.llh[i], g.v_ned[i], g.sigma_ned[i], g.sigma_v)
+                        filters[(vid, m)].gnss(g.llh[i], g.v_ned[i], g.sigma_ned[i], float(g.sigma_v[i]))
                 gnss_i[vid] += 1
             cam = sensors[vid].lane
             while cam is not None and lane_i[vid] < len(cam.t) and cam.t[lane_i[vid]] <= tk + 1e-6:

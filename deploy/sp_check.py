@@ -54,13 +54,12 @@ def run_sp(vt: VehicleTruth, vs: VehicleSensors, imu_model: ImuModel, rng: np.ra
     dth, dvl = vs.imu.dtheta.tolist(), vs.imu.dvel.tolist()
     dts = np.diff(tr.t).tolist()
     ts, errs, sigs = [], [], []
-    r_v = np.eye(3) * g.sigma_v**2
     for k in range(len(dts)):
         flt.propagate(dth[k], dvl[k], dts[k])
         tk = tr.t[k + 1]
         while gi < len(g.t) and g.t[gi] <= tk + 1e-6:
             flt.update(gnss_position(flt.state, g.llh[gi], np.diag(g.sigma_ned[gi] ** 2)))
-            flt.update(gnss_velocity(flt.state, g.v_ned[gi], r_v, np.zeros(3)))
+            flt.update(gnss_velocity(flt.state, g.v_ned[gi], np.eye(3) * g.sigma_v[gi] ** 2, np.zeros(3)))
             gi += 1
         if (k + 1) % EVAL_STEP == 0:
             s = flt.state

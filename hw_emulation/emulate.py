@@ -38,8 +38,8 @@ class GnssFixes:
         Measured velocity [m/s].
     sigma_ned : ndarray, shape (n, 3)
         Reported position σ [m].
-    sigma_v : float
-        Reported velocity σ [m/s].
+    sigma_v : ndarray, shape (n,)
+        Reported velocity σ per axis [m/s].
     errors : GnssErrors
         The injected errors at every epoch (including those without a fix).
     """
@@ -48,7 +48,7 @@ class GnssFixes:
     llh: np.ndarray
     v_ned: np.ndarray
     sigma_ned: np.ndarray
-    sigma_v: float
+    sigma_v: np.ndarray
     errors: GnssErrors
 
 
@@ -109,8 +109,7 @@ def emulate_vehicle_sensors(truth: ScenarioTruth, rng: np.random.Generator) -> d
         llh[:, 2] -= err.pos_error[:, 2]
         v = tr.v_ned[k] + err.vel_error
         ok = err.valid
-        fixes = GnssFixes(tg[ok], llh[ok], v[ok], err.reported_sigma[ok],
-                          max(spec.gnss.velocity_white, 0.02), err)
+        fixes = GnssFixes(tg[ok], llh[ok], v[ok], err.reported_sigma[ok], err.reported_sigma_v[ok], err)
         out[vid] = VehicleSensors(tr.t, imu, fixes)
     if scn.camera.enabled:  # a stream of its own: the camera leaves every other draw as it was
         cam_rng = rng.spawn(1)[0]

@@ -295,7 +295,8 @@ class EmulatorService:
                     if self._sensor_fault("gnss_outage", t, who):
                         continue
                     g = self.sensors[who].gnss
-                    msg = GnssFix(who, idx, float(g.t[idx]), g.llh[idx], g.v_ned[idx], g.sigma_ned[idx], g.sigma_v)
+                    msg = GnssFix(who, idx, float(g.t[idx]), g.llh[idx], g.v_ned[idx], g.sigma_ned[idx],
+                                   float(g.sigma_v[idx]))
                     await self.bus.publish(keys.gnss(who), encode(msg))
                     self.published["gnss"] += 1
                 elif kind == "lane":

@@ -76,6 +76,12 @@ def test_gnss_white_multipath_nlos_outage_statistics(rng) -> None:
     assert e.nlos.mean() == pytest.approx(1 - math.exp(-32.5 / 100), abs=0.05)
     assert (~e.valid).mean() == pytest.approx(1 - math.exp(-11.0 / 200), abs=0.02)
     assert np.abs(e.pos_error[e.nlos, :2]).max() > 5.0
+    # the velocity noise and the receiver's reported velocity σ, in and out of NLOS
+    assert e.vel_error[~e.nlos].std() == pytest.approx(ev.velocity_white, rel=0.03)
+    assert e.vel_error[e.nlos].std() == pytest.approx(math.hypot(ev.velocity_white, ev.velocity_nlos), rel=0.03)
+    assert np.allclose(e.reported_sigma_v[~e.nlos], ev.velocity_white)
+    ratio = e.reported_sigma_v[e.nlos] / math.hypot(ev.velocity_white, ev.velocity_nlos)
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.05) and np.std(np.log(ratio)) > 0.2  # mis-scaled
     cm = common_mode_error(t, 1.5, 600.0, rng)
     assert cm.shape == (len(t), 3)
 

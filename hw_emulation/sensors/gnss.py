@@ -4,7 +4,9 @@ Error = white noise + per-vehicle Gauss-Markov multipath (long correlation time 
 + a common-mode part shared by nearby vehicles (passed in, one realisation per scenario)
 + NLOS jump events (a bias of 5-50 m lasting 5-60 s) ; fixes are missing during outages. The
 receiver's *reported* σ follows the white + multipath level with a random mis-scaling and does not
-know about NLOS biases, as real receivers' σ is imperfect.
+know about NLOS biases, as real receivers' σ is imperfect. Its reported velocity σ does see the
+extra Doppler noise of NLOS epochs (receivers scale it from the Doppler residuals and C/N0),
+with the same mis-scaling.
 """
 
 from __future__ import annotations
@@ -90,6 +92,8 @@ class GnssErrors:
     vel_error : ndarray, shape (n, 3) [m/s]
     reported_sigma : ndarray, shape (n, 3)
         What the receiver claims (position σ per axis) [m].
+    reported_sigma_v : ndarray, shape (n,)
+        What the receiver claims for the velocity (σ per axis) [m/s].
     valid : ndarray of bool, shape (n,)
         False during outages (no fix delivered).
     nlos : ndarray of bool, shape (n,)
@@ -100,6 +104,7 @@ class GnssErrors:
     pos_error: np.ndarray
     vel_error: np.ndarray
     reported_sigma: np.ndarray
+    reported_sigma_v: np.ndarray
     valid: np.ndarray
     nlos: np.ndarray
 
@@ -149,4 +154,5 @@ def simulate_gnss(model: GnssModel, t: np.ndarray, moving: np.ndarray, rng: np.r
     level = np.sqrt(np.array([model.white_h, model.white_h, model.white_v]) ** 2
                     + np.array([model.multipath_h, model.multipath_h, model.multipath_v]) ** 2)
     factor = np.exp(rng.normal(0.0, model.sigma_misscale, (n, 1)))
-    return GnssErrors(t, err, vel, level * factor, valid, nlos)
+    sigma_v = np.hypot(model.velocity_white, np.where(nlos, model.velocity_nlos * factor[:, 0], 0.0))
+    return GnssErrors(t, err, vel, level * factor, np.maximum(sigma_v, 0.02), valid, nlos)
