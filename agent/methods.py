@@ -32,7 +32,7 @@ from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_lin
 from .nav.measurements.v2v_range import range_measurement, relative_position
 from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
-from .nav.state import NavState
+from .nav.state import POS, NavState
 from .neighbours import NeighbourState, NeighbourTable
 from .range_gate import RangeRateGate
 
@@ -66,6 +66,10 @@ class FilterSettings:
     sigma_uwb: float = 0.1
     range_gate: float = 0.999  #: chi-square probability of the NIS gate for ranges
     second_order_ranges: bool = True
+    #: σ [m] of the height difference of two vehicles' UWB antennas, taken as zero (same mounting
+    #: height on a locally flat road); the range model then acts on the horizontal position only.
+    #: None takes the difference of the two estimated heights (a 3-D range).
+    range_height_sigma: float | None = 0.3
     #: χ² probability of the NIS gate on GNSS positions (NLOS jumps of metres to tens of metres,
     #: while the GNSS velocity keeps the INS honest); None accepts every fix
     gnss_gate: float | None = 0.999
@@ -340,14 +344,16 @@ class MethodFilter:
             return self._count_range("gate_rate")
         m = range_measurement(self.filter.state, measured, s.sigma_uwb, nb_llh, neighbour.cov_ned,
                               own_cov_ned=self.filter.position_cov, second_order=s.second_order_ranges,
-                              relative=d)
+                              relative=d, height_offset=None if s.range_height_sigma is None
+                              else (0.0, s.range_height_sigma))
         if s.fusion == "paper":
             res = self.filter.update(m, s.range_gate)
         else:
             # the neighbour's estimate is wholly dependent: it may contain our information, and
             # its own-sensor errors (multipath) persist from one range to the next; so does an
             # NLOS bias. The UWB white noise (and the second-order term) is independent.
-            r_nb = max(float(u @ neighbour.cov_ned @ u), 0.0)
+            h = m.H[0, POS]  # the line of sight as the model uses it (horizontal or 3-D)
+            r_nb = max(float(h @ neighbour.cov_ned @ h), 0.0)
             m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
             r_dep = np.array([[r_nb + s.uwb_nlos_sigma**2]])
             res = self.filter.update_split_ci(m_ind, r_dep, own_independent=s.fusion == "split-ci",

@@ -139,6 +139,37 @@ def test_stop_line_measurement_matches_truth_geometry() -> None:
     assert np.allclose(m.z, 0.0, atol=1e-6)
 
 
+def test_range_with_road_height_offset_ignores_the_estimated_heights() -> None:
+    """With the antennas' height difference from the road, the estimated heights (however
+    wrong, however uncertain) change neither the prediction nor R; H has no vertical column and
+    still matches numerical perturbation."""
+    s = moving_state()
+    nb = np.array(point_llh(s, np.zeros(3)))
+    rm, rn = earth.radii(nb[0])
+    nb[0] += 30.0 / (rm + nb[2])
+    nb[1] += 40.0 / ((rn + nb[2]) * np.cos(nb[0]))
+    nb[2] += 9.0  # the neighbour's estimated height is 9 m above ours
+    Pj = np.array([[0.5, 0.1, 0.3], [0.1, 0.8, -0.2], [0.3, -0.2, 100.0]])
+    Pi = np.diag([1.0, 2.0, 150.0])
+    m3d = range_measurement(s, 50.0, 0.1, nb, Pj)
+    m = range_measurement(s, 50.0, 0.1, nb, Pj, height_offset=(0.0, 0.3))
+    assert m3d.z[0] == pytest.approx(math.sqrt(50.0**2 + 81.0) - 50.0, rel=1e-3)  # 0.80 m
+    assert m.z[0] == pytest.approx(0.0, abs=2e-3)
+    u = np.array([-0.6, -0.8, 0.0])  # from the neighbour to us, horizontal
+    assert m.R[0, 0] == pytest.approx(0.01 + u @ Pj @ u, rel=1e-3)
+    assert m.H[0, 8] == 0.0
+    m2 = range_measurement(s, 50.0, 0.1, nb, Pj, own_cov_ned=Pi, second_order=True, height_offset=(0.0, 0.3))
+    # only the horizontal cross-range variance (and the offset's) curves the range:
+    # (0.5 + 1.0)·0.64 + (0.8 + 2.0)·0.36 − 2·0.1·0.48 = 1.872 m² across, 0.09 m² vertical
+    assert m2.z[0] == pytest.approx((1.872 + 0.09) / (2 * 50.0), rel=2e-2)
+    # a known offset of the antennas (this one 0.8 m higher) enters as the vertical leg
+    m4 = range_measurement(s, 50.0, 0.1, nb, Pj, height_offset=(0.8, 0.3))
+    assert m4.z[0] == pytest.approx(math.hypot(50.0, 0.8) - 50.0, abs=2e-3)
+    assert m4.R[0, 0] == pytest.approx(m.R[0, 0] + (0.8 / 50.0 * 0.3) ** 2, rel=1e-3)
+    for offset in ((0.0, 0.3), (0.8, 0.3)):
+        _check_jacobian(lambda st: range_measurement(st, 50.0, 0.1, nb, Pj, LEVER, height_offset=offset), tol=3e-5)
+
+
 def test_range_r_includes_neighbour_covariance_and_second_order_terms() -> None:
     s = moving_state()
     nb = np.array(point_llh(s, np.zeros(3)))

@@ -6,6 +6,14 @@ term), ``R = σ_uwb² + u^T P_j u``. When the position uncertainty is comparable
 first-order model is overconfident and biased: the second-order term adds
 ``½ tr((M P)²)`` to R and ``½ tr(M P)`` to the predicted range, with ``M = (I - u u^T)/ρ`` the
 Hessian of the range and ``P = P_i + P_j`` (Bar-Shalom et al. §10.3, second-order EKF).
+
+Road vehicles share a ground surface: the height difference of two UWB antennas a few tens of
+metres apart is known far better (same mounting height, locally flat road) than the difference
+of their GNSS/INS heights, whose vertical errors are metres. With ``height_offset`` given, the
+model takes the antennas' vertical offset from it instead of from the two estimated heights:
+``ρ = ||(d_n, d_e, Δh)||``, ``H`` acts on the horizontal position only, and the offset's σ
+enters R. The vertical estimates then neither bias the range (the second-order term of a 10 m
+vertical σ at 30 m is +1.7 m) nor drain its information.
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ def range_measurement(
     own_cov_ned: np.ndarray | None = None,
     second_order: bool = False,
     relative: np.ndarray | None = None,
+    height_offset: tuple[float, float] | None = None,
 ) -> Measurement:
     """Range to a neighbour (1 row).
 
@@ -60,28 +69,53 @@ def range_measurement(
         Add the second-order noise and bias terms.
     relative : ndarray, shape (3,), optional
         :func:`relative_position` of the same arguments, if the caller has it already.
+    height_offset : (float, float), optional
+        ``(Δh, σ)`` [m]: this vehicle's antenna height minus the neighbour's and its standard
+        deviation, known from the road (e.g. ``(0, 0.3)`` on a flat road). None: from the two
+        estimated heights (a 3-D range).
     """
     d = relative_position(state, lever_arm_b, neighbour_llh) if relative is None else relative
+    Pj = np.asarray(neighbour_cov_ned, float)
+    Pi = None if own_cov_ned is None else np.asarray(own_cov_ned, float)
+    r = sigma_range**2
+    if height_offset is not None:
+        dh, sdh = height_offset
+        d = np.array([d[0], d[1], -float(dh)])  # NED: down = minus the height difference
+        Pj = _horizontal(Pj)
+        Pi = None if Pi is None else _horizontal(Pi)
     rho = float(np.linalg.norm(d))
     if rho < 1e-3:
         raise ValueError("vehicles coincide: range direction undefined")
     u = d / rho
-    Pj = np.asarray(neighbour_cov_ned, float)
-    r = sigma_range**2 + float(u @ Pj @ u)
+    if height_offset is not None:
+        r += (u[2] * sdh) ** 2
+    r += float(u @ Pj @ u)
     predicted = rho
     if second_order:
-        if own_cov_ned is None:
+        if Pi is None:
             raise ValueError("second_order range model needs own_cov_ned")
         # with M = Π/ρ, Π = I - u uᵀ and Q = P_i + P_j (symmetric): tr(MQ) = (tr Q - uᵀQu)/ρ,
         # tr((MQ)²) = (tr(Q²) - 2 |Qu|² + (uᵀQu)²)/ρ² (Π² = Π)
-        Q = Pj + np.asarray(own_cov_ned, float)
+        Q = Pj + Pi
+        if height_offset is not None:
+            Q[2, 2] += sdh**2
         Qu = Q @ u
         uQu = float(u @ Qu)
         predicted += 0.5 * (float(Q.trace()) - uQu) / rho
         r += 0.5 * (float((Q * Q).sum()) - 2.0 * float(Qu @ Qu) + uQu * uQu) / (rho * rho)
+    if height_offset is not None:
+        u = np.array([u[0], u[1], 0.0])  # the vertical offset comes from the road, not the state
     if lever_arm_b.any():
         H = u @ point_position_jacobian(state, lever_arm_b)
     else:  # only the position columns
         H = np.zeros(N_STATES)
         H[POS] = u
     return Measurement(np.array([predicted - measured_range]), H[None, :], np.array([[r]]), "v2v_range")
+
+
+def _horizontal(P: np.ndarray) -> np.ndarray:
+    """``P`` (3, 3) with its vertical row and column zeroed (a copy)."""
+    out = np.array(P, float)
+    out[2, :] = 0.0
+    out[:, 2] = 0.0
+    return out
