@@ -32,7 +32,7 @@ from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_lin
 from .nav.measurements.v2v_range import range_measurement, relative_position
 from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
-from .nav.state import POS, NavState
+from .nav.state import POS, VEL, NavState
 from .neighbours import NeighbourState, NeighbourTable
 from .range_gate import RangeRateGate
 
@@ -167,7 +167,13 @@ class MethodFilter:
             # the common-mode GNSS error is shared with the neighbours: what we know of it is
             # not independent of their estimates
             cm = tuple(range(3, self._mp.stop)) if self._mp.stop > 3 else ()
-            self.filter.track_independent(self._common_mode_part(), shared=cm)
+            # a horizontal range model observes nothing vertical: the vertical channel (velocity,
+            # position and the GNSS error states' down components) stays out of the CI inflation
+            vertical = ()
+            if s.range_height_sigma is not None:
+                off = self.filter.extra_offset
+                vertical = (VEL.start + 2, POS.start + 2) + tuple(off + k for k in range(2, self._mp.stop, 3))
+            self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=vertical)
         self.gap = gap
         self.origin = origin_llh
         self.heading_known = heading_known

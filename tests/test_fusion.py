@@ -136,3 +136,30 @@ def test_the_exact_scalar_screen_agrees_with_a_dense_search_over_omega() -> None
             assert scalar_gain_exceeds(terms, T) == (best > T)
             outcomes.add(best > T)
     assert outcomes == {True, False}
+
+
+@pytest.mark.parametrize("unshared", [False, True])
+def test_unshared_states_stay_out_of_the_inflation(unshared: bool) -> None:
+    """Repeated split-CI ranges in the horizontal inflate the dependent part of every state by
+    1/ω, the vertical channel included, which no range observes and nothing shrinks; declared
+    unshared, the vertical keeps its variance."""
+    from agent.nav.error_model import ImuNoise
+    from agent.nav.ins_filter import InsFilter
+
+    from conftest import moving_state
+
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(15, 15))
+    P0 = A @ A.T / 15 + np.eye(15)
+    flt = InsFilter(moving_state(), P0.copy(), ImuNoise(1e-4, 1e-3, 1e-5, 3600.0, 1e-3, 3600.0), t=0.0)
+    flt.track_independent(dependent=0.5 * P0, unshared=(5, 8) if unshared else ())
+    H = np.zeros((1, 15))
+    H[0, 6:8] = (0.6, 0.8)  # a horizontal line of sight on the position
+    for _ in range(20):
+        flt.update_split_ci(Measurement(np.zeros(1), H, np.array([[0.01]])), np.array([[0.5]]))
+    if unshared:
+        assert flt.P[8, 8] <= P0[8, 8] + 1e-9 and flt.P[5, 5] <= P0[5, 5] + 1e-9
+    else:
+        assert flt.P[8, 8] > 1.1 * P0[8, 8]
+    # the independent part stays a part: P − P_ind ⪰ 0
+    assert np.linalg.eigvalsh(flt.P - flt.P_ind).min() > -1e-9
