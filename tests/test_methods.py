@@ -49,17 +49,32 @@ def test_stop_line_fix_pulls_a_stopped_vehicle_onto_its_place() -> None:
 
 
 def test_range_update_and_gates() -> None:
-    f, _, _, true_llh = _stopped_filter("CP", offset_ne=(0.0, 0.0))
+    f, _, _, true_llh = _stopped_filter("CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
     rm, _ = earth.radii(ORIGIN[0])
     nb = NeighbourState("V2", true_llh + np.array([-7.0 / (rm + 50), 0.0, 0.0]), np.eye(3) * 0.01, 0.05)
     assert f.range(nb, 7.0) == "fused" and f.counters["ranges"] == 1
     assert f.range(nb, 500.0) == "gate_physical"
     assert f.range(nb, 37.0) == "gate_rate"  # a 30 m jump that two standing cars cannot make
     assert f.counters["ranges_rejected"] == 2
-    fresh, _, _, _ = _stopped_filter("CP", offset_ne=(0.0, 0.0))
+    fresh, _, _, _ = _stopped_filter("CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
     assert fresh.range(nb, 37.0) == "gate_nis"  # no range track yet: the χ² gate catches it
     sp, _, _, _ = _stopped_filter("SP")
     assert sp.range(nb, 7.0) is None
+
+
+def test_a_range_too_near_for_the_linearisation_waits() -> None:
+    """σ 4 m across the line of sight: at 7 m the estimated direction is meaningless, so the
+    range is not fused (nor counted as rejected); at 30 m (7.5 σ) it is."""
+    rm, _ = earth.radii(ORIGIN[0])
+    for dist, outcome in ((7.0, "skipped_near"), (30.0, "fused")):
+        f, _, _, true_llh = _stopped_filter("CP", offset_ne=(0.0, 0.0))
+        nb = NeighbourState("V2", true_llh + np.array([-dist / (rm + 50), 0.0, 0.0]), np.eye(3) * 0.01, 0.05)
+        assert f.range(nb, dist) == outcome
+        assert f.counters["ranges_rejected"] == 0
+    assert f.counters["ranges"] == 1
+    near, _, _, _ = _stopped_filter("CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
+    assert near.range(NeighbourState("V2", true_llh + np.array([-7.0 / (rm + 50), 0.0, 0.0]), np.eye(3) * 0.01, 0.05),
+                      7.0) == "fused"
 
 
 def test_range_rate_gate_follows_motion_and_restarts() -> None:
