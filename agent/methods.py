@@ -380,7 +380,7 @@ class MethodFilter:
         if rho <= 0.0:
             return True
         v = np.array([-d[1], d[0]]) / rho  # across the line of sight
-        q = self.filter.P[POS, POS][:2, :2] + np.asarray(nb_cov, float)[:2, :2]
+        q = self.filter.position_cov[:2, :2] + np.asarray(nb_cov, float)[:2, :2]
         return rho * rho < k * k * float(v @ q @ v)
 
     def _count_range(self, outcome: str) -> str:
