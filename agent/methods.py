@@ -172,13 +172,18 @@ class MethodFilter:
             # the common-mode GNSS error is shared with the neighbours: what we know of it is
             # not independent of their estimates
             cm = tuple(range(3, self._mp.stop)) if self._mp.stop > 3 else ()
-            # a horizontal range model observes nothing vertical: the vertical channel (velocity,
-            # position and the GNSS error states' down components) stays out of the CI inflation
-            vertical = ()
+            # a horizontal range observes the horizontal position (and, through the dynamics, the
+            # horizontal velocity and the shared GNSS error); every other state (attitude, IMU
+            # biases, the vertical channel, the stop-gap states) stays out of the CI inflation,
+            # which otherwise compounds there with nothing to shrink it: a vehicle standing in a
+            # queue for 30 s reached a yaw σ of 30° and diverged when it drove off
+            unshared = ()
             if s.range_height_sigma is not None:
                 off = self.filter.extra_offset
-                vertical = (VEL.start + 2, POS.start + 2) + tuple(off + k for k in range(2, self._mp.stop, 3))
-            self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=vertical)
+                shared_h = {VEL.start, VEL.start + 1, POS.start, POS.start + 1}
+                shared_h |= {off + k for k in range(self._mp.stop) if k % 3 != 2}
+                unshared = tuple(i for i in range(self.filter.n) if i not in shared_h)
+            self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=unshared)
         self.gap = gap
         self.origin = origin_llh
         self.heading_known = heading_known
