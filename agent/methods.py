@@ -338,7 +338,8 @@ class MethodFilter:
         earlier for a range deferred until the neighbour's beacon of that time arrived).
 
         Returns the outcome: ``"fused"``; ``"skipped"`` (node selection: too little expected
-        gain); ``"skipped_near"`` (too near for the linearisation: ``range_min_sigmas``); ``"gate_physical"`` (outside (0, max_range)); ``"gate_rate"`` (a jump the
+        gain); ``"skipped_near"`` (too near for the linearisation: ``range_min_sigmas``);
+        ``"gate_physical"`` (outside (0, max_range)); ``"gate_rate"`` (a jump the
         vehicles' motion cannot explain); ``"gate_nis"`` (χ² innovation gate); None for methods
         without ranges.
         """
@@ -358,10 +359,11 @@ class MethodFilter:
         if not self.rate_gate.check(neighbour.vehicle, t_meas, measured,
                                     float(u @ (self.filter.state.v - neighbour.v_ned))):
             return self._count_range("gate_rate")
-        if s.range_min_sigmas > 0.0 and self._too_near(d, neighbour.cov_ned, s.range_min_sigmas):
+        own_cov = self.filter.position_cov
+        if s.range_min_sigmas > 0.0 and _too_near(d, own_cov, neighbour.cov_ned, s.range_min_sigmas):
             return self._count_range("skipped_near")
         m = range_measurement(self.filter.state, measured, s.sigma_uwb, nb_llh, neighbour.cov_ned,
-                              own_cov_ned=self.filter.position_cov, second_order=s.second_order_ranges,
+                              own_cov_ned=own_cov, second_order=s.second_order_ranges,
                               relative=d, height_offset=None if s.range_height_sigma is None
                               else (0.0, s.range_height_sigma))
         if s.fusion == "paper":
@@ -378,16 +380,6 @@ class MethodFilter:
                                               gate_probability=s.range_gate, min_gain=s.min_gain)
         return self._count_range("skipped" if res.skipped else "fused" if res.accepted else "gate_nis")
 
-    def _too_near(self, d: np.ndarray, nb_cov: np.ndarray, k: float) -> bool:
-        """Whether the horizontal distance ``d[:2]`` [m] is below ``k`` σ of the horizontal
-        position uncertainty across the line of sight (own plus the neighbour's, (3, 3) m²)."""
-        rho = math.hypot(d[0], d[1])
-        if rho <= 0.0:
-            return True
-        v = np.array([-d[1], d[0]]) / rho  # across the line of sight
-        q = self.filter.position_cov[:2, :2] + np.asarray(nb_cov, float)[:2, :2]
-        return rho * rho < k * k * float(v @ q @ v)
-
     def _count_range(self, outcome: str) -> str:
         self.counters["ranges" if outcome == "fused" else f"ranges_{outcome}"] += 1
         if outcome.startswith("gate"):
@@ -403,6 +395,17 @@ class MethodFilter:
         """``(llh, v_ned, cov_pos)`` to broadcast."""
         st = self.filter.state
         return st.llh.copy(), st.v.copy(), self.filter.position_cov
+
+
+def _too_near(d: np.ndarray, own_cov: np.ndarray, nb_cov: np.ndarray, k: float) -> bool:
+    """Whether the horizontal distance ``d[:2]`` [m] is below ``k`` σ of the horizontal position
+    uncertainty across the line of sight (own plus the neighbour's covariance, (3, 3) m²)."""
+    rho = math.hypot(d[0], d[1])
+    if rho <= 0.0:
+        return True
+    v = np.array([-d[1], d[0]]) / rho  # across the line of sight
+    q = np.asarray(own_cov, float)[:2, :2] + np.asarray(nb_cov, float)[:2, :2]
+    return rho * rho < k * k * float(v @ q @ v)
 
 
 def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTable,
