@@ -35,18 +35,32 @@ def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[fl
 
 def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
          agent_nice: int = 5) -> dict:
+    from .launcher import run_fleet
+
+    return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice)
+
+
+def _interruptible(fn, *args):
+    """Run ``fn(*args)`` in a pool worker. SIGTERM and SIGHUP raise KeyboardInterrupt, so that
+    ``fn``'s own cleanup runs (a fleet stops its processes), and a worker so interrupted then
+    exits: a pool worker would otherwise take the next call already queued to it (a seed
+    behind the interrupted one) and start another fleet."""
     import logging
 
-    from .launcher import interrupt_on_termination, run_fleet
+    from .launcher import interrupt_on_termination
 
     logging.basicConfig(level=logging.WARNING)
     interrupt_on_termination()
-    return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice)
+    try:
+        return fn(*args)
+    except KeyboardInterrupt:
+        logging.shutdown()
+        os._exit(130)  # a process boundary: the pool sees a worker gone, not a result
 
 
 def _stop_with_parent(period: float = 0.5) -> None:
     """Pool-worker initializer: when the study process is gone (killed), terminate this worker
-    (a running fleet gets SIGTERM, i.e. its own cleanup; see :func:`_one`) instead of running on
+    (a running fleet gets SIGTERM, i.e. its own cleanup; see :func:`_interruptible`) instead of running on
     with the seeds still queued."""
     import threading
     import time
@@ -71,8 +85,8 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     per_seed: dict[int, dict] = {}
     pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
     try:
-        futs = {pool.submit(_one, scenario, methods, s, str(out / f"seed-{s}"), fusion, sign, agent_nice): s
-                for s in seeds}
+        futs = {pool.submit(_interruptible, _one, scenario, methods, s, str(out / f"seed-{s}"), fusion, sign,
+                            agent_nice): s for s in seeds}
         for fut in as_completed(futs):
             per_seed[futs[fut]] = fut.result()
             if progress:

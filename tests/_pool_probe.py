@@ -1,4 +1,9 @@
-"""Helper of test_study: a process pool with the study's worker initializer, one long job."""
+"""Helper of test_study: a process pool with the study's worker initializer.
+
+``_pool_probe.py PID_FILE``: one long job (the study process is then killed).
+``_pool_probe.py PID_FILE SECOND_FILE``: two long jobs queued to one worker, each run as the
+study runs a seed; the test sends the worker SIGTERM during the first one.
+"""
 
 from __future__ import annotations
 
@@ -16,8 +21,12 @@ def job(path: str) -> None:
 
 
 if __name__ == "__main__":
-    from deploy.study import _stop_with_parent
+    from deploy.study import _interruptible, _stop_with_parent
 
     pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
-    pool.submit(job, sys.argv[1])
+    if len(sys.argv) == 2:
+        pool.submit(job, sys.argv[1])
+    else:
+        for path in sys.argv[1:3]:
+            pool.submit(_interruptible, job, path)
     time.sleep(120)

@@ -117,3 +117,40 @@ def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
     finally:
         if probe.poll() is None:
             probe.kill()
+
+
+def test_an_interrupted_study_worker_does_not_start_the_seed_queued_behind(tmp_path) -> None:
+    """SIGTERM to a pool worker during a seed: the seed's own cleanup runs (KeyboardInterrupt),
+    then the worker exits instead of taking the call already queued to it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    first, second = tmp_path / "first.pid", tmp_path / "second.pid"
+    probe = subprocess.Popen([sys.executable, str(Path(__file__).with_name("_pool_probe.py")), str(first), str(second)],
+                             cwd=Path(__file__).parents[1])
+    try:
+        deadline = time.monotonic() + 60
+        while not (first.exists() and first.read_text()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        worker = int(first.read_text())
+        os.kill(worker, signal.SIGTERM)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)
+            except ProcessLookupError:
+                break
+            if Path(f"/proc/{worker}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                break  # exited, not yet reaped by the pool
+            time.sleep(0.1)
+        else:
+            raise AssertionError("the interrupted worker did not exit within 10 s")
+        time.sleep(1.0)
+        assert not second.exists(), "the interrupted worker started the next queued job"
+    finally:
+        probe.kill()
+        probe.wait(timeout=10)
