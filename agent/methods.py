@@ -355,7 +355,9 @@ class MethodFilter:
             # relative geometry of time t while the Jacobian acts on my current error
             nb_llh = earth.offset_llh(nb_llh, self.displacement_since(t_meas))
         d = relative_position(self.filter.state, np.zeros(3), nb_llh)
-        u = d / max(float(np.linalg.norm(d)), 1e-3)
+        # the line of sight as the range model takes it: horizontal unless the 3-D model is chosen
+        los = d if s.range_height_sigma is None else np.array([d[0], d[1], 0.0])
+        u = los / max(float(np.linalg.norm(los)), 1e-3)
         if not self.rate_gate.check(neighbour.vehicle, t_meas, measured,
                                     float(u @ (self.filter.state.v - neighbour.v_ned))):
             return self._count_range("gate_rate")
