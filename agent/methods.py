@@ -182,6 +182,13 @@ class MethodFilter:
                 off = self.filter.extra_offset
                 shared_h = {VEL.start, VEL.start + 1, POS.start, POS.start + 1}
                 shared_h |= {off + k for k in range(self._mp.stop) if k % 3 != 2}
+                if self._sl is not None:
+                    # the stop-gap states carry my stop-line fix, which reaches my neighbours'
+                    # estimates through my beacons: counted as independent, the fix came back
+                    # through the ranges as news (paper-1 V1's σ went 1 % below the joint
+                    # bound); they are reset when a claim ends (:meth:`end_stop`), so nothing
+                    # inflates them between stops
+                    shared_h |= {off + k for k in range(self._sl.start, self._sl.stop)}
                 unshared = tuple(i for i in range(self.filter.n) if i not in shared_h)
             self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=unshared)
         self.gap = gap
@@ -311,15 +318,7 @@ class MethodFilter:
         if stop_id != self._stop_id:
             self._stop_id = stop_id
             self.last_stop_line = -math.inf
-            f.flush_covariance()
-            k = np.arange(f.extra_offset + self._sl.start, f.extra_offset + self._sl.stop)
-            var = np.array([self.gap.sigma_xb, self.gap.sigma_yb]) ** 2
-            for P in (f.P, f.P_ind):
-                if P is not None:
-                    P[k, :] = 0.0
-                    P[:, k] = 0.0
-                    P[k, k] = var
-            f.extra[self._sl] = 0.0
+            self._reset_stop_gap()
         if self.t - self.last_stop_line < self.settings.stop_line_interval:
             return None
         self.last_stop_line = self.t
@@ -382,6 +381,29 @@ class MethodFilter:
                                               gate_probability=s.range_gate, min_gain=s.min_gain)
         return self._count_range("skipped" if res.skipped else "fused" if res.accepted else "gate_nis")
 
+    def end_stop(self) -> None:
+        """The vehicle moves: a stop whose line it fixed on is over. Its stop-gap states go back
+        to their prior, uncorrelated with the rest: nothing observes them until the next stop,
+        which draws its own d_s and d_l, and left correlated, each split-CI range would inflate
+        their dependent part by 1/ω with nothing to shrink it. No-op outside such a stop (a
+        claim that ends while the vehicle stands keeps them: a new claim in the same stop
+        shares their error)."""
+        if self._sl is not None and self._stop_id is not None:
+            self._stop_id = None
+            self._reset_stop_gap()
+
+    def _reset_stop_gap(self) -> None:
+        f = self.filter
+        f.flush_covariance()
+        k = np.arange(f.extra_offset + self._sl.start, f.extra_offset + self._sl.stop)
+        var = np.array([self.gap.sigma_xb, self.gap.sigma_yb]) ** 2
+        for P in (f.P, f.P_ind):
+            if P is not None:
+                P[k, :] = 0.0
+                P[:, k] = 0.0
+                P[k, k] = var
+        f.extra[self._sl] = 0.0
+
     def _count_range(self, outcome: str) -> str:
         self.counters["ranges" if outcome == "fused" else f"ranges_{outcome}"] += 1
         if outcome.startswith("gate"):
@@ -439,6 +461,8 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
                                   float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)
     if changed:
         f.last_stop_line = -math.inf
+    if tracker.since is None:  # moving: the stop is over
+        f.end_stop()
     if dec.first:
         f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only, stop_id=tracker.since)
     return dec, changed

@@ -136,3 +136,47 @@ def test_a_gnss_jump_is_rejected_and_a_fix_rejected_for_long_re_anchors_the_posi
     e = earth.ned_offset(*f.filter.state.llh, *jump)
     assert math.hypot(e[0], e[1]) < 1.5 and f.counters["gnss_reanchored"] == 1
     assert f.filter.position_cov[0, 0] < 9.0  # and it is sure of it again after a few fixes
+
+
+def test_ranges_to_a_vague_neighbour_do_not_sharpen_a_stop_line_fix() -> None:
+    """A first stopped vehicle re-fixing itself on its stop line (SL-CP, split CI) ranges at
+    10 Hz to a neighbour 7 m behind whose beacon is only good to 3 m. The joint bound says the
+    ranges can tell it next to nothing; its σ must not drop below that of the same vehicle
+    without ranges (SL-SP). With the stop-gap states counted as independent of what the
+    neighbours know, it dropped by 1-2 % within seconds (paper-1 V1, below the bound)."""
+    rm, _ = earth.radii(ORIGIN[0])
+    cp, approach, _, true_llh = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
+    sp, _, _, _ = _stopped_filter("SL-SP", offset_ne=(0.0, 0.0))
+    nb = NeighbourState("V2", true_llh + np.array([-7.0 / (rm + 50), 0.0, 0.0]), np.eye(3) * 9.0, 0.05)
+    zero, dt = np.zeros(3), 0.01
+    g = np.array([0.0, 0.0, -earth.gravity(ORIGIN[0], 50.0)]) * dt
+    for k in range(300):  # 30 s
+        for f in (cp, sp):
+            for _ in range(10):
+                f.propagate(zero, g, dt)
+            f.stop_line(approach, stop_id=0.0)
+        cp.range(nb, 7.0)
+    assert cp.counters["stop_line"] >= 2 and cp.counters["ranges"] > 0
+    s_cp = np.sqrt(np.trace(cp.filter.position_cov[:2, :2]))
+    s_sp = np.sqrt(np.trace(sp.filter.position_cov[:2, :2]))
+    assert s_cp >= 0.995 * s_sp, (s_cp, s_sp)
+
+
+def test_the_stop_gap_states_are_forgotten_when_the_stop_ends() -> None:
+    """After a stop-line fix the gap states are correlated with the position; when the vehicle
+    drives off they go back to their prior (in P and in its independent part), so that no
+    split-CI range can inflate them until the next stop; the position keeps its covariance."""
+    f, approach, gap, _ = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0))
+    f.stop_line(approach, stop_id=0.0)
+    flt = f.filter
+    k = np.arange(flt.extra_offset + f._sl.start, flt.extra_offset + f._sl.stop)
+    flt.flush_covariance()
+    assert np.abs(flt.P[k][:, 6:8]).max() > 1e-4  # correlated with the horizontal position
+    before = flt.position_cov
+    f.end_stop()
+    for P in (flt.P, flt.P_ind):
+        others = np.setdiff1d(np.arange(flt.n), k)
+        assert np.allclose(P[np.ix_(k, others)], 0.0)
+        assert np.allclose(np.diag(P)[k], [gap.sigma_xb**2, gap.sigma_yb**2])
+    assert np.allclose(flt.position_cov, before)
+    assert f.stop_line(approach, stop_id=0.0).accepted  # the same stop claimed again: fixes at once
