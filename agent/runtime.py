@@ -30,7 +30,7 @@ from .misbehaviour import MisbehaviourDetector
 from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from .nav import earth
 from .nav.measurements.stop_line import StopGapModel
-from .nav.motion import StationarityMonitor, ZuptGate
+from .nav.motion import StationarityMonitor, ZuptGate, speed_sigma
 from .nav.rotation import quat_to_euler
 from .neighbours import NeighbourTable
 from .sequencer import Apply, Propagate, Sequencer
@@ -418,7 +418,8 @@ class Agent:
                                      msg.dt[rest_from:k + 1], ref.filter.state.dcm)
                 rest_from = k + 1
                 v = ref.filter.state.v
-                if self.zupt_gate.due(t, self.rest, math.hypot(v[0], v[1])):
+                if self.zupt_gate.due(t, self.rest, math.hypot(v[0], v[1]),
+                                      lambda: speed_sigma(ref.filter.state.v, ref.filter.velocity_cov)):
                     for f in filters:
                         f.zupt()
             if t >= self._timer_due:

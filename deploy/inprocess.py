@@ -16,7 +16,7 @@ import numpy as np
 from agent.first_stopped import FirstStoppedDetector, StopTracker
 from agent.methods import METHODS, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from agent.nav import earth
-from agent.nav.motion import StationarityMonitor, ZuptGate
+from agent.nav.motion import StationarityMonitor, ZuptGate, speed_sigma
 from agent.neighbours import NeighbourTable
 from hw_emulation.emulate import emulate_uwb, emulate_vehicle_sensors
 from hw_emulation.sensors.radio import simulate_link
@@ -125,8 +125,10 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                                                             int(cam.classes[i, 1]))
                 lane_i[vid] += 1
             rest[vid].push(th, dv, dts[k], filters[(vid, methods[0])].filter.state.dcm)
-            v = filters[(vid, methods[0])].filter.state.v
-            if zupt_gate[vid].due(tk, rest[vid], math.hypot(v[0], v[1])):
+            ref = filters[(vid, methods[0])].filter
+            v = ref.state.v
+            if zupt_gate[vid].due(tk, rest[vid], math.hypot(v[0], v[1]),
+                                  lambda: speed_sigma(ref.state.v, ref.velocity_cov)):
                 for m in methods:
                     filters[(vid, m)].zupt()
         # beacons: send at the schedule, deliver after the radio latency

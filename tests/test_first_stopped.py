@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView, StopTracker
 from agent.lane_markings import BOUNDARY, DIVIDER, UNSEEN, LaneEdges, MarkingWindow, marking_classes
@@ -140,6 +141,28 @@ def test_imu_rest_is_told_from_constant_acceleration_and_turning() -> None:
     assert not gate.due(11.0, rest, 5.0)     # the INS says "moving": cruising looks like rest
     assert gate.due(11.0, rest, 0.3)
     assert not gate.due(11.05, rest, 0.3)    # at most every 0.1 s
+    # after a long GNSS gap the INS speed is uncertain: 0.98 ± 2 m/s may be a car creeping
+    # at 2.4 m/s (constant speed looks like rest to the IMU); the σ is evaluated only if needed
+    assert not gate.due(12.0, rest, 0.98, lambda: 2.0)
+    assert not gate.due(12.0, rest, 0.3, 0.4)  # 0.3 + 2 * 0.4 >= 1
+    assert gate.due(12.0, rest, 0.3, 0.2)
+    assert not gate.due(13.0, rest, 5.0, lambda: 1 / 0)  # ruled out before the σ is needed
+
+
+def test_speed_sigma_is_the_standard_deviation_along_the_velocity() -> None:
+    from agent.nav.motion import speed_sigma
+
+    cov = np.diag([4.0, 0.25, 9.0])
+    assert speed_sigma(np.array([3.0, 0.0, 1.0]), cov) == pytest.approx(2.0)
+    assert speed_sigma(np.array([0.0, -3.0, 0.0]), cov) == pytest.approx(0.5)
+    v = np.array([1.0, 1.0, 0.0])
+    assert speed_sigma(v, cov) == pytest.approx(np.sqrt((4.0 + 0.25) / 2))
+    assert speed_sigma(np.zeros(3), cov) == pytest.approx(2.0)  # at rest: the larger axis
+    rng = np.random.default_rng(3)  # against the sample σ of the speed of perturbed velocities
+    c = np.array([[0.04, 0.01, 0.0], [0.01, 0.09, 0.0], [0.0, 0.0, 1.0]])
+    v = np.array([5.0, 2.0, 0.0])
+    speeds = np.hypot(*(v[:2] + rng.multivariate_normal(np.zeros(2), c[:2, :2], 200_000)).T)
+    assert speed_sigma(v, c) == pytest.approx(speeds.std(), rel=0.01)
 
 
 def test_side_by_side_heads_of_two_lanes_both_claim_when_their_ranges_show_them_abreast() -> None:

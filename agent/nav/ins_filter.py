@@ -353,6 +353,12 @@ class InsFilter:
         self.flush_covariance()
         return self.P[POS, POS].copy()
 
+    @property
+    def velocity_cov(self) -> np.ndarray:
+        """NED velocity error covariance, shape (3, 3) [m²/s²]."""
+        self.flush_covariance()
+        return self.P[VEL, VEL].copy()
+
 
 _HORIZONTAL = np.array([POS.start, POS.start + 1])
 
