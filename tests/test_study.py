@@ -85,33 +85,49 @@ def test_bench_prints_every_figure(capsys) -> None:
     assert out["replay"] is None
 
 
-def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
-    """A study killed with SIGKILL must not leave its pool workers running its queued seeds."""
-    import os
-    import signal
+def _start_probe(*pid_files):
+    """The pool probe with ``pid_files``, and its (first) worker's pid once that job started."""
     import subprocess
     import sys
     import time
     from pathlib import Path
 
-    pid_file = tmp_path / "worker.pid"
-    probe = subprocess.Popen([sys.executable, str(Path(__file__).with_name("_pool_probe.py")), str(pid_file)],
+    probe = subprocess.Popen([sys.executable, str(Path(__file__).with_name("_pool_probe.py")), *map(str, pid_files)],
                              cwd=Path(__file__).parents[1])
+    deadline = time.monotonic() + 60
+    while not (pid_files[0].exists() and pid_files[0].read_text()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return probe, int(pid_files[0].read_text())
+
+
+def _gone_within(pid: int, seconds: float) -> bool:
+    """Whether process ``pid`` exits (or is a zombie waiting to be reaped) within ``seconds``."""
+    import os
+    import time
+    from pathlib import Path
+
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+            if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                return True
+        except (ProcessLookupError, FileNotFoundError):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
+    """A study killed with SIGKILL must not leave its pool workers running its queued seeds."""
+    import os
+    import signal
+
+    probe, worker = _start_probe(tmp_path / "worker.pid")
     try:
-        deadline = time.monotonic() + 60
-        while not (pid_file.exists() and pid_file.read_text()) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        worker = int(pid_file.read_text())
         probe.send_signal(signal.SIGKILL)
         probe.wait(timeout=10)
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline:
-            try:
-                os.kill(worker, 0)
-            except ProcessLookupError:
-                break
-            time.sleep(0.1)
-        else:
+        if not _gone_within(worker, 10.0):
             os.kill(worker, signal.SIGKILL)
             raise AssertionError("the pool worker outlived the study process by 10 s")
     finally:
@@ -124,31 +140,13 @@ def test_an_interrupted_study_worker_does_not_start_the_seed_queued_behind(tmp_p
     then the worker exits instead of taking the call already queued to it."""
     import os
     import signal
-    import subprocess
-    import sys
     import time
-    from pathlib import Path
 
-    first, second = tmp_path / "first.pid", tmp_path / "second.pid"
-    probe = subprocess.Popen([sys.executable, str(Path(__file__).with_name("_pool_probe.py")), str(first), str(second)],
-                             cwd=Path(__file__).parents[1])
+    second = tmp_path / "second.pid"
+    probe, worker = _start_probe(tmp_path / "first.pid", second)
     try:
-        deadline = time.monotonic() + 60
-        while not (first.exists() and first.read_text()) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        worker = int(first.read_text())
         os.kill(worker, signal.SIGTERM)
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline:
-            try:
-                os.kill(worker, 0)
-            except ProcessLookupError:
-                break
-            if Path(f"/proc/{worker}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
-                break  # exited, not yet reaped by the pool
-            time.sleep(0.1)
-        else:
-            raise AssertionError("the interrupted worker did not exit within 10 s")
+        assert _gone_within(worker, 10.0), "the interrupted worker did not exit within 10 s"
         time.sleep(1.0)
         assert not second.exists(), "the interrupted worker started the next queued job"
     finally:
