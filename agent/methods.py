@@ -186,7 +186,7 @@ class MethodFilter:
                     # the stop-gap states carry my stop-line fix, which reaches my neighbours'
                     # estimates through my beacons: counted as independent, the fix came back
                     # through the ranges as news (paper-1 V1's σ went 1 % below the joint
-                    # bound); they are reset when a claim ends (:meth:`end_stop`), so nothing
+                    # bound); they are reset when the vehicle drives off (:meth:`end_stop`), so nothing
                     # inflates them between stops
                     shared_h |= {off + k for k in range(self._sl.start, self._sl.stop)}
                 unshared = tuple(i for i in range(self.filter.n) if i not in shared_h)
