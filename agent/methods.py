@@ -186,8 +186,8 @@ class MethodFilter:
                     # the stop-gap states carry my stop-line fix, which reaches my neighbours'
                     # estimates through my beacons: counted as independent, the fix came back
                     # through the ranges as news (paper-1 V1's σ went 1 % below the joint
-                    # bound); they are reset when the vehicle drives off (:meth:`end_stop`), so nothing
-                    # inflates them between stops
+                    # bound); they are reset when the vehicle drives off (:meth:`end_stop`),
+                    # so nothing inflates them between stops
                     shared_h |= {off + k for k in range(self._sl.start, self._sl.stop)}
                 unshared = tuple(i for i in range(self.filter.n) if i not in shared_h)
             self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=unshared)
