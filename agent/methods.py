@@ -23,12 +23,14 @@ import numpy as np
 import pymap3d
 
 from .first_stopped import ApproachLane, Decision, StopTracker
+from .lane_map import LaneMap
 from .nav import earth
 from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
 from .nav.kalman import Measurement, UpdateResult
 from .nav.measurements.gnss import gnss_position, gnss_velocity
-from .nav.measurements.stop_line import StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement
+from .nav.measurements.lane_line import lane_line_measurement
+from .nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement
 from .nav.measurements.v2v_range import range_measurement, relative_position
 from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
@@ -87,6 +89,14 @@ class FilterSettings:
     init_gyro_bias_sigma: float | None = None
     init_accel_bias_sigma: float | None = None
     stop_line_interval: float = 1.0  #: apply the stop-line fix at most this often [s]
+    #: SL methods also keep to their lane: the distance right of the lane's left lane line is
+    #: d_l ~ N(m_yb, σ_yb²) (the stop-line fix's lateral part) wherever the lane is certain
+    #: (:mod:`agent.lane_map`), applied at most every ``lane_interval`` s; the driver's offset
+    #: is a state, constant while the vehicle stays in a lane and redrawn in the next one (or
+    #: after ``lane_memory`` s without a lane)
+    lane_constraint: bool = True
+    lane_interval: float = 1.0
+    lane_memory: float = 2.0
     #: ``paper``: R = σ² + uᵀP_j u, both estimates independent (the paper's eq. 26-28);
     #: ``split-ci``: split covariance intersection (what came from own sensors and the UWB
     #: noise independent; the neighbour's estimate and what came from it dependent);
@@ -162,6 +172,16 @@ class MethodFilter:
         if spec.stop_line and gap is not None:
             self._sl = slice(len(extra), len(extra) + 2)
             extra += ((0.0, gap.sigma_xb, 0.0), (0.0, gap.sigma_yb, 0.0))
+        #: the driver's lateral offset from m_yb in the current lane: a random constant, redrawn
+        #: in each lane; with it, the stop-line fix's lateral row acts on it too (the same d_l)
+        self._lane: slice | None = None
+        if spec.stop_line and gap is not None and s.lane_constraint:
+            self._lane = slice(len(extra), len(extra) + 1)
+            extra += ((0.0, gap.sigma_yb, 0.0),)
+        self._lane_id: str | None = None
+        self._lane_seen = -math.inf  #: sensor time the current lane was last confirmed [s]
+        self._lane_checked = -math.inf  #: sensor time of the last call of :meth:`lane_line` [s]
+        self._sl_full = False  #: the current stop's fix has its lateral row
         self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=0.1, extra_states=extra)
         self._stop_id: float | None = None
         if self._mp.stop:
@@ -189,6 +209,8 @@ class MethodFilter:
                     # bound); they are reset when the vehicle drives off (:meth:`end_stop`),
                     # so nothing inflates them between stops
                     shared_h |= {off + k for k in range(self._sl.start, self._sl.stop)}
+                if self._lane is not None:  # the same, for the lane offset (reset between lanes)
+                    shared_h.add(off + self._lane.start)
                 unshared = tuple(i for i in range(self.filter.n) if i not in shared_h)
             self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=unshared)
         self.gap = gap
@@ -198,7 +220,8 @@ class MethodFilter:
         self._gnss_rejected_since: float | None = None  #: sensor time of the first fix rejected in a row
         self.counters = {"gnss": 0, "gnss_rejected": 0, "gnss_reanchored": 0,
                          "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "ranges_gate_physical": 0,
-                         "ranges_gate_rate": 0, "ranges_gate_nis": 0, "ranges_skipped_near": 0, "stop_line": 0}
+                         "ranges_gate_rate": 0, "ranges_gate_nis": 0, "ranges_skipped_near": 0, "stop_line": 0,
+                         "lane_line": 0, "lane_line_rejected": 0}
         self.rate_gate = RangeRateGate()
         # INS displacement (NED, m) integrated from the nominal velocity, unaffected by updates:
         # places a delayed range at its own time (p(t) = p(now) - (D(now) - D(t)))
@@ -306,11 +329,13 @@ class MethodFilter:
         return res
 
     def stop_line(self, approach: StopLineApproach, along_only: bool = False,
-                  stop_id: float | None = None) -> UpdateResult | None:
+                  stop_id: float | None = None, lane: str | None = None) -> UpdateResult | None:
         """Apply the stop-line fix (only for SL methods, at most once per interval).
 
         ``stop_id`` identifies the physical stop (e.g. the time it began): a new one resets the
         stop-gap error states to their prior, since each stop draws its own d_s and d_l.
+        ``lane`` names the approach lane: with the lane-keeping constraint on, a full fix's
+        lateral row acts on that lane's offset state (the driver's d_l in it).
         """
         if not self.spec.stop_line or self.gap is None or self.origin is None or self._sl is None:
             return None
@@ -326,7 +351,15 @@ class MethodFilter:
         # predicted fix = p - J ê, with J = ∂p/∂(d_e, d_l): the gap error is a state, not noise
         _, J = stop_line_fix(approach, self.gap.m_xb + self.gap.l0, self.gap.m_yb)
         hx = np.zeros((m.dim, len(f.extra)))
-        hx[:, self._sl] = -(approach.stop_line_normal() @ J)[None, :] if along_only else -J
+        if along_only:
+            hx[:, self._sl] = -(approach.stop_line_normal() @ J)[None, :]
+        elif self._lane is not None and lane is not None:
+            self._enter_lane(lane)
+            hx[:, self._sl.start] = -J[:, 0]
+            hx[:, self._lane.start] = -J[:, 1]
+        else:
+            hx[:, self._sl] = -J
+        self._sl_full = not along_only
         m = Measurement(m.z + hx @ f.extra, f.full_jacobian(m.H, hx), np.eye(m.dim) * STOP_LINE_MAP_SIGMA**2, m.name)
         res = f.update(m)
         self.counters["stop_line"] += int(res.accepted)
@@ -381,6 +414,48 @@ class MethodFilter:
                                               gate_probability=s.range_gate, min_gain=s.min_gain)
         return self._count_range("skipped" if res.skipped else "fused" if res.accepted else "gate_nis")
 
+    def lane_due(self) -> bool:
+        """Whether :meth:`lane_line` wants a lane now (``lane_interval`` after its last call)."""
+        return (self._lane is not None and self.origin is not None
+                and self.t - self._lane_checked >= self.settings.lane_interval)
+
+    def lane_line(self, lane: str | None, left_line: Line2D | None = None) -> UpdateResult | None:
+        """Keep to the lane: ``lane`` (and its ``left_line`` where the vehicle is, map frame) is
+        the lane the vehicle drives in, None if no lane is certain now. Skipped while the stop
+        line's full fix holds the lateral position (the same d_l). Only for SL methods with the
+        lane-keeping constraint; the caller paces it (:meth:`lane_due`)."""
+        if self._lane is None or self.origin is None:
+            return None
+        t = self.t
+        self._lane_checked = t
+        if lane is None:
+            if t - self._lane_seen > self.settings.lane_memory:
+                self._leave_lane()
+            return None
+        self._enter_lane(lane)
+        if self._stop_id is not None and self._sl_full:
+            return None
+        f = self.filter
+        m = lane_line_measurement(f.state, left_line, self.gap.m_yb, STOP_LINE_MAP_SIGMA, self.origin)
+        hx = np.zeros((1, len(f.extra)))
+        hx[0, self._lane.start] = -1.0  # predicted distance = d_l - (offset error)
+        m = Measurement(m.z + hx @ f.extra, f.full_jacobian(m.H, hx), m.R, m.name)
+        res = f.update(m, self.settings.range_gate)
+        self.counters["lane_line" if res.accepted else "lane_line_rejected"] += 1
+        return res
+
+    def _enter_lane(self, lane: str) -> None:
+        if lane != self._lane_id or self.t - self._lane_seen > self.settings.lane_memory:
+            self._leave_lane()
+            self._lane_id = lane
+        self._lane_seen = self.t
+
+    def _leave_lane(self) -> None:
+        """The lane is over: its offset state back to its prior (the next lane draws its own)."""
+        if self._lane_id is not None:
+            self._lane_id = None
+            self._reset_extra(self._lane, np.array([self.gap.sigma_yb]))
+
     def end_stop(self) -> None:
         """The vehicle moves: a stop whose line it fixed on is over. Its stop-gap states go back
         to their prior, uncorrelated with the rest: nothing observes them until the next stop,
@@ -393,16 +468,20 @@ class MethodFilter:
             self._reset_stop_gap()
 
     def _reset_stop_gap(self) -> None:
+        self._sl_full = False
+        self._reset_extra(self._sl, np.array([self.gap.sigma_xb, self.gap.sigma_yb]))
+
+    def _reset_extra(self, states: slice, sigma: np.ndarray) -> None:
+        """Extra ``states`` back to their prior σ ``sigma`` [(k,)], uncorrelated with the rest."""
         f = self.filter
         f.flush_covariance()
-        k = np.arange(f.extra_offset + self._sl.start, f.extra_offset + self._sl.stop)
-        var = np.array([self.gap.sigma_xb, self.gap.sigma_yb]) ** 2
+        k = np.arange(f.extra_offset + states.start, f.extra_offset + states.stop)
         for P in (f.P, f.P_ind):
             if P is not None:
                 P[k, :] = 0.0
                 P[:, k] = 0.0
-                P[k, k] = var
-        f.extra[self._sl] = 0.0
+                P[k, k] = sigma**2
+        f.extra[states] = 0.0
 
     def _count_range(self, outcome: str) -> str:
         self.counters["ranges" if outcome == "fused" else f"ranges_{outcome}"] += 1
@@ -414,6 +493,12 @@ class MethodFilter:
     def position_cov(self) -> np.ndarray:
         """Position error covariance [m²] (3, 3)."""
         return self.filter.position_cov
+
+    @property
+    def yaw_sigma(self) -> float:
+        """σ of the heading [rad]."""
+        self.filter.flush_covariance()
+        return math.sqrt(max(float(self.filter.P[2, 2]), 0.0))
 
     def beacon(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(llh, v_ned, cov_pos)`` to broadcast."""
@@ -434,10 +519,12 @@ def _too_near(d: np.ndarray, own_cov: np.ndarray, nb_cov: np.ndarray, k: float) 
 
 def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTable,
                        lanes: dict[str, ApproachLane], origin_llh: tuple[float, float, float],
-                       t: float, ghosts: dict | None = None) -> tuple[Decision, bool]:
+                       t: float, ghosts: dict | None = None,
+                       lane_map: LaneMap | None = None) -> tuple[Decision, bool]:
     """One first-stopped decision for filter ``f`` at sensor time ``t`` [s] from its own estimate,
     the map (``lanes``, frame at ``origin_llh``) and the neighbours' beacons in ``table``; a claim
     applies the stop-line fix (a new claim at once). Returns the decision and whether it changed.
+    With ``lane_map`` (every lane of the site), it also applies the lane-keeping row when due.
 
     ``ghosts`` maps neighbours lost recently (silent, or their process gone) to their last known
     (llh (3,), NED covariance (3, 3) [m²]): they count as standing there, so that a vehicle that
@@ -464,5 +551,11 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
     if tracker.since is None:  # moving: the stop is over
         f.end_stop()
     if dec.first:
-        f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only, stop_id=tracker.since)
+        f.stop_line(lanes[dec.lane].approach, along_only=dec.along_only, stop_id=tracker.since, lane=dec.lane)
+    if lane_map is not None and f.lane_due():
+        st = f.filter.state
+        ne_now = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
+        hit = lane_map.locate(ne_now, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
+                              tracker.markings.settled(t), f.yaw_sigma)
+        f.lane_line(hit.lane if hit else None, hit.left_line if hit else None)
     return dec, changed

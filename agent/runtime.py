@@ -26,6 +26,7 @@ from transport.codec import CodecError, decode, encode
 from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRange, UwbRound
 
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
+from .lane_map import LaneMap
 from .misbehaviour import MisbehaviourDetector
 from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from .nav import earth
@@ -87,6 +88,8 @@ class AgentConfig:
     #: [m/s]: a vehicle that cannot hear the queue ahead does not take the stop line
     ghost_memory: float = 30.0
     ghost_speed: float = 1.0
+    #: every lane of the site, for the SL methods' lane-keeping row (None: no lane map)
+    lane_map: LaneMap | None = None
 
 
 class Agent:
@@ -584,7 +587,7 @@ class Agent:
                     continue
                 ghosts[o] = (llh, cov + np.eye(3) * (self.cfg.ghost_speed * age) ** 2)
             dec, changed = first_stopped_step(tr, self.filters[m], self.tables[m], self.cfg.lanes,
-                                              self.cfg.origin_llh, t, ghosts)
+                                              self.cfg.origin_llh, t, ghosts, self.cfg.lane_map)
             if changed:
                 self.decision_log.append((t, m, dec.reason))
                 log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,

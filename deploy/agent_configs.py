@@ -6,6 +6,7 @@ import dataclasses
 import math
 
 from agent.first_stopped import ApproachLane
+from agent.lane_map import LaneMap
 from agent.methods import METHODS, FilterSettings
 from agent.nav.error_model import ImuNoise
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
@@ -33,9 +34,15 @@ def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:
     return out
 
 
+def lane_map(scn: Scenario) -> LaneMap:
+    """Every lane of the site (centre lines and widths) for the lane-keeping row."""
+    return LaneMap({lane.id: (lane.centerline, lane.width) for lane in scn.lanes.values()})
+
+
 def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS,
-                 fusion: str = "split-ci") -> AgentConfig:
-    """The configuration a vehicle computer would carry for this scenario's site and sensors."""
+                 fusion: str = "split-ci", lane_constraint: bool = True) -> AgentConfig:
+    """The configuration a vehicle computer would carry for this scenario's site and sensors
+    (``lane_constraint``: the SL methods also keep to the map's lanes)."""
     specs = {v.id: v for v in scn.vehicles}
     if vehicle not in specs:
         raise ValueError(f"vehicle {vehicle!r} not in scenario {scn.name!r}")
@@ -47,14 +54,14 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
                               gnss_multipath_tau_static=gm.multipath_tau_static,
                               gnss_common_sigma=scn.common_mode_sigma, gnss_common_tau=scn.common_mode_tau,
                               gnss_white_sigma=max(gm.white_h, 0.1),
-                              fusion=fusion)
+                              fusion=fusion, lane_constraint=lane_constraint)
     u = scn.uwb
     p_nlos = u.nlos_enter / (u.nlos_enter + u.nlos_exit) if u.nlos_enter > 0 else 0.0
     nlos_ms = (u.nlos_bias_min**2 + u.nlos_bias_min * u.nlos_bias_max + u.nlos_bias_max**2) / 3.0
     settings = dataclasses.replace(settings, uwb_nlos_sigma=math.sqrt(p_nlos * nlos_ms), max_range=u.max_range)
     gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
     return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh,
-                       nlos_bias_max=u.nlos_bias_max)
+                       nlos_bias_max=u.nlos_bias_max, lane_map=lane_map(scn))
 
 
 #: ``[gnss]`` fields of an agent configuration -> :class:`FilterSettings` fields

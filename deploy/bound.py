@@ -35,9 +35,11 @@ from agent.nav import earth
 from agent.nav.measurements.stop_line import stop_line_fix
 from hw_emulation.truth import ScenarioTruth
 
-from .agent_configs import approach_lanes
+from agent.lane_map import LaneMap
 
-_NV = 8  # per vehicle: p (2), v (2), multipath (2), stop gap (2)
+from .agent_configs import approach_lanes, lane_map
+
+_NV = 9  # per vehicle: p (2), v (2), multipath (2), stop gap (2), lane offset (1)
 
 
 @dataclass(frozen=True)
@@ -58,8 +60,15 @@ class Bound:
         return self.sigma_h(method, vehicle)[k]
 
 
-def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rate: float | None = None) -> Bound:
-    """The bound for ``methods`` on the scenario's truth, stepping at ``rate`` Hz (default: GNSS)."""
+def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rate: float | None = None,
+                   lane_constraint: bool = True) -> Bound:
+    """The bound for ``methods`` on the scenario's truth, stepping at ``rate`` Hz (default: GNSS).
+
+    With ``lane_constraint`` the SL methods' bounds also hold the lane-keeping information:
+    wherever a vehicle drives in a lane, its distance right of the left lane line is d_l, known
+    to the map's error. d_l is one random constant per vehicle, as the emulated drivers keep it
+    (the filters, less informed, redraw it in every lane).
+    """
     scn = truth.scenario
     specs = {v.id: v for v in scn.vehicles}
     ids = sorted(truth.vehicles)
@@ -80,21 +89,25 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
         first[vid] = tr.first_stopped[k]
         lane[vid] = tr.segment[k]
     lanes = approach_lanes(scn)
+    lmap = lane_map(scn) if lane_constraint else None
     out = {}
     for m in methods:
         spec = MethodSpec.of(m)
         if spec.ranges:  # the fleet's information, processed jointly: a bound for any distributed scheme
-            covs = _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, spec.stop_line, True)
+            covs = _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, spec.stop_line, True,
+                        lmap if spec.stop_line else None)
         else:  # a vehicle on its own (the common-mode error is not learned from the others)
             covs = {}
             for vid in ids:
-                covs.update(_run(scn, specs, [vid], ts, pos, moving, first, lane, lanes, spec.stop_line, False))
+                covs.update(_run(scn, specs, [vid], ts, pos, moving, first, lane, lanes, spec.stop_line, False,
+                                 lmap if spec.stop_line else None))
         for vid in ids:
             out[(m, vid)] = covs[vid]
     return Bound(ts, out)
 
 
-def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use_ranges: bool) -> dict:
+def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use_ranges: bool,
+         lmap: LaneMap | None = None) -> dict:
     n_v = len(ids)
     n = _NV * n_v + 2
     ic = slice(_NV * n_v, n)  # common mode
@@ -107,6 +120,7 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
         P[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * g.multipath_h**2
         sg = specs[vid]
         P[b + 6:b + 8, b + 6:b + 8] = np.diag([sg.stop_gap[1] ** 2, sg.lateral[1] ** 2])
+        P[b + 8, b + 8] = sg.lateral[1] ** 2
     P[ic, ic] = np.eye(2) * scn.common_mode_sigma**2
     uwb, radio = scn.uwb, scn.radio
     p_radio = 1.0 - radio.expected_loss()
@@ -148,9 +162,15 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
                     P[:, s] = 0.0
                     P[s, s] = np.diag([sg.stop_gap[1] ** 2, sg.lateral[1] ** 2])
                 _, J = stop_line_fix(lanes[str(lane[vid][k])].approach, sg.stop_gap[0] + sg.l0, sg.lateral[0])
-                Hs = np.hstack([np.eye(2), -J])  # on (p, gap errors)
-                cols = np.r_[b:b + 2, b + 6:b + 8]
+                Hs = np.hstack([np.eye(2), -J])  # on (p, gap errors); the lane's offset is d_l's
+                cols = np.r_[b:b + 2, b + 6, b + 8 if lmap is not None else b + 7]
                 info[np.ix_(cols, cols)] += Hs.T @ Hs / STOP_LINE_MAP_SIGMA**2
+            elif lmap is not None and str(lane[vid][k]) in lmap.marks:
+                # lane keeping (the filters skip it while the full stop-line fix holds d_l)
+                line = lmap.left_line_at(str(lane[vid][k]), pos[vid][k])
+                h = np.r_[line.right_normal, -1.0]
+                cols = np.r_[b:b + 2, b + 8]
+                info[np.ix_(cols, cols)] += np.outer(h, h) / STOP_LINE_MAP_SIGMA**2
             was_first[vid] = bool(first[vid][k])
         if use_ranges and n_v > 1:
             pk = np.array([pos[v][k] for v in ids])

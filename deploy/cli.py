@@ -130,6 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--agent-nice", type=int, choices=range(0, 20), default=5, metavar="0-19",
                     help="run the agents this many steps below normal priority, so that the emulated "
                          "sensors and radio and the Zenoh router are served first (default 5; 0: equal)")
+    rn.add_argument("--no-lane-constraint", action="store_true",
+                    help="SL methods use the stop line only, as the paper's (default: they also keep to the map's lanes)")
     rn.add_argument("--no-sign", action="store_true",
                     help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
     ae = sub.add_parser("attack-eval", help="misbehaviour detection against the VeReMi attacks, and false alarms on clean runs")
@@ -157,6 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--json", action="store_true", help="print one JSON object")
     bd.add_argument("--plot", type=Path, metavar="FILE.png", help="plot the bound over time")
     bd.add_argument("--csv", type=Path, metavar="FILE.csv", help="write the bound over time")
+    bd.add_argument("--no-lane-constraint", action="store_true",
+                    help="SL bounds without the lane-keeping information (as for slcp run --no-lane-constraint)")
     bn = sub.add_parser("bench", help="per-step costs of an agent and the replay real-time factor")
     bn.add_argument("--drive", type=Path, default=Path("../shared/data/rtklibexplorer_drive_0708"),
                     help="rtklibexplorer drive for the replay factor (skipped if absent)")
@@ -355,7 +359,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             print(f"  [{'#' * k}{'.' * (30 - k)}] {done}/{total} (seed {seed} done)", flush=True)
 
         study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign,
-                          agent_nice=args.agent_nice)
+                          agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint)
         text = study_markdown(scn, study)
         (out / "report.md").write_text(text)
         print(text)
@@ -364,7 +368,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")
     m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
                   progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign,
-                  faults=args.faults, agent_nice=args.agent_nice)
+                  faults=args.faults, agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint)
     print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
     print((out / "report.md").read_text())
     return 0
@@ -464,7 +468,7 @@ def _cmd_bound(args: argparse.Namespace) -> int:
 
     scn = load_scenario(args.scenario)
     truth = build_truth(scn)
-    b = posterior_crlb(truth)
+    b = posterior_crlb(truth, lane_constraint=not args.no_lane_constraint)
     ids = sorted(truth.vehicles)
     rows = []
     for w, (a, c) in window_bounds(truth).items():

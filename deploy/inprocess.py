@@ -22,7 +22,7 @@ from hw_emulation.emulate import emulate_uwb, emulate_vehicle_sensors
 from hw_emulation.sensors.radio import simulate_link
 from hw_emulation.truth import ScenarioTruth
 
-from .agent_configs import agent_config, approach_lanes
+from .agent_configs import agent_config, approach_lanes, lane_map
 
 
 BEACON_RATE = 5.0
@@ -42,6 +42,8 @@ class RunResult:
     along: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     #: method -> injected error kind ("clean", "nlos", "outlier") -> range outcome -> count
     range_outcomes: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)
+    #: (vehicle, method) -> horizontal NEES at the record times (n = 2)
+    nees: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
 
 
 def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS,
@@ -51,6 +53,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     sensors = emulate_vehicle_sensors(truth, rng)
     ranges = emulate_uwb(truth, rng)
     lanes = approach_lanes(scn)
+    lmap = lane_map(scn)
     ids = sorted(truth.vehicles)
     t = truth.vehicles[ids[0]].truth.t
     dt = np.diff(t)
@@ -101,6 +104,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     dts = dt.tolist()
     rec_t, err, sig, first = [], {k: [] for k in filters}, {k: [] for k in filters}, {k: [] for k in filters}
     along: dict[tuple[str, str], list[float]] = {k: [] for k in filters}
+    nees: dict[tuple[str, str], list[float]] = {k: [] for k in filters}
 
     for k in range(len(dts)):
         tk = float(t[k + 1])
@@ -174,7 +178,8 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
         # first-stopped decisions and stop-line fixes
         if (k + 1) % dec_step == 0:
             for key, tr in trackers.items():
-                dec, changed = first_stopped_step(tr, filters[key], tables[key], lanes, scn.origin_llh, tk)
+                dec, changed = first_stopped_step(tr, filters[key], tables[key], lanes, scn.origin_llh, tk,
+                                                  lane_map=lmap)
                 if changed:
                     decisions.append((tk, key[0], key[1], dec.reason))
         if (k + 1) % RECORD_STEP == 0:
@@ -187,8 +192,11 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                 yaw = truth.vehicles[vid].truth.euler[k + 1, 2]
                 along[(vid, m)].append(e[0] * math.cos(yaw) + e[1] * math.sin(yaw))
                 sig[(vid, m)].append(math.sqrt(p[0, 0] + p[1, 1]))
+                eh = np.array([e[0], e[1]])
+                nees[(vid, m)].append(float(eh @ np.linalg.solve(p[:2, :2], eh)))
                 first[(vid, m)].append(claim_of(vid, m))
     return RunResult(np.array(rec_t), {k: np.array(v) for k, v in err.items()},
                      {k: np.array(v) for k, v in sig.items()}, {k: np.array(v) for k, v in first.items()},
                      {k: dict(f.counters) for k, f in filters.items()}, decisions=decisions,
-                     range_outcomes=range_outcomes, along={k: np.array(v) for k, v in along.items()})
+                     range_outcomes=range_outcomes, along={k: np.array(v) for k, v in along.items()},
+                     nees={k: np.array(v) for k, v in nees.items()})

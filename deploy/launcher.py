@@ -67,7 +67,7 @@ def _slcp(*args: str) -> list[str]:
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = "split-ci",
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
-              wait_agents: float = 20.0, agent_nice: int = 5) -> dict:
+              wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called every 2 s with a multi-line status text. With ``sign``
@@ -78,7 +78,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     The emulator waits up to ``wait_agents`` seconds for every agent's liveliness. The agents run
     ``agent_nice`` steps below the normal scheduling priority (``nice``): on one machine the
     emulated sensors and radio, and the Zenoh router, stand for hardware that does not wait for
-    the vehicles' computers, so they are served first when the CPUs are busy."""
+    the vehicles' computers, so they are served first when the CPUs are busy. Without
+    ``lane_constraint`` the SL methods use the stop line only (the paper's), and so does the bound."""
     scn = load_scenario(scenario)
     schedule = load_faults(faults, {v.id for v in scn.vehicles}) if faults is not None else []
     out = Path(out)
@@ -97,7 +98,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     for vid in vehicles:
         p = out / "config" / f"agent-{vid}.toml"
         p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
-                     f'fusion = "{fusion}"\n\n{security}'
+                     f'fusion = "{fusion}"\nlane_constraint = {str(lane_constraint).lower()}\n\n{security}'
                      f'[zenoh]\nmode = "peer"\nconnect = ["{endpoint}"]\n')
         configs[vid] = p
     wall0 = time.monotonic()
@@ -108,10 +109,12 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     if not evaluate:
         return {"wall_s": wall, "processes": stats}
     truth = build_truth(scn, stop_seed=seed)
-    metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods, schedule)
+    metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods, schedule,
+                                 lane_constraint)
     metrics["wall_s"] = wall
     metrics["seed"] = seed
     metrics["fusion"] = fusion
+    metrics["lane_constraint"] = lane_constraint
     metrics["processes"] = stats
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "report.md").write_text(report_markdown(scn, metrics))
@@ -322,8 +325,10 @@ def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:
             p.wait()
 
 
-def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], faults: list | None = None) -> dict:
+def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], faults: list | None = None,
+                       lane_constraint: bool = True) -> dict:
     """RMSE per window, vehicle and method from the recorded estimates; writes estimate CSVs.
+    ``lane_constraint`` says whether the SL methods kept to the lanes (for the bound).
     With a fault schedule, each fault's window is shaded on the plot and its recovery measured
     (:func:`fault_recovery`)."""
     est: dict[tuple[str, str], list[dict]] = {}
@@ -341,7 +346,7 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
             elif r["type"] == "Diagnostics":
                 diags[r["source"]] = r["counters"]
     windows = window_bounds(truth)
-    bound = posterior_crlb(truth, tuple(methods))
+    bound = posterior_crlb(truth, tuple(methods), lane_constraint=lane_constraint)
     rows: dict = {w: {} for w in windows}
     series = {}
     extra = {}
@@ -447,7 +452,8 @@ def report_markdown(scn, metrics: dict) -> str:
     """The run's report: paper-style RMSE tables with along/cross-track split and NEES, the
     first-stopped detection scores, events and plots."""
     fusion = metrics.get("fusion", "split-ci")
-    lines = [f"# slcp run: {scn.name} (seed {metrics.get('seed', '?')}, fusion `{fusion}`)", "", scn.description, "",
+    lane = {True: ", lane-keeping on", False: ", lane-keeping off"}.get(metrics.get("lane_constraint"), "")
+    lines = [f"# slcp run: {scn.name} (seed {metrics.get('seed', '?')}, fusion `{fusion}`{lane})", "", scn.description, "",
              "Horizontal RMSE [m] per window, vehicle and method, the paper's figure in brackets. Below each value: "
              "along-track / cross-track RMSE [m]; the mean horizontal NEES (2 for a consistent filter); the "
              "posterior Cramér-Rao bound (RMS over the window) and the share of time the reported σ is below it "
@@ -532,6 +538,7 @@ def rebuild_report(run_dir: Path) -> dict:
         except (OSError, tomllib.TOMLDecodeError):
             continue
         name, old["fusion"] = agent.get("scenario"), agent.get("fusion", "split-ci")
+        old["lane_constraint"] = agent.get("lane_constraint", True)
         break
     if not isinstance(name, str):
         raise ValueError(f"{run_dir}: cannot tell the scenario (no metrics.json or config/agent-*.toml)")
@@ -541,8 +548,8 @@ def rebuild_report(run_dir: Path) -> dict:
     schedule = load_faults(fpath, {v.id for v in scn.vehicles}) if fpath.exists() else []
     seed = old.get("seed")
     truth = build_truth(scn, stop_seed=seed if isinstance(seed, int) and seed >= 0 else None)
-    metrics = evaluate_recording(truth, rec, run_dir, METHODS, schedule)
-    for k in ("wall_s", "seed", "fusion", "processes"):
+    metrics = evaluate_recording(truth, rec, run_dir, METHODS, schedule, old.get("lane_constraint", True) is not False)
+    for k in ("wall_s", "seed", "fusion", "lane_constraint", "processes"):
         if k in old:
             metrics[k] = old[k]
     mpath.write_text(json.dumps(metrics, indent=2))

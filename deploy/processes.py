@@ -8,6 +8,7 @@ Agent configuration file (TOML)::
     scenario = "paper-1"                        # site map and sensor characteristics
     methods = ["SP", "SL-SP", "CP", "SL-CP"]
     fusion = "split-ci"                         # paper | split-ci | ci (how CP methods fuse ranges)
+    lane_constraint = true                      # SL methods also keep to the map's lanes (false: stop line only)
 
     [security]                                  # optional; without it beacons are neither signed nor checked
     trust_dir = "keys"                          # ca.crt + vehicle certificates (``slcp keys create``);
@@ -97,7 +98,10 @@ def load_agent_config(path: Path, vehicle: str | None):
     fusion = a.get("fusion", "split-ci")
     if fusion not in FUSION_RULES:
         raise ConfigError(f"{path}: agent.fusion: must be one of {', '.join(FUSION_RULES)}, got {fusion!r}")
-    unknown = set(a) - {"vehicle", "scenario", "methods", "fusion"}
+    lane = a.get("lane_constraint", True)
+    if not isinstance(lane, bool):
+        raise ConfigError(f"{path}: agent.lane_constraint: must be true or false")
+    unknown = set(a) - {"vehicle", "scenario", "methods", "fusion", "lane_constraint"}
     if unknown:
         raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
     unknown = set(data) - {"agent", "imu", "gnss", "security", "zenoh"}
@@ -106,7 +110,7 @@ def load_agent_config(path: Path, vehicle: str | None):
                           "(known: agent, imu, gnss, security, zenoh)")
     try:
         if "scenario" in a:
-            cfg = agent_config(load_scenario(a["scenario"]), vid, tuple(methods), fusion)
+            cfg = agent_config(load_scenario(a["scenario"]), vid, tuple(methods), fusion, lane)
         else:
             cfg = siteless_agent_config(vid, tuple(methods), fusion)
         if "imu" in data:

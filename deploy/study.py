@@ -34,10 +34,11 @@ def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[fl
 
 
 def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
-         agent_nice: int = 5) -> dict:
+         agent_nice: int = 5, lane_constraint: bool = True) -> dict:
     from .launcher import run_fleet
 
-    return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice)
+    return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice,
+                     lane_constraint=lane_constraint)
 
 
 def _interruptible(fn, *args):
@@ -77,7 +78,7 @@ def _stop_with_parent(period: float = 0.5) -> None:
 
 def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHODS, out: Path = Path("runs/study"),
               fusion: str = "split-ci", jobs: int | None = None, progress=None, sign: bool = True,
-              agent_nice: int = 5) -> dict:
+              agent_nice: int = 5, lane_constraint: bool = True) -> dict:
     """Run the seeds and aggregate; ``progress(done, total, seed)`` after each run."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -86,7 +87,7 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
     try:
         futs = {pool.submit(_interruptible, _one, scenario, methods, s, str(out / f"seed-{s}"), fusion, sign,
-                            agent_nice): s for s in seeds}
+                            agent_nice, lane_constraint): s for s in seeds}
         for fut in as_completed(futs):
             per_seed[futs[fut]] = fut.result()
             if progress:
@@ -105,6 +106,7 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     pool.shutdown(wait=True)
     study = aggregate(out, per_seed)
     study["fusion"] = fusion
+    study["lane_constraint"] = lane_constraint
     (out / "study.json").write_text(json.dumps(study, indent=2))
     return study
 
@@ -169,7 +171,8 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
 
 def study_markdown(scn, study: dict) -> str:
     n = len(study["seeds"])
-    lines = [f"# slcp study: {scn.name}, {n} seeds, fusion `{study.get('fusion', '?')}`", "",
+    lane = {True: ", lane-keeping on", False: ", lane-keeping off"}.get(study.get("lane_constraint"), "")
+    lines = [f"# slcp study: {scn.name}, {n} seeds, fusion `{study.get('fusion', '?')}`{lane}", "",
              "Horizontal RMSE [m]: mean ± sd over the seeds, the paper's figure in brackets; below, the mean "
              "along-track / cross-track RMSE [m], the posterior CRLB (RMS over the window, mean over the seeds) and "
              "the share of estimates whose reported σ is below it.", ""]
@@ -223,5 +226,6 @@ def rebuild_study(out: Path) -> dict:
         raise ValueError(f"{out}: no seed-* runs")
     study = aggregate(out, per_seed)
     study["fusion"] = old.get("fusion", next(iter(per_seed.values())).get("fusion", "?"))
+    study["lane_constraint"] = old.get("lane_constraint", next(iter(per_seed.values())).get("lane_constraint"))
     (out / "study.json").write_text(json.dumps(study, indent=2))
     return study

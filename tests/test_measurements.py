@@ -13,6 +13,7 @@ from agent.nav import earth
 from agent.nav.kalman import Measurement, kalman_update, stack
 from agent.nav.measurements.common import point_llh, point_position_jacobian
 from agent.nav.measurements.gnss import gnss_position, gnss_velocity
+from agent.nav.measurements.lane_line import lane_line_measurement
 from agent.nav.measurements.stop_line import (
     Line2D, StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement, stop_line_position,
 )
@@ -123,6 +124,31 @@ def test_oblique_stop_line_and_parallel_lines() -> None:
         StopLineApproach(Line2D((0, 0), (1, 0.01)), Line2D((0, -2), u))
     with pytest.raises(ValueError, match="non-zero"):
         Line2D((0, 0), (0, 0))
+
+
+@pytest.mark.parametrize("heading_deg", [0.0, 90.0, 37.0, 180.0, -123.0])
+def test_lane_line_jacobian_for_every_heading(heading_deg: float) -> None:
+    approach, origin = _approach(math.radians(heading_deg))
+    _check_jacobian(lambda s: lane_line_measurement(s, approach.left_lane_line, 1.75, 0.03, origin, LEVER),
+                    tol=1e-4)
+
+
+@pytest.mark.parametrize("heading_deg", [0.0, 90.0, 37.0])
+def test_lane_line_row_is_the_stop_line_fix_lateral_row(heading_deg: float) -> None:
+    """The lane-keeping row is the stop-line fix's row across the lane: same innovation and
+    Jacobian (projected on the lane's right normal), for a vehicle anywhere near the lane."""
+    heading = math.radians(heading_deg)
+    approach, origin = _approach(heading)
+    gap = StopGapModel(2.0, 0.3, 1.2, 0.2, 3.0)
+    s = moving_state(yaw=heading)
+    import pymap3d
+    s.lat, s.lon, s.h = pymap3d.ned2geodetic(31.0, 4.0, 0.0, *origin, deg=False)
+    n_r = approach.left_lane_line.right_normal
+    sl = stop_line_measurement(s, approach, gap, origin, LEVER)
+    ll = lane_line_measurement(s, approach.left_lane_line, gap.m_yb, 0.03, origin, LEVER)
+    assert ll.dim == 1 and ll.R[0, 0] == pytest.approx(0.03**2)
+    assert ll.z[0] == pytest.approx(float(n_r @ sl.z), abs=1e-9)
+    assert np.allclose(ll.H[0], n_r @ sl.H, atol=1e-12)
 
 
 def test_stop_line_measurement_matches_truth_geometry() -> None:

@@ -163,6 +163,32 @@ def stop_line_position(approach: StopLineApproach, gap: StopGapModel) -> tuple[n
     return p, J @ sigma @ J.T
 
 
+def map_position(state: NavState, origin_llh: tuple[float, float, float],
+                 lever_arm_b: np.ndarray = np.zeros(3)) -> tuple[np.ndarray, np.ndarray]:
+    """Map-frame position of a body-fixed point and its Jacobian.
+
+    Parameters
+    ----------
+    state : NavState
+    origin_llh : tuple of float
+        Map origin latitude, longitude [rad], ellipsoidal height [m].
+    lever_arm_b : ndarray, shape (3,)
+        The point relative to the IMU (FRD) [m].
+
+    Returns
+    -------
+    ne : ndarray, shape (2,)
+        (north, east) [m] in the local NED frame of the map origin.
+    H : ndarray, shape (2, 15)
+        ``∂ne / ∂(error state)``: the vehicle's NED errors rotated into the map's NED (they
+        differ by about distance / R rad).
+    """
+    lat, lon, h = point_llh(state, lever_arm_b)
+    n, e, _ = pymap3d.geodetic2ned(lat, lon, h, *origin_llh, deg=False)
+    c_map = earth.ned_to_ecef_dcm(origin_llh[0], origin_llh[1]).T @ earth.ned_to_ecef_dcm(lat, lon)
+    return np.array([n, e]), (c_map @ point_position_jacobian(state, lever_arm_b))[:2]
+
+
 def stop_line_measurement(
     state: NavState,
     approach: StopLineApproach,
@@ -189,12 +215,8 @@ def stop_line_measurement(
         Reference point O_b relative to the IMU (FRD) [m].
     """
     p_sl, cov = stop_line_position(approach, gap)
-    lat, lon, h = point_llh(state, lever_arm_b)
-    n, e, _ = pymap3d.geodetic2ned(lat, lon, h, *origin_llh, deg=False)
-    z = np.array([n, e]) - p_sl
-    # rotate the vehicle's NED errors into the map's NED (differs by ~distance/R rad)
-    c_map = earth.ned_to_ecef_dcm(origin_llh[0], origin_llh[1]).T @ earth.ned_to_ecef_dcm(lat, lon)
-    H = (c_map @ point_position_jacobian(state, lever_arm_b))[:2]
+    ne, H = map_position(state, origin_llh, lever_arm_b)
+    z = ne - p_sl
     if along_only:
         n = approach.stop_line_normal()
         return Measurement(np.array([n @ z]), (n @ H)[None, :], np.array([[gap.sigma_xb**2]]), "stop_line_along")

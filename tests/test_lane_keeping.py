@@ -1,0 +1,156 @@
+"""The lane-keeping row of the SL methods: lane association, one shared lateral-offset state,
+its reset between lanes, and its place in the bound."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.lane_map import LaneMap
+from agent.lane_markings import BOUNDARY, DIVIDER, UNSEEN
+from agent.methods import FilterSettings, MethodFilter, MethodSpec, initial_state
+from agent.nav import earth
+from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
+from deploy.agent_configs import lane_map
+from deploy.bound import posterior_crlb
+from hw_emulation.scenario import load_scenario
+from hw_emulation.truth import build_truth
+
+from conftest import MEMS_NOISE
+
+ORIGIN = (math.radians(39.95), math.radians(116.32), 50.0)
+#: the shipped intersection: Minzu Univ. West Rd one lane each way (north-south), Weigongcun
+#: Rd two lanes each way (east-west)
+SITE = lane_map(load_scenario("paper-2"))
+
+
+def test_a_single_lane_of_my_direction_is_found_and_the_oncoming_lane_is_not() -> None:
+    wide = np.eye(2) * 3.0**2
+    hit = SITE.locate(np.array([-60.0, 2.5]), wide, 0.0)
+    assert hit is not None and hit.lane == "NB_in"
+    assert hit.left_line.signed_distance(np.array([-60.0, 1.75])) == pytest.approx(1.75)
+    # facing south at the same place: the southbound lane (the estimate is 4 m off it)
+    assert SITE.locate(np.array([-60.0, 2.5]), wide, math.pi).lane == "SB_out"
+    assert SITE.locate(np.array([-60.0, 2.5]), wide, math.radians(25.0)) is None  # turning
+    # a heading not yet known (a vehicle that started standing) is no heading
+    assert SITE.locate(np.array([-60.0, 2.5]), wide, 0.0, yaw_sigma=math.radians(5.0)) is None
+    assert SITE.locate(np.array([-60.0, 2.5]), wide, 0.0, yaw_sigma=math.radians(2.0)).lane == "NB_in"
+    assert SITE.locate(np.array([-60.0, 40.0]), wide, 0.0) is None  # off the road
+
+
+def test_side_by_side_lanes_need_the_camera() -> None:
+    """Eastbound, two lanes: with a lateral σ of metres only the marking classes name one."""
+    ne, wide = np.array([-2.5, -80.0]), np.eye(2) * 2.0**2
+    assert SITE.locate(ne, wide, math.pi / 2) is None
+    assert SITE.locate(ne, wide, math.pi / 2, (BOUNDARY, DIVIDER)).lane == "EB_in_L"
+    assert SITE.locate(ne, wide, math.pi / 2, (DIVIDER, BOUNDARY)).lane == "EB_in_R"
+    assert SITE.locate(ne, wide, math.pi / 2, (UNSEEN, DIVIDER)).lane == "EB_in_L"  # one side is enough
+    assert SITE.locate(ne, wide, math.pi / 2, (BOUNDARY, BOUNDARY)) is None  # matches neither
+    # a good estimate inside one lane needs no camera
+    assert SITE.locate(np.array([-5.3, -80.0]), np.eye(2) * 0.2**2, math.pi / 2).lane == "EB_in_R"
+
+
+def test_the_lane_end_is_widened_by_the_along_track_sigma() -> None:
+    """NB_in ends at the stop line (north -11): a queue head estimated 3 m past it is still in
+    its lane when its along-track σ is metres, not when it is decimetres."""
+    ne = np.array([-8.0, 1.8])
+    assert SITE.locate(ne, np.diag([3.0**2, 0.3**2]), 0.0).lane == "NB_in"
+    assert SITE.locate(ne, np.diag([0.3**2, 0.3**2]), 0.0) is None
+
+
+def test_polyline_lanes_and_bad_input() -> None:
+    bend = LaneMap({"A": (np.array([[0.0, 0.0], [100.0, 0.0], [200.0, 100.0]]), 3.5)})
+    hit = bend.locate(np.array([150.0, 51.0]), np.eye(2), math.pi / 4)
+    assert hit is not None and hit.left_line.direction == pytest.approx((math.sqrt(0.5), math.sqrt(0.5)))
+    assert bend.left_line_at("A", np.array([50.0, 1.0])).direction == pytest.approx((1.0, 0.0))
+    with pytest.raises(ValueError, match="lane 'B'"):
+        LaneMap({"B": (np.array([[0.0, 0.0]]), 3.5)})
+    with pytest.raises(ValueError, match="width"):
+        LaneMap({"B": (np.array([[0.0, 0.0], [1.0, 0.0]]), 0.0)})
+    with pytest.raises(KeyError):
+        bend.left_line_at("nope", np.zeros(2))
+
+
+APPROACH = StopLineApproach(Line2D((0.0, 0.0), (0.0, 1.0)), Line2D((0.0, -1.75), (1.0, 0.0)))  # north-bound
+GAP = StopGapModel(1.5, 0.2, 1.75, 0.12, 2.5)
+
+
+def _filter(method: str = "SL-SP", **settings) -> MethodFilter:
+    p, _ = stop_line_position(APPROACH, GAP)
+    rm, rn = earth.radii(ORIGIN[0])
+    llh = np.array([ORIGIN[0] + p[0] / (rm + 50), ORIGIN[1] + p[1] / ((rn + 50) * math.cos(ORIGIN[0])), 50.0])
+    st = initial_state(llh, np.zeros(3), np.array([0.0, 0.0, -9.8]))
+    return MethodFilter(MethodSpec.of(method), st, np.array([4.0, 4.0, 6.0]),
+                        FilterSettings(MEMS_NOISE, **settings), 0.0, GAP, ORIGIN)
+
+
+def _stand(f: MethodFilter, seconds: float) -> None:
+    zero, dt = np.zeros(3), 0.01
+    g = np.array([0.0, 0.0, -earth.gravity(ORIGIN[0], 50.0)]) * dt
+    for _ in range(int(round(seconds / dt))):
+        f.propagate(zero, g, dt)
+
+
+def test_lane_rows_and_the_stop_line_share_one_lateral_offset() -> None:
+    """The map alone cannot tell where in the lane the driver keeps: after many lane rows and
+    full stop-line fixes the cross-track σ stays at the driver's σ_yb. Had the stop line's
+    lateral row its own offset state (as without the lane row), the two would count d_l twice
+    and the σ would drop to σ_yb / √2."""
+    f = _filter()
+    for k in range(20):
+        _stand(f, 1.0)
+        assert f.lane_line("NB_in", APPROACH.left_lane_line).accepted
+    s_lane = math.sqrt(f.position_cov[1, 1])
+    assert s_lane == pytest.approx(GAP.sigma_yb, rel=0.02)
+    for k in range(20):
+        _stand(f, 1.05)
+        f.stop_line(APPROACH, stop_id=0.0, lane="NB_in")
+        assert f.lane_line("NB_in", APPROACH.left_lane_line) is None  # the full fix holds d_l
+    assert f.counters["stop_line"] == 20 and f.counters["lane_line"] == 20
+    assert math.sqrt(f.position_cov[1, 1]) >= 0.98 * GAP.sigma_yb
+    assert math.sqrt(f.position_cov[0, 0]) == pytest.approx(GAP.sigma_xb, rel=0.05)
+
+
+def test_the_offset_is_redrawn_in_a_new_lane_and_after_losing_the_lane() -> None:
+    f = _filter("SL-CP")
+    flt = f.filter
+    k = flt.extra_offset + f._lane.start
+    others = np.setdiff1d(np.arange(flt.n), [k])
+    f.lane_line("NB_in", APPROACH.left_lane_line)
+    flt.flush_covariance()
+    assert np.abs(flt.P[k, others]).max() > 1e-3
+    _stand(f, 1.0)
+    f.lane_line(None)  # lost for 1 s: kept
+    assert np.abs(flt.P[k, others]).max() > 1e-3
+    _stand(f, 1.5)
+    f.lane_line(None)  # lost for 2.5 s: redrawn
+    for P in (flt.P, flt.P_ind):
+        assert np.allclose(P[k, others], 0.0) and P[k, k] == pytest.approx(GAP.sigma_yb**2)
+    f.lane_line("NB_in", APPROACH.left_lane_line)
+    f.lane_line("other", APPROACH.left_lane_line)  # a new lane: redrawn before its row
+    assert f.counters["lane_line"] == 3
+
+
+def test_only_sl_methods_with_the_constraint_keep_to_the_lane() -> None:
+    assert _filter("SP").lane_line("NB_in", APPROACH.left_lane_line) is None
+    assert _filter("CP").lane_line("NB_in", APPROACH.left_lane_line) is None
+    off = _filter("SL-CP", lane_constraint=False)
+    assert not off.lane_due() and off.lane_line("NB_in", APPROACH.left_lane_line) is None
+    assert _filter("SL-SP").lane_due()
+
+
+def test_the_bound_holds_the_lane_information() -> None:
+    """With the lane rows the SL bound is tighter than without, never looser; the SP and CP
+    bounds do not change."""
+    truth = build_truth(load_scenario("paper-1"))
+    with_lane = posterior_crlb(truth, ("SP", "SL-SP"), rate=1.0)
+    without = posterior_crlb(truth, ("SP", "SL-SP"), rate=1.0, lane_constraint=False)
+    for vid in truth.vehicles:
+        a, b = with_lane.sigma_h("SL-SP", vid), without.sigma_h("SL-SP", vid)
+        assert np.all(a <= b + 1e-9)
+        assert np.allclose(with_lane.sigma_h("SP", vid), without.sigma_h("SP", vid))
+    # V2 queues behind V1 on a north-south lane: its cross-track (east) is held to about σ_yb
+    east = {k: np.median(np.sqrt(b.cov[("SL-SP", "V2")][:, 1, 1])) for k, b in (("with", with_lane), ("without", without))}
+    assert east["with"] < 0.5 < east["without"], east
