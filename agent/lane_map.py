@@ -5,9 +5,11 @@ across the lane onto the lane's offset: in the wrong lane it pulls it a lane wid
 association is conservative, like the first-stopped decision:
 
 1. the estimated heading runs with a lane segment within ``heading_tol``, and its σ is at most
-   a third of that: a vehicle turning inside the junction is left alone (at 10° into a turn of
-   10 m radius it stands 0.15 m off the lane's line), and so is one whose heading is unknown
-   (a vehicle that starts standing: its yaw wandered to the oncoming lane's, rush-hour seed 1);
+   that: a vehicle turning inside the junction is left alone (at 10° into a turn of 10 m
+   radius it stands 0.15 m off the lane's line), and so is one whose heading is not known (a
+   vehicle that starts standing: its yaw had wandered to the oncoming lane's, rush-hour E4).
+   A third of it also kept vehicles standing in a queue, whose yaw σ grows, out of their lane
+   (paper-2, 8 seeds: SL-CP 0.88 -> 1.30 m for V1);
 2. the estimate lies across the segment no farther outside the lane than ``lane_k_sigma`` of
    its lateral σ, and along it no farther beyond its ends than as many σ along it (a queue head
    stands at the lane's end, and an along-track error of metres put it into the junction: its
@@ -146,7 +148,7 @@ class LaneMap:
         yaw_sigma : float
             σ of the heading [rad].
         """
-        if not self.segments or not yaw_sigma <= self.heading_tol / 3.0:
+        if not self.segments or not yaw_sigma <= self.heading_tol:
             return None
         d = np.asarray(ne, float)[None, :] - self._start
         along = np.einsum("ij,ij->i", d, self._dir)

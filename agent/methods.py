@@ -41,6 +41,8 @@ from .range_gate import RangeRateGate
 METHODS = ("SP", "SL-SP", "CP", "SL-CP")
 #: residual error of a stop-line fix beyond the stop gap's spread: map and model [m]
 STOP_LINE_MAP_SIGMA = 0.03
+#: longest wait [s] of the GNSS updates of a vehicle that drives off with its heading unknown
+HEADING_WAIT = 1.0
 #: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
 FUSION_RULES = ("paper", "split-ci", "ci")
 
@@ -183,6 +185,7 @@ class MethodFilter:
         self._lane_checked = -math.inf  #: sensor time of the last call of :meth:`lane_line` [s]
         self._sl_full = False  #: the current stop's fix has its lateral row
         self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=0.1, extra_states=extra)
+        self.filter.yaw_free = not heading_known
         self._stop_id: float | None = None
         if self._mp.stop:
             self._init_from_fix_errors()
@@ -216,6 +219,7 @@ class MethodFilter:
         self.gap = gap
         self.origin = origin_llh
         self.heading_known = heading_known
+        self._heading_wait_since: float | None = None  #: sensor time GNSS began waiting for the course
         self.last_stop_line = -math.inf
         self._gnss_rejected_since: float | None = None  #: sensor time of the first fix rejected in a row
         self.counters = {"gnss": 0, "gnss_rejected": 0, "gnss_reanchored": 0,
@@ -286,9 +290,28 @@ class MethodFilter:
 
     def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float) -> None:
         st = self.filter.state
-        if not self.heading_known and math.hypot(v_ned[0], v_ned[1]) > 1.5:
-            self.filter.reset_yaw(math.atan2(v_ned[1], v_ned[0]), math.radians(5.0))
+        speed = math.hypot(v_ned[0], v_ned[1])
+        if not self.heading_known and speed > 0.0 and sigma_v / speed < math.radians(5.0):
+            # the heading from the GNSS course as soon as the course is good to 5° (0.6 m/s for
+            # a 0.05 m/s velocity σ): until then the INS turns the first metres of travel the
+            # wrong way and the filter explains it with tilt and gyro biases (1500 °/h and 1.5°
+            # of pitch from a start at 1.5 m/s, rush-hour E4, seed 1)
+            course_sigma = math.atan2(sigma_v, speed)
+            self.filter.reset_yaw(math.atan2(v_ned[1], v_ned[0]), max(2.0 * course_sigma, math.radians(3.0)))
+            self.filter.reset_velocity(v_ned, sigma_v)
             self.heading_known = True
+        elif not self.heading_known and speed > 3.0 * sigma_v:
+            # moving, the course not yet good: the INS, which turns the motion the wrong way,
+            # would meet these fixes with innovations that the filter explains with tilt and
+            # gyro biases (0.4 s of them put the gyro bias 7 σ off); they wait for the course,
+            # at most HEADING_WAIT s (a car creeping off for seconds drifted 2.8 m without them)
+            if self._heading_wait_since is None:
+                self._heading_wait_since = self.t
+            if self.t - self._heading_wait_since < HEADING_WAIT:
+                self.counters["gnss_heading_wait"] = self.counters.get("gnss_heading_wait", 0) + 1
+                return
+        elif not self.heading_known:
+            self._heading_wait_since = None
         s = self.settings
         if s.gnss_multipath_sigma:
             # predicted = position + multipath state; the white part is what remains

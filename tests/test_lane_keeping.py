@@ -35,8 +35,8 @@ def test_a_single_lane_of_my_direction_is_found_and_the_oncoming_lane_is_not() -
     assert SITE.locate(np.array([-60.0, 2.5]), wide, math.pi).lane == "SB_out"
     assert SITE.locate(np.array([-60.0, 2.5]), wide, math.radians(25.0)) is None  # turning
     # a heading not yet known (a vehicle that started standing) is no heading
-    assert SITE.locate(np.array([-60.0, 2.5]), wide, 0.0, yaw_sigma=math.radians(5.0)) is None
-    assert SITE.locate(np.array([-60.0, 2.5]), wide, 0.0, yaw_sigma=math.radians(2.0)).lane == "NB_in"
+    assert SITE.locate(np.array([-60.0, 2.5]), wide, 0.0, yaw_sigma=math.radians(12.0)) is None
+    assert SITE.locate(np.array([-60.0, 2.5]), wide, 0.0, yaw_sigma=math.radians(8.0)).lane == "NB_in"
     assert SITE.locate(np.array([-60.0, 40.0]), wide, 0.0) is None  # off the road
 
 

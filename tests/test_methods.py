@@ -9,6 +9,7 @@ import pytest
 
 from agent.methods import METHODS, FilterSettings, MethodFilter, MethodSpec, initial_state
 from agent.nav import earth
+from agent.nav.rotation import quat_to_euler
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
 from agent.neighbours import NeighbourState
 
@@ -180,3 +181,39 @@ def test_the_stop_gap_states_are_forgotten_when_the_stop_ends() -> None:
         assert np.allclose(np.diag(P)[k], [gap.sigma_xb**2, gap.sigma_yb**2])
     assert np.allclose(flt.position_cov, before)
     assert f.stop_line(approach, stop_id=0.0).accepted  # the same stop claimed again: fixes at once
+
+
+def test_a_vehicle_that_starts_standing_learns_its_heading_when_it_drives_off() -> None:
+    """A vehicle stands 6 s facing east with its heading unknown (yaw 0, σ 60°), then drives
+    off east at 1.5 m/s². While it stands, its yaw takes no part in the updates; the heading
+    comes from the GNSS course as soon as that is good to 5°, with the velocity. Before, the
+    filter turned its yaw 100° while standing, learned gyro biases of 2000 °/h, reset at
+    1.5 m/s and then kept a yaw 20-40° off (rush-hour E4)."""
+    rng = np.random.default_rng(3)
+    rm, rn = earth.radii(ORIGIN[0])
+    true_bg = np.radians([0.04, -0.03, 0.02])  # [rad/s], within the 0.05 °/s turn-on spread
+    g = earth.gravity(ORIGIN[0], ORIGIN[2])
+    llh0 = np.array(ORIGIN)
+    st = initial_state(llh0, np.zeros(3), np.array([0.0, 0.0, -g]))
+    f = MethodFilter(MethodSpec.of("SP"), st, np.array([2.0, 2.0, 3.0]),
+                     FilterSettings(MEMS_NOISE, gnss_multipath_sigma=None, init_gyro_bias_sigma=math.radians(0.05)),
+                     0.0, heading_known=False)
+    dt, t, east, v, a = 0.01, 0.0, 0.0, 0.0, 1.5
+    for k in range(1, 1201):  # 12 s
+        acc = a if t >= 6.0 and v < 10.0 else 0.0
+        # body x points east: forward acceleration and gravity, plus the gyro bias
+        f.propagate(true_bg * dt, np.array([acc, 0.0, -g]) * dt, dt)
+        east += v * dt + 0.5 * acc * dt * dt
+        v += acc * dt
+        t = k * dt
+        if k % 20 == 0:  # GNSS at 5 Hz
+            llh = np.array([ORIGIN[0] + rng.normal(0, 0.5) / (rm + ORIGIN[2]),
+                            ORIGIN[1] + (east + rng.normal(0, 0.5)) / ((rn + ORIGIN[2]) * math.cos(ORIGIN[0])),
+                            ORIGIN[2]])
+            f.gnss(llh, np.array([0.0, v, 0.0]) + rng.normal(0, 0.05, 3), np.array([0.5, 0.5, 0.8]), 0.05)
+    yaw = float(quat_to_euler(f.filter.state.q)[2])
+    assert f.heading_known
+    assert abs(math.degrees(yaw) - 90.0) < 3.0
+    assert abs(math.degrees(yaw) - 90.0) < 3.0 * math.degrees(f.yaw_sigma) + 0.5
+    sd = np.sqrt(np.diag(f.filter.P)[9:11])
+    assert np.all(np.abs(f.filter.state.bg[:2] - true_bg[:2]) < 3.0 * sd), (f.filter.state.bg, sd)

@@ -435,7 +435,10 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
           f"95th percentile {on_p95:.2f} m; 12 s gap RMS {gap_rms:.2f} m (offline filter {off_rms:.2f} m)")
     assert inside.sum() >= 0.95 * len(truth["t"])
     assert on_median < 0.05 and on_p95 < 0.3
-    assert gap_rms == pytest.approx(off_rms, rel=0.25)
+    # not worse than the offline filter: the agent, which starts standing here, keeps its yaw
+    # out of the updates until the GNSS course gives it (agent.methods), the offline filter
+    # does not; the agent's gap error went from about the offline filter's (6.1 m) to 1.1 m
+    assert gap_rms <= 1.25 * off_rms
 
 
 def _first_fix_time() -> float:
