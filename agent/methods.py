@@ -291,16 +291,17 @@ class MethodFilter:
     def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float) -> None:
         st = self.filter.state
         speed = math.hypot(v_ned[0], v_ned[1])
-        if not self.heading_known and speed > 0.0 and sigma_v / speed < math.radians(5.0):
-            # the heading from the GNSS course as soon as the course is good to 5° (0.6 m/s for
-            # a 0.05 m/s velocity σ): until then the INS turns the first metres of travel the
-            # wrong way and the filter explains it with tilt and gyro biases (1500 °/h and 1.5°
-            # of pitch from a start at 1.5 m/s, rush-hour E4, seed 1)
-            course_sigma = math.atan2(sigma_v, speed)
+        sv = max(sigma_v, 0.05)  # a receiver's σ of millimetres per second is not its course's
+        if not self.heading_known and speed > 0.0 and sv / speed < math.radians(5.0):
+            # the heading from the GNSS course as soon as the course is good to 5° (0.6 m/s):
+            # until then the INS turns the first metres of travel the wrong way and the filter
+            # explains it with tilt and gyro biases (1500 °/h and 1.5° of pitch from a start at
+            # 1.5 m/s, rush-hour E4, seed 1). A vehicle that backs off is taken as driving ahead.
+            course_sigma = math.atan2(sv, speed)
             self.filter.reset_yaw(math.atan2(v_ned[1], v_ned[0]), max(2.0 * course_sigma, math.radians(3.0)))
             self.filter.reset_velocity(v_ned, sigma_v)
             self.heading_known = True
-        elif not self.heading_known and speed > 3.0 * sigma_v:
+        elif not self.heading_known and speed > 3.0 * sv:
             # moving, the course not yet good: the INS, which turns the motion the wrong way,
             # would meet these fixes with innovations that the filter explains with tilt and
             # gyro biases (0.4 s of them put the gyro bias 7 σ off); they wait for the course,
