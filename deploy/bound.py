@@ -8,17 +8,21 @@ scenario's true trajectories:
 - per vehicle: horizontal position and velocity (constant velocity driven by the IMU's velocity
   random walk; the true acceleration is a known input and does not change the bound), GNSS
   multipath (2, Gauss-Markov with the receiver's moving/static τ following the true motion), and
-  the stop gap errors (d_s, d_l) of the current stop (2, random constants drawn at each stop);
+  the stop gap errors (d_s, d_l) of the current stop (2, random constants drawn at each stop),
+  and the driver's lateral offset in its lanes (1, one random constant per vehicle, as the
+  emulated drivers keep it; with lane keeping it is also the stop-line fix's d_l);
 - shared by all vehicles: the GNSS common-mode error (2, Gauss-Markov).
 
 Information, at the GNSS rate: GNSS position (white noise on top of multipath + common mode) and
 velocity; for a vehicle that is truly first stopped, the stop-line fix (its error is the stop
-gap error state, so repeated fixes share it); for every pair, UWB ranges at the UWB rate with
+gap error state, so repeated fixes share it); for the SL methods with lane keeping, wherever a
+vehicle truly drives in a lane of the map, its distance right of the left lane line (on the
+offset state, to the map's error); for every pair, UWB ranges at the UWB rate with
 information ``(p/σ²) [uuᵀ, −uuᵀ; −uuᵀ, uuᵀ]``, where ``p`` is the probability that the range
 is measured *and* the neighbour's beacon arrives. Everything the bound leaves out (IMU biases and
 attitude, NLOS, outliers, GNSS outages) only adds error, so the bound stays a lower bound.
 
-The four methods use subsets of the information: SP (GNSS), SL-SP (+ stop line), CP
+The four methods use subsets of the information: SP (GNSS), SL-SP (+ stop line, lanes), CP
 (+ ranges), SL-CP (all). The cooperative bounds process the whole fleet's information jointly (a
 bound for any distributed scheme); the others bound each vehicle on its own data. Pure numpy;
 no I/O.
@@ -30,12 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.lane_map import LaneMap
 from agent.methods import METHODS, STOP_LINE_MAP_SIGMA, MethodSpec
 from agent.nav import earth
 from agent.nav.measurements.stop_line import stop_line_fix
 from hw_emulation.truth import ScenarioTruth
-
-from agent.lane_map import LaneMap
 
 from .agent_configs import approach_lanes, lane_map
 
