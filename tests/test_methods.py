@@ -217,3 +217,25 @@ def test_a_vehicle_that_starts_standing_learns_its_heading_when_it_drives_off() 
     assert abs(math.degrees(yaw) - 90.0) < 3.0 * math.degrees(f.yaw_sigma) + 0.5
     sd = np.sqrt(np.diag(f.filter.P)[9:11])
     assert np.all(np.abs(f.filter.state.bg[:2] - true_bg[:2]) < 3.0 * sd), (f.filter.state.bg, sd)
+
+
+def test_a_gross_range_outlier_is_gated_on_the_uninflated_spread() -> None:
+    """Split CI inflates the covariances (P/ω, R_dep/(1-ω)) before its χ² gate. When most of
+    what a vehicle knows is shared with its neighbours, that gate let a range 14 m long through
+    (rush-hour seed 7: W1 fused one 23 m off). The range is first gated on HPHᵀ + R."""
+    rm, rn = earth.radii(ORIGIN[0])
+    east = np.array([0.0, 30.0 / ((rn + 50) * math.cos(ORIGIN[0])), 0.0])
+
+    def shared_filter() -> tuple[MethodFilter, NeighbourState]:
+        f, _, _, true_llh = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
+        f.filter.flush_covariance()
+        f.filter.P_ind = f.filter.P * 0.05  # 95 % of its covariance shared with the neighbours
+        return f, NeighbourState("V3", true_llh + east, np.eye(3) * 4.0, 0.05)
+
+    f, nb = shared_filter()
+    assert f.range(nb, 44.0) == "gate_nis" and f.counters["ranges"] == 0
+    f, nb = shared_filter()
+    f._range_gate_nis = None  # the split-CI gate alone
+    assert f.range(nb, 44.0) == "fused"
+    f, nb = shared_filter()
+    assert f.range(nb, 31.0) == "fused"
