@@ -98,14 +98,16 @@ class MarkingWindow:
         while self._q and self._q[0][0] < t - self.window:
             self._q.popleft()
 
-    def settled(self, t: float) -> tuple[int, int]:
-        """The settled (left, right) classes at sensor time ``t`` [s]."""
+    def settled(self, t: float, min_frames: int | None = None) -> tuple[int, int]:
+        """The settled (left, right) classes at sensor time ``t`` [s]; ``min_frames`` overrides
+        the number of classified reports a side needs."""
         recent = [(le, ri) for tq, le, ri in self._q if t - self.window <= tq <= t + 0.5]
-        return self._side([le for le, _ in recent]), self._side([ri for _, ri in recent])
+        n = self.min_frames if min_frames is None else min_frames
+        return self._side([le for le, _ in recent], n), self._side([ri for _, ri in recent], n)
 
-    def _side(self, seen: list[int]) -> int:
+    def _side(self, seen: list[int], min_frames: int) -> int:
         seen = [c for c in seen if c != UNSEEN]
-        if len(seen) < self.min_frames:
+        if len(seen) < min_frames:
             return UNSEEN
         n_div = sum(c == DIVIDER for c in seen)
         for cls, n in ((DIVIDER, n_div), (BOUNDARY, len(seen) - n_div)):

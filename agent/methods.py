@@ -41,6 +41,10 @@ from .range_gate import RangeRateGate
 METHODS = ("SP", "SL-SP", "CP", "SL-CP")
 #: residual error of a stop-line fix beyond the stop gap's spread: map and model [m]
 STOP_LINE_MAP_SIGMA = 0.03
+#: classified camera reports a side needs before its class names a lane for the lane row (2 s
+#: at 5 Hz): a lane row holds the vehicle in the lane it names, so a 1 s camera error at the
+#: start, which settled five frames, put rush-hour E2 (seed 6) a lane off for the whole run
+LANE_MARKING_FRAMES = 10
 #: longest wait [s] of the GNSS updates of a vehicle that drives off with its heading unknown
 HEADING_WAIT = 1.0
 #: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
@@ -595,6 +599,6 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
         st = f.filter.state
         ne_now = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
         hit = lane_map.locate(ne_now, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
-                              tracker.markings.settled(t), f.yaw_sigma)
+                              tracker.markings.settled(t, LANE_MARKING_FRAMES), f.yaw_sigma)
         f.lane_line(hit.lane if hit else None, hit.left_line if hit else None)
     return dec, changed

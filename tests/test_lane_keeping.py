@@ -154,3 +154,20 @@ def test_the_bound_holds_the_lane_information() -> None:
     # V2 queues behind V1 on a north-south lane: its cross-track (east) is held to about σ_yb
     east = {k: np.median(np.sqrt(b.cov[("SL-SP", "V2")][:, 1, 1])) for k, b in (("with", with_lane), ("without", without))}
     assert east["with"] < 0.5 < east["without"], east
+
+
+def test_a_one_second_camera_error_does_not_name_a_lane_for_the_lane_row() -> None:
+    """Five frames settle a class for the first-stopped detector; a lane row, which holds the
+    vehicle in the lane it names, waits for ten (2 s at 5 Hz): a 1 s camera error at the start
+    (rush-hour E2, seed 6) no longer names the wrong lane."""
+    from agent.lane_markings import MarkingWindow
+    from agent.methods import LANE_MARKING_FRAMES
+
+    w = MarkingWindow()
+    for k in range(5):  # 1 s of wrong reports (the right lane's classes)
+        w.observe(0.2 * k, DIVIDER, BOUNDARY)
+    assert w.settled(0.8) == (DIVIDER, BOUNDARY)
+    assert w.settled(0.8, LANE_MARKING_FRAMES) == (UNSEEN, UNSEEN)
+    for k in range(5, 15):  # then 2 s of right ones (the left lane's)
+        w.observe(0.2 * k, BOUNDARY, DIVIDER)
+    assert w.settled(2.8, LANE_MARKING_FRAMES) == (BOUNDARY, DIVIDER)
