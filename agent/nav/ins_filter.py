@@ -329,7 +329,7 @@ class InsFilter:
     def _isolate_yaw(self) -> None:
         """While ``yaw_free``: the heading takes no part in an update (its correlations with
         the other states are dropped). A vehicle that starts standing has no heading; linearised
-        about a heading 60° σ off, the updates turned its yaw by 100° in 6 s through the
+        about a heading 60° σ off, the updates turned its yaw by over 100° in 6 s through the
         estimated accelerometer bias and learned gyro biases of 2000 °/h (10 σ), which sent the
         yaw 20-40° off for a minute after it drove off (rush-hour E4, seed 1)."""
         if not self.yaw_free:
