@@ -19,6 +19,14 @@ import pytest
 from conftest import free_port, run_group
 
 
+def _t_of(line: str) -> float | None:
+    """A recorded message's sensor time, None for a line the recorder is still writing."""
+    try:
+        return float(json.loads(line)["t"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        return None
+
+
 @pytest.mark.timeout(240)
 def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None:
     out = tmp_path / "run"
@@ -31,8 +39,8 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
         while time.monotonic() < deadline and victim is None:  # kill V2 once it has run ~15 s of sensor time
             time.sleep(0.2)
             if rec.exists():
-                ts = [json.loads(x)["t"] for x in rec.read_text().splitlines()[-200:]
-                      if '"Estimate"' in x and '"V2"' in x]
+                ts = [_t_of(x) for x in rec.read_text().splitlines()[-200:] if '"Estimate"' in x and '"V2"' in x]
+                ts = [t for t in ts if t is not None]
                 if ts and max(ts) > 15.0:
                     pid = subprocess.run(["pgrep", "-f", f"agent --vehicle V2 --config {out}"],
                                          capture_output=True, text=True).stdout.split()
@@ -87,7 +95,9 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
     restarts = m["processes"]["restarts"]
     assert [(x["process"], x["exit_code"]) for x in restarts] == [("agent-V1", -9), ("emulator", -9)]
     assert all(x["rejoined_after_s"] is not None and x["rejoined_after_s"] < 5.0 for x in restarts), restarts
-    assert 45.0 <= restarts[1]["resumed_at_t_s"] < 48.0  # resumed where the fleet was
+    # resumed where the fleet was: the kill comes at t = 45 s on the launcher's 0.2 s (wall) poll,
+    # up to 4 s of sensor time later at the emulator's 20x, and it leads the agents by 0.5 s
+    assert 45.0 <= restarts[1]["resumed_at_t_s"] < 50.0
     report = (out / "report.md").read_text()
     assert "## Faults" in report and "| agent_freeze (V0) |" in report and "## Process faults" in report
     lines = [json.loads(x) for x in (out / "recorded" / "messages.jsonl").read_text().splitlines()]
