@@ -68,6 +68,12 @@ def test_agent_config_rejects_an_unknown_fusion_rule(tmp_path) -> None:
     p.write_text('[agent]\nvehicle = "V1"\nscenario = "paper-1"\nfusoin = "ci"\n')
     with pytest.raises(ConfigError, match="agent.fusoin: unknown field"):
         load_agent_config(p, None)
+    p.write_text('[agent]\nvehicle = "V1"\nscenario = "paper-1"\nlane_constraint = "yes"\n')
+    with pytest.raises(ConfigError, match="agent.lane_constraint: must be true or false"):
+        load_agent_config(p, None)
+    p.write_text('[agent]\nvehicle = "V1"\nscenario = "paper-1"\nlane_constraint = false\n')
+    cfg, _ = load_agent_config(p, None)
+    assert not cfg.settings.lane_constraint and cfg.lane_map is not None
 
 
 @pytest.mark.timeout(120)
