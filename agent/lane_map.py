@@ -69,9 +69,9 @@ def _left_line_pieces(lane: str, centerline: np.ndarray, width: float) -> list[L
         length = float(np.hypot(*d))
         if length < 1e-6:
             continue
-        u = d / length
-        left = a + np.array([u[1], -u[0]]) * (width / 2.0)  # left of travel: (e, -n) rotated
-        out.append(LaneSegment(lane, Line2D(tuple(left), tuple(u)), length, width))
+        centre = Line2D(tuple(a), tuple(d))
+        left = a - centre.right_normal * (width / 2.0)
+        out.append(LaneSegment(lane, Line2D(tuple(left), centre.direction), length, width))
     return out
 
 
@@ -111,6 +111,7 @@ class LaneMap:
         self.marks = marking_classes(edges)
         self._start = np.array([s.left_line.point for s in self.segments]).reshape(-1, 2)
         self._dir = np.array([s.left_line.direction for s in self.segments]).reshape(-1, 2)
+        self._right = np.column_stack([-self._dir[:, 1], self._dir[:, 0]])  # right normals
         self._len = np.array([s.length for s in self.segments])
         self._width = np.array([s.width for s in self.segments])
         self._heading = np.arctan2(self._dir[:, 1], self._dir[:, 0])
@@ -152,7 +153,7 @@ class LaneMap:
             return None
         d = np.asarray(ne, float)[None, :] - self._start
         along = np.einsum("ij,ij->i", d, self._dir)
-        right_n = np.column_stack([-self._dir[:, 1], self._dir[:, 0]])
+        right_n = self._right
         right = np.einsum("ij,ij->i", d, right_n)
         c = np.asarray(cov_ne, float)
         k = self.lane_k_sigma * np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", right_n, c, right_n), 0.0))

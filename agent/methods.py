@@ -295,29 +295,8 @@ class MethodFilter:
 
     def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float) -> None:
         st = self.filter.state
-        speed = math.hypot(v_ned[0], v_ned[1])
-        sv = max(sigma_v, 0.05)  # a receiver's σ of millimetres per second is not its course's
-        if not self.heading_known and speed > 0.0 and sv / speed < math.radians(5.0):
-            # the heading from the GNSS course as soon as the course is good to 5° (0.6 m/s):
-            # until then the INS turns the first metres of travel the wrong way and the filter
-            # explains it with tilt and gyro biases (1500 °/h and 1.5° of pitch from a start at
-            # 1.5 m/s, rush-hour E4, seed 1). A vehicle that backs off is taken as driving ahead.
-            course_sigma = math.atan2(sv, speed)
-            self.filter.reset_yaw(math.atan2(v_ned[1], v_ned[0]), max(2.0 * course_sigma, math.radians(3.0)))
-            self.filter.reset_velocity(v_ned, sigma_v)
-            self.heading_known = True
-        elif not self.heading_known and speed > 3.0 * sv:
-            # moving, the course not yet good: the INS, which turns the motion the wrong way,
-            # would meet these fixes with innovations that the filter explains with tilt and
-            # gyro biases (0.4 s of them put the gyro bias 7 σ off); they wait for the course,
-            # at most HEADING_WAIT s (a car creeping off for seconds drifted 2.8 m without them)
-            if self._heading_wait_since is None:
-                self._heading_wait_since = self.t
-            if self.t - self._heading_wait_since < HEADING_WAIT:
-                self.counters["gnss_heading_wait"] = self.counters.get("gnss_heading_wait", 0) + 1
-                return
-        elif not self.heading_known:
-            self._heading_wait_since = None
+        if not self.heading_known and self._await_heading(v_ned, sigma_v):
+            return
         s = self.settings
         if s.gnss_multipath_sigma:
             # predicted = position + multipath state; the white part is what remains
@@ -348,6 +327,33 @@ class MethodFilter:
                 self.counters["gnss_reanchored"] += 1
         self.filter.update(gnss_velocity(self.filter.state, v_ned, np.eye(3) * sigma_v**2, np.zeros(3)))
         self.counters["gnss"] += int(res.accepted)
+
+    def _await_heading(self, v_ned: np.ndarray, sigma_v: float) -> bool:
+        """Heading unknown: take it (and the velocity) from the GNSS course as soon as the course
+        is good to 5° (0.6 m/s); until then the INS turns the first metres of travel the wrong
+        way and the filter explains it with tilt and gyro biases (1500 °/h and 1.5° of pitch
+        from a start at 1.5 m/s, rush-hour E4, seed 1). A vehicle that backs off is taken as
+        driving ahead. Returns whether this fix must wait: moving, the course not yet good,
+        the fixes' innovations would go to tilt and gyro biases (0.4 s of them put the gyro
+        bias 7 σ off); they wait at most HEADING_WAIT s (a car creeping off for seconds drifted
+        2.8 m without them)."""
+        speed = math.hypot(v_ned[0], v_ned[1])
+        sv = max(sigma_v, 0.05)  # a receiver's σ of millimetres per second is not its course's
+        if speed > 0.0 and sv / speed < math.radians(5.0):
+            course_sigma = math.atan2(sv, speed)
+            self.filter.reset_yaw(math.atan2(v_ned[1], v_ned[0]), max(2.0 * course_sigma, math.radians(3.0)))
+            self.filter.reset_velocity(v_ned, sigma_v)
+            self.heading_known = True
+            return False
+        if speed <= 3.0 * sv:
+            self._heading_wait_since = None
+            return False
+        if self._heading_wait_since is None:
+            self._heading_wait_since = self.t
+        if self.t - self._heading_wait_since < HEADING_WAIT:
+            self.counters["gnss_heading_wait"] = self.counters.get("gnss_heading_wait", 0) + 1
+            return True
+        return False
 
     def zupt(self) -> UpdateResult | None:
         """Zero-velocity update (the caller decides that the vehicle is at rest)."""

@@ -325,6 +325,11 @@ def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:
             p.wait()
 
 
+def lane_keeping_label(lane_constraint: bool | None) -> str:
+    """", lane-keeping on|off" for a report's title ("" when a run does not say)."""
+    return {True: ", lane-keeping on", False: ", lane-keeping off"}.get(lane_constraint, "")
+
+
 def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], faults: list | None = None,
                        lane_constraint: bool = True) -> dict:
     """RMSE per window, vehicle and method from the recorded estimates; writes estimate CSVs.
@@ -452,7 +457,7 @@ def report_markdown(scn, metrics: dict) -> str:
     """The run's report: paper-style RMSE tables with along/cross-track split and NEES, the
     first-stopped detection scores, events and plots."""
     fusion = metrics.get("fusion", "split-ci")
-    lane = {True: ", lane-keeping on", False: ", lane-keeping off"}.get(metrics.get("lane_constraint"), "")
+    lane = lane_keeping_label(metrics.get("lane_constraint"))
     lines = [f"# slcp run: {scn.name} (seed {metrics.get('seed', '?')}, fusion `{fusion}`{lane})", "", scn.description, "",
              "Horizontal RMSE [m] per window, vehicle and method, the paper's figure in brackets. Below each value: "
              "along-track / cross-track RMSE [m]; the mean horizontal NEES (2 for a consistent filter); the "

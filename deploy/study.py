@@ -171,7 +171,9 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
 
 def study_markdown(scn, study: dict) -> str:
     n = len(study["seeds"])
-    lane = {True: ", lane-keeping on", False: ", lane-keeping off"}.get(study.get("lane_constraint"), "")
+    from .launcher import lane_keeping_label
+
+    lane = lane_keeping_label(study.get("lane_constraint"))
     lines = [f"# slcp study: {scn.name}, {n} seeds, fusion `{study.get('fusion', '?')}`{lane}", "",
              "Horizontal RMSE [m]: mean ± sd over the seeds, the paper's figure in brackets; below, the mean "
              "along-track / cross-track RMSE [m], the posterior CRLB (RMS over the window, mean over the seeds) and "
