@@ -36,7 +36,7 @@ from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
 from .nav.state import POS, VEL, NavState
 from .neighbours import NeighbourState, NeighbourTable
-from .range_gate import RangeRateGate
+from .range_gate import NlosModel, RangeRateGate
 
 METHODS = ("SP", "SL-SP", "CP", "SL-CP")
 #: residual error of a stop-line fix beyond the stop gap's spread: map and model [m]
@@ -121,8 +121,13 @@ class FilterSettings:
     range_min_sigmas: float = 4.0
     max_range: float = 150.0  #: physical gate on UWB ranges [m]
     #: RMS of the UWB NLOS bias (persistent over an episode, so fused as dependent noise by the
-    #: CI rules) [m]
+    #: CI rules) [m], used when ``uwb_nlos`` is None
     uwb_nlos_sigma: float = 0.0
+    #: the UWB NLOS model: the CI rules then classify every range (:meth:`NlosModel.classify`),
+    #: reject those more probably NLOS than ``nlos_reject_probability`` and fuse the others
+    #: with their expected squared bias as dependent noise
+    uwb_nlos: NlosModel | None = None
+    nlos_reject_probability: float = 0.5
     #: GNSS receiver characteristics: correlated (multipath) error carried as three
     #: Gauss-Markov states, so that correlated fixes are not averaged as if independent;
     #: None treats the reported sigma as white noise (the paper's filter)
@@ -228,7 +233,7 @@ class MethodFilter:
         self._gnss_rejected_since: float | None = None  #: sensor time of the first fix rejected in a row
         self.counters = {"gnss": 0, "gnss_rejected": 0, "gnss_reanchored": 0,
                          "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "ranges_gate_physical": 0,
-                         "ranges_gate_rate": 0, "ranges_gate_nis": 0, "ranges_skipped_near": 0, "stop_line": 0,
+                         "ranges_gate_rate": 0, "ranges_gate_nis": 0, "ranges_gate_nlos": 0, "ranges_skipped_near": 0, "stop_line": 0,
                          "lane_line": 0, "lane_line_rejected": 0}
         self.rate_gate = RangeRateGate()
         self._range_gate_nis = chi2_gate(1, s.range_gate) if s.range_gate is not None else None
@@ -407,7 +412,8 @@ class MethodFilter:
         Returns the outcome: ``"fused"``; ``"skipped"`` (node selection: too little expected
         gain); ``"skipped_near"`` (too near for the linearisation: ``range_min_sigmas``);
         ``"gate_physical"`` (outside (0, max_range)); ``"gate_rate"`` (a jump the
-        vehicles' motion cannot explain); ``"gate_nis"`` (χ² innovation gate); None for methods
+        vehicles' motion cannot explain); ``"gate_nlos"`` (more probably NLOS than not, CI
+        rules with an NLOS model); ``"gate_nis"`` (χ² innovation gate); None for methods
         without ranges.
         """
         if not self.spec.ranges:
@@ -438,7 +444,19 @@ class MethodFilter:
         if s.fusion == "paper":
             res = self.filter.update(m, s.range_gate)
         else:
-            if self._range_gate_nis is not None and self._range_nis(m) > self._range_gate_nis:
+            nu, var = self._range_innovation(m)
+            if s.uwb_nlos is not None:
+                is_nlos, r_bias = s.uwb_nlos.classify(nu, var, s.nlos_reject_probability)
+                if is_nlos:
+                    return self._count_range("gate_nlos")
+            else:
+                r_bias = s.uwb_nlos_sigma**2
+            # the NIS gate on the whole spread, uninflated: the split-CI update gates on its
+            # inflated covariances, P/ω and R_dep/(1-ω), and when most of P is shared with the
+            # neighbours ω is small and a gross outlier passes (rush-hour seed 7 in the fleet:
+            # after two rate-gate rejections W1 fused a range that moved it 23 m at an
+            # along-track σ of 2.2 m, and W2 followed through W1's beacons)
+            if self._range_gate_nis is not None and nu * nu / max(var + r_bias, 1e-12) > self._range_gate_nis:
                 return self._count_range("gate_nis")
             # the neighbour's estimate is wholly dependent: it may contain our information, and
             # its own-sensor errors (multipath) persist from one range to the next; so does an
@@ -446,22 +464,19 @@ class MethodFilter:
             h = m.H[0, POS]  # the line of sight as the model uses it (horizontal or 3-D)
             r_nb = max(float(h @ neighbour.cov_ned @ h), 0.0)
             m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
-            r_dep = np.array([[r_nb + s.uwb_nlos_sigma**2]])
+            r_dep = np.array([[r_nb + r_bias]])
             res = self.filter.update_split_ci(m_ind, r_dep, own_independent=s.fusion == "split-ci",
                                               gate_probability=s.range_gate, min_gain=s.min_gain)
         return self._count_range("skipped" if res.skipped else "fused" if res.accepted else "gate_nis")
 
-    def _range_nis(self, m: Measurement) -> float:
-        """The range's NIS against its whole spread, HPHᵀ + R (+ the NLOS bias σ), uninflated.
-        The split-CI update gates on its inflated covariances, P/ω and R_dep/(1-ω): when most
-        of P is shared with the neighbours, ω is small and a gross outlier passes (rush-hour
-        seed 7 in the fleet: after two rate-gate rejections W1 fused a range that moved it
-        23 m at an along-track σ of 2.2 m, and W2 followed through W1's beacons)."""
+    def _range_innovation(self, m: Measurement) -> tuple[float, float]:
+        """The range's innovation, measured minus predicted [m] (the model's ``z`` is predicted
+        minus measured), and its variance HPHᵀ + R [m²] (both positions along the line of sight
+        and the UWB noise; no NLOS bias)."""
         f = self.filter
         f.flush_covariance()
         h = f.full_jacobian(m.H)[0]
-        spread = float(h @ f.P @ h) + float(m.R[0, 0]) + self.settings.uwb_nlos_sigma**2
-        return float(m.z[0]) ** 2 / max(spread, 1e-12)
+        return -float(m.z[0]), float(h @ f.P @ h) + float(m.R[0, 0])
 
     def lane_due(self) -> bool:
         """Whether :meth:`lane_line` wants a lane now (``lane_interval`` after its last call)."""

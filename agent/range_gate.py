@@ -1,4 +1,5 @@
-"""Physical range-rate gate on UWB ranges, one track per neighbour (pure logic).
+"""Gates on UWB ranges (pure logic): a physical range-rate gate, one track per neighbour, and
+an NLOS classifier (:meth:`NlosModel.classify`).
 
 A gross UWB outlier (3-30 m) is an isolated jump in range that the two vehicles' motion cannot
 explain. The gate predicts the range from the last accepted one and the relative velocity along
@@ -11,7 +12,10 @@ change costs one range too.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+
+from scipy import special
 
 
 @dataclass
@@ -59,3 +63,96 @@ class RangeRateGate:
     def forget(self, neighbour: str) -> None:
         self._last.pop(neighbour, None)
         self._rejected.pop(neighbour, None)
+
+
+_SQRT2 = math.sqrt(2.0)
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def _phi(x: float) -> float:
+    return math.exp(-0.5 * x * x) / math.sqrt(2.0 * math.pi)
+
+
+def _cdf_between(a: float, b: float) -> float:
+    """P(a < X < b) for a standard normal X, accurate in both tails."""
+    if a >= 0.0:
+        return 0.5 * (math.erfc(a / _SQRT2) - math.erfc(b / _SQRT2))
+    if b <= 0.0:
+        return 0.5 * (math.erfc(-b / _SQRT2) - math.erfc(-a / _SQRT2))
+    return 1.0 - 0.5 * (math.erfc(-a / _SQRT2) + math.erfc(b / _SQRT2))
+
+
+@dataclass(frozen=True)
+class NlosModel:
+    """A UWB link's NLOS state: a two-state Markov chain (entered at ``enter`` [1/s], left at
+    ``exit`` [1/s]) adding a positive range bias drawn uniformly in [``bias_min``, ``bias_max``]
+    [m] per episode (the emulator's model, :mod:`hw_emulation.sensors.uwb`; a receiver's
+    characteristic to calibrate on a real fleet)."""
+
+    enter: float
+    exit: float
+    bias_min: float
+    bias_max: float
+
+    def __post_init__(self) -> None:
+        if not (self.enter > 0.0 and self.exit > 0.0 and 0.0 <= self.bias_min < self.bias_max):
+            raise ValueError(f"invalid NLOS model {self}")
+
+    @property
+    def steady(self) -> float:
+        """Share of time a link spends in NLOS."""
+        return self.enter / (self.enter + self.exit)
+
+    def posterior(self, prior: float, nu: float, var: float) -> tuple[float, float]:
+        """Probability that a range is NLOS, and the mean square of its bias given that it is.
+
+        Parameters
+        ----------
+        prior : float
+            Probability of NLOS before the range.
+        nu : float
+            Innovation [m], measured minus predicted range (an NLOS bias makes it positive).
+        var : float
+            Innovation variance without any NLOS bias [m²]: the two positions' uncertainty
+            along the line of sight plus the UWB noise.
+
+        Returns
+        -------
+        p_nlos : float
+            Posterior probability of NLOS.
+        bias_ms : float
+            E[b² | ν, NLOS] [m²]: the bias is N(ν, var) truncated to [bias_min, bias_max].
+        """
+        s = math.sqrt(max(var, 1e-12))
+        lo, hi = (self.bias_min - nu) / s, (self.bias_max - nu) / s
+        z = _cdf_between(lo, hi)
+        log_los = -0.5 * (nu / s) ** 2 - math.log(s) - _LOG_SQRT_2PI
+        if z > 1e-300:
+            mean = nu + s * (_phi(lo) - _phi(hi)) / z
+            v = var * (1.0 + (lo * _phi(lo) - hi * _phi(hi)) / z - ((_phi(lo) - _phi(hi)) / z) ** 2)
+            bias_ms = min(max(v, 0.0) + mean * mean, self.bias_max**2)
+            log_z = math.log(z)
+        else:  # the innovation is many σ from every bias: the nearer end, in logarithms
+            b = self.bias_min if nu < self.bias_min else self.bias_max
+            bias_ms = b * b
+            log_z = float(special.log_ndtr(hi)) if hi < 0.0 else float(special.log_ndtr(-lo))
+        if prior <= 0.0 or prior >= 1.0:
+            return float(prior >= 1.0), bias_ms
+        log_nlos = log_z - math.log(self.bias_max - self.bias_min)
+        x = math.log1p(-prior) + log_los - math.log(prior) - log_nlos
+        return (1.0 / (1.0 + math.exp(x)) if x < 700.0 else 0.0), bias_ms
+
+    def classify(self, nu: float, var: float, reject_probability: float = 0.5) -> tuple[bool, float]:
+        """Whether a range with innovation ``nu`` [m] of variance ``var`` [m²] (see
+        :meth:`posterior`) is more probably NLOS than ``reject_probability`` (reject it), and
+        if not, the bias variance it carries, ``p · E[b² | ν, NLOS]`` [m²].
+
+        An NLOS bias only lengthens a range, and a range that starts a link can already carry
+        one (no jump for :class:`RangeRateGate` to see). The prior is the chain's steady share,
+        not the link's history: successive innovations share the vehicles' persistent position
+        errors, and chaining them as independent evidence ratcheted a link to "NLOS" on a
+        1.5 m error at σ 2.5 m (paper-2 in process, 10 seeds: CP rejected 12.9 % of its clean
+        ranges).
+        """
+        p, bias_ms = self.posterior(self.steady, nu, var)
+        return p > reject_probability, p * bias_ms

@@ -10,6 +10,7 @@ from agent.lane_map import LaneMap
 from agent.methods import METHODS, FilterSettings
 from agent.nav.error_model import ImuNoise
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
+from agent.range_gate import NlosModel
 from agent.runtime import AgentConfig
 from hw_emulation.scenario import Scenario
 from hw_emulation.sensors.imu import ImuModel
@@ -58,7 +59,10 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
     u = scn.uwb
     p_nlos = u.nlos_enter / (u.nlos_enter + u.nlos_exit) if u.nlos_enter > 0 else 0.0
     nlos_ms = (u.nlos_bias_min**2 + u.nlos_bias_min * u.nlos_bias_max + u.nlos_bias_max**2) / 3.0
-    settings = dataclasses.replace(settings, uwb_nlos_sigma=math.sqrt(p_nlos * nlos_ms), max_range=u.max_range)
+    nlos = (NlosModel(u.nlos_enter, u.nlos_exit, u.nlos_bias_min, u.nlos_bias_max)
+            if u.nlos_enter > 0 and u.nlos_exit > 0 and u.nlos_bias_max > u.nlos_bias_min else None)
+    settings = dataclasses.replace(settings, uwb_nlos_sigma=math.sqrt(p_nlos * nlos_ms), uwb_nlos=nlos,
+                                   max_range=u.max_range)
     gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
     return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh,
                        nlos_bias_max=u.nlos_bias_max, lane_map=lane_map(scn))
