@@ -24,6 +24,7 @@ import pymap3d
 
 from .first_stopped import ApproachLane, Decision, StopTracker
 from .lane_map import LaneMap
+from .lane_markings import UNSEEN, MarkingWindow
 from .nav import earth
 from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
@@ -45,6 +46,17 @@ STOP_LINE_MAP_SIGMA = 0.03
 #: at 5 Hz): a lane row holds the vehicle in the lane it names, so a 1 s camera error at the
 #: start, which settled five frames, put rush-hour E2 (seed 6) a lane off for the whole run
 LANE_MARKING_FRAMES = 10
+
+
+def lane_row_markings(window: MarkingWindow, t: float) -> tuple[int, int]:
+    """The camera's (left, right) classes at sensor time ``t`` [s] that may name a lane for the
+    lane row: both sides settled over :data:`LANE_MARKING_FRAMES` reports, or nothing. One
+    side is not enough: a side's error episode can outlast the window, and then the other
+    side's gaps let the wrong side name the neighbouring lane alone (in the fleet, rush-hour
+    E2, seed 6: the left side read divider for 2.6 s, the right side had too few reports to
+    settle, and the lane row moved E2 3.6 m into the next lane for the whole run)."""
+    marks = window.settled(t, LANE_MARKING_FRAMES)
+    return (UNSEEN, UNSEEN) if UNSEEN in marks else marks
 #: longest wait [s] of the GNSS updates of a vehicle that drives off with its heading unknown
 HEADING_WAIT = 1.0
 #: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
@@ -620,6 +632,6 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
         st = f.filter.state
         ne_now = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
         hit = lane_map.locate(ne_now, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
-                              tracker.markings.settled(t, LANE_MARKING_FRAMES), f.yaw_sigma)
+                              lane_row_markings(tracker.markings, t), f.yaw_sigma)
         f.lane_line(hit.lane if hit else None, hit.left_line if hit else None)
     return dec, changed

@@ -171,3 +171,41 @@ def test_a_one_second_camera_error_does_not_name_a_lane_for_the_lane_row() -> No
     for k in range(5, 15):  # then 2 s of right ones (the left lane's)
         w.observe(0.2 * k, BOUNDARY, DIVIDER)
     assert w.settled(2.8, LANE_MARKING_FRAMES) == (BOUNDARY, DIVIDER)
+
+
+def test_one_settled_side_does_not_name_a_lane_for_the_lane_row() -> None:
+    """rush-hour E2's camera in seed 6, in the left lane of two (boundary, divider): from 1.4 s
+    the right side reads boundary for 0.4 s and the left side divider for 2.6 s (one error
+    episode each), with unseen frames. At every check time, whatever the phase of the checks
+    against the frames, the lane row's classes never name the right lane; they name the left
+    lane once both sides have settled again (with a vehicle that has not yet taken a lane: the
+    lateral σ stays at 2.5 m)."""
+    from agent.lane_markings import MarkingWindow
+    from agent.methods import lane_row_markings
+
+    reports = [(BOUNDARY, DIVIDER)] * 7 + [(BOUNDARY, BOUNDARY)] * 2 + [(DIVIDER, BOUNDARY)] * 2 \
+        + [(DIVIDER, UNSEEN)] + [(DIVIDER, DIVIDER)] * 11 + [(BOUNDARY, DIVIDER)] * 25
+    ne, wide = np.array([-2.5, -80.0]), np.eye(2) * 2.5**2
+    first_named = []
+    for phase in np.arange(0.0, 0.2, 0.02):
+        w = MarkingWindow()
+        k = 0
+        named = []
+        for check in np.arange(phase, 9.0, 1.0):
+            while k < len(reports) and 0.2 * k <= check:
+                w.observe(0.2 * k, *reports[k])
+                k += 1
+            hit = SITE.locate(ne, wide, math.pi / 2, lane_row_markings(w, check))
+            assert hit is None or hit.lane == "EB_in_L", (phase, check)
+            if hit is not None:
+                named.append(check)
+        first_named.append(min(named))
+    assert max(first_named) < 7.5
+    # the fleet's check at 4.1 s: ten left reports settle "divider", nine right ones nothing;
+    # one settled side named the right lane
+    w = MarkingWindow()
+    for k in range(11, 21):
+        w.observe(0.2 * k, *reports[k])
+    assert w.settled(4.1, 10) == (DIVIDER, UNSEEN)
+    assert SITE.locate(ne, wide, math.pi / 2, w.settled(4.1, 10)).lane == "EB_in_R"
+    assert lane_row_markings(w, 4.1) == (UNSEEN, UNSEEN)
