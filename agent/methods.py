@@ -46,6 +46,10 @@ STOP_LINE_MAP_SIGMA = 0.03
 #: at 5 Hz): a lane row holds the vehicle in the lane it names, so a 1 s camera error at the
 #: start, which settled five frames, put rush-hour E2 (seed 6) a lane off for the whole run
 LANE_MARKING_FRAMES = 10
+#: longest wait [s] of the GNSS updates of a vehicle that drives off with its heading unknown
+HEADING_WAIT = 1.0
+#: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
+FUSION_RULES = ("paper", "split-ci", "ci")
 
 
 def lane_row_markings(window: MarkingWindow, t: float) -> tuple[int, int]:
@@ -57,10 +61,6 @@ def lane_row_markings(window: MarkingWindow, t: float) -> tuple[int, int]:
     settle, and the lane row moved E2 3.6 m into the next lane for the whole run)."""
     marks = window.settled(t, LANE_MARKING_FRAMES)
     return (UNSEEN, UNSEEN) if UNSEEN in marks else marks
-#: longest wait [s] of the GNSS updates of a vehicle that drives off with its heading unknown
-HEADING_WAIT = 1.0
-#: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
-FUSION_RULES = ("paper", "split-ci", "ci")
 
 
 @dataclass(frozen=True)
