@@ -133,11 +133,10 @@ class FilterSettings:
     range_min_sigmas: float = 4.0
     max_range: float = 150.0  #: physical gate on UWB ranges [m]
     #: RMS of the UWB NLOS bias (persistent over an episode, so fused as dependent noise by the
-    #: CI rules) [m], used when ``uwb_nlos`` is None
+    #: CI rules) [m]
     uwb_nlos_sigma: float = 0.0
-    #: the UWB NLOS model: the CI rules then classify every range (:meth:`NlosModel.classify`),
-    #: reject those more probably NLOS than ``nlos_reject_probability`` and fuse the others
-    #: with their expected squared bias as dependent noise
+    #: the UWB NLOS model: the CI rules then classify every range (:meth:`NlosModel.classify`)
+    #: and reject those more probably NLOS than ``nlos_reject_probability``
     uwb_nlos: NlosModel | None = None
     nlos_reject_probability: float = 0.5
     #: GNSS receiver characteristics: correlated (multipath) error carried as three
@@ -457,12 +456,9 @@ class MethodFilter:
             res = self.filter.update(m, s.range_gate)
         else:
             nu, var = self._range_innovation(m)
-            if s.uwb_nlos is not None:
-                is_nlos, r_bias = s.uwb_nlos.classify(nu, var, s.nlos_reject_probability)
-                if is_nlos:
-                    return self._count_range("gate_nlos")
-            else:
-                r_bias = s.uwb_nlos_sigma**2
+            if s.uwb_nlos is not None and s.uwb_nlos.classify(nu, var, s.nlos_reject_probability):
+                return self._count_range("gate_nlos")
+            r_bias = s.uwb_nlos_sigma**2
             # the NIS gate on the whole spread, uninflated: the split-CI update gates on its
             # inflated covariances, P/ω and R_dep/(1-ω), and when most of P is shared with the
             # neighbours ω is small and a gross outlier passes (rush-hour seed 7 in the fleet:

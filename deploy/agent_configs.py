@@ -57,10 +57,10 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
                               gnss_white_sigma=max(gm.white_h, 0.1),
                               fusion=fusion, lane_constraint=lane_constraint)
     u = scn.uwb
-    p_nlos = u.nlos_enter / (u.nlos_enter + u.nlos_exit) if u.nlos_enter > 0 else 0.0
-    nlos_ms = (u.nlos_bias_min**2 + u.nlos_bias_min * u.nlos_bias_max + u.nlos_bias_max**2) / 3.0
     nlos = (NlosModel(u.nlos_enter, u.nlos_exit, u.nlos_bias_min, u.nlos_bias_max)
             if u.nlos_enter > 0 and u.nlos_exit > 0 and u.nlos_bias_max > u.nlos_bias_min else None)
+    p_nlos = u.nlos_enter / (u.nlos_enter + u.nlos_exit) if u.nlos_enter > 0 else 0.0
+    nlos_ms = (u.nlos_bias_min**2 + u.nlos_bias_min * u.nlos_bias_max + u.nlos_bias_max**2) / 3.0
     settings = dataclasses.replace(settings, uwb_nlos_sigma=math.sqrt(p_nlos * nlos_ms), uwb_nlos=nlos,
                                    max_range=u.max_range)
     gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
