@@ -15,8 +15,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from scipy import special
-
 
 @dataclass
 class RangeRateGate:
@@ -78,6 +76,13 @@ def _cdf_between(a: float, b: float) -> float:
     return 1.0 - 0.5 * (math.erfc(-a / _SQRT2) + math.erfc(b / _SQRT2))
 
 
+def _log_lower_tail(x: float) -> float:
+    """log Φ(x) for a standard normal, x ≤ -30 (where Φ underflows), by its asymptotic series
+    (relative error below 1e-7 there). An agent process loads no scipy (its memory budget)."""
+    x2 = x * x
+    return -0.5 * x2 - math.log(-x) - _LOG_SQRT_2PI + math.log1p(-1.0 / x2 + 3.0 / (x2 * x2))
+
+
 @dataclass(frozen=True)
 class NlosModel:
     """A UWB link's NLOS state: a two-state Markov chain (entered at ``enter`` [1/s], left at
@@ -120,7 +125,7 @@ class NlosModel:
         if z > 1e-300:
             log_z = math.log(z)
         else:  # the innovation is many σ from every bias: in logarithms
-            log_z = float(special.log_ndtr(hi)) if hi < 0.0 else float(special.log_ndtr(-lo))
+            log_z = _log_lower_tail(hi) if hi < 0.0 else _log_lower_tail(-lo)
         log_los = -0.5 * (nu / s) ** 2 - math.log(s) - _LOG_SQRT_2PI
         log_nlos = log_z - math.log(self.bias_max - self.bias_min)
         x = math.log1p(-prior) + log_los - math.log(prior) - log_nlos

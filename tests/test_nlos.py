@@ -93,3 +93,13 @@ def test_a_link_that_starts_in_nlos_is_not_fused() -> None:
             outcomes[(fusion, measured)] = f.range(nb, measured)
     assert outcomes[("split-ci", 20.0)] == "fused" and outcomes[("split-ci", 22.5)] == "gate_nlos"
     assert outcomes[("paper", 22.5)] != "gate_nlos"
+
+
+def test_the_far_tail_matches_scipy() -> None:
+    """Where Φ underflows, the agent's own log-tail series (an agent process loads no scipy)."""
+    from scipy import special
+
+    from agent.range_gate import _log_lower_tail
+
+    for x in (-30.0, -37.5, -60.0, -1e3):
+        assert _log_lower_tail(x) == pytest.approx(float(special.log_ndtr(x)), rel=1e-9)
