@@ -1,5 +1,5 @@
-"""The UWB NLOS classifier: its likelihoods and bias moments against numerical integration,
-its steady prior against the Markov chain's matrix exponential, its calibration on seeded
+"""The UWB NLOS classifier: its posterior against numerical integration, its far tail against
+scipy, its steady prior against the Markov chain's matrix exponential, its calibration on seeded
 Monte-Carlo links, and its use by the CI range update."""
 
 from __future__ import annotations
