@@ -141,8 +141,9 @@ class NlosModel:
         errors, and chaining them as independent evidence ratcheted a link to "NLOS" on a
         1.5 m error at σ 2.5 m (paper-2 in process, 10 seeds: CP rejected 12.9 % of its clean
         ranges). A range that is kept carries the bias's prior mean square p₀ E[b²] as
-        dependent noise (``FilterSettings.uwb_nlos_sigma``), not the posterior's p · E[b² | ν, NLOS]: that trusts an innovation whose state part is
-        itself misestimated. In paper-2 seed 13, V2 (4.4 m off at σ 1.9 m) took a first range
+        dependent noise (``FilterSettings.uwb_nlos_sigma``), not the posterior's
+        p · E[b² | ν, NLOS]: that trusts an innovation whose state part is itself
+        misestimated. In paper-2 seed 13, V2 (4.4 m off at σ 1.9 m) took a first range
         to V0 1.6 m too long for a clean one (p = 0.04), kept the 1.6 m at σ 0.3 m, and then
         refused the clean ranges; over seeds 10-14 in process, V2's SL-CP ANEES was 26.9
         against 3.15, and 18.9 % of the clean ranges were rejected against 0.4 %.
