@@ -49,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-outage", action="store_true", help="keep every GNSS fix")
     rp.add_argument("--first-outage", type=float, default=40.0, help="first outage start after t0 [s]")
     rp.add_argument("--end-margin", type=float, default=30.0, help="no outage starts later than tN minus this [s]")
+    rp.add_argument("--phases", type=_positive_int, default=1, metavar="N",
+                    help="also run the protocol at N phases evenly spread over its period (first outage at "
+                         "FIRST + k (LEN + ON) / N) and report each and all pooled (default 1: the protocol only)")
     rp.add_argument("--no-nhc", action="store_true", help="disable the non-holonomic constraint")
     rp.add_argument("--no-zupt", action="store_true", help="disable zero-velocity/zero-rate updates")
     rp.add_argument("--no-time-offset-estimation", action="store_true",
@@ -229,7 +232,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from .datasets.rtklib import load_drive
-    from .replay import TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, run_replay
+    from .replay import (TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, phase_protocols, pooled_metrics,
+                         run_replay)
 
     drive = load_drive(args.path)
     length, gap = (0.0, 1.0) if args.no_outage else args.outage
@@ -240,9 +244,16 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         imu_time_offset=args.imu_time_offset,
         estimate_time_offset=not args.no_time_offset_estimation,
     )
+    if args.phases > 1 and (args.no_outage or args.publish):
+        raise ValueError("--phases needs outages and the offline replay (not --no-outage or --publish)")
     if args.publish:
         return _replay_publish(args, drive, cfg)
     res = run_replay(drive, cfg)
+    pooled = None
+    if args.phases > 1:  # phase 0 is the run above
+        others = [run_replay(drive, dataclasses.replace(cfg, outage=p))
+                  for p in phase_protocols(cfg.outage, args.phases)[1:]]
+        pooled = pooled_metrics([res, *others])
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "trajectory.csv", "w", newline="") as fh:
@@ -251,6 +262,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         for row in res.trajectory:
             w.writerow([f"{row[0]:.3f}", f"{row[1]:.9f}", f"{row[2]:.9f}"] + [f"{x:.4f}" for x in row[3:]])
     metrics = dict(res.metrics)
+    if pooled is not None:
+        metrics["phases_pooled"] = pooled
     metrics["config"] = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     try:
@@ -261,7 +274,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         logging.getLogger(__name__).warning("matplotlib not available: no error.png")
     m = res.metrics
     if args.json:
-        print(json.dumps({k: v for k, v in m.items()}))
+        print(json.dumps({**m, **({"phases_pooled": pooled} if pooled is not None else {})}))
     else:
         print(f"SP replay of {args.path} ({m['imu_span_s']:.1f} s of IMU, {m['n_outages']} outages, "
               f"{m['n_withheld_fixes']} withheld fixes)")
@@ -271,7 +284,15 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print(f"  GNSS-on prior RMS          {m['gnss_on_h_rms_m']:.2f} m")
         print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
         print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
-        print(f"  wrote {out}/trajectory.csv, metrics.json, error.png")
+        if pooled is not None:
+            print("  outage phases (first outage after t0 [s]: outages, RMS, end mean / max, max [m])")
+            for ph in pooled["phases"]:
+                first = "-" if ph["first_outage_s"] is None else f"{ph['first_outage_s']:.1f}"
+                print(f"    {first:>7}: {ph['n_outages']:3d}  {ph['outage_h_rms_m']:.2f}  "
+                      f"{ph['outage_h_end_mean_m']:.2f} / {ph['outage_h_end_max_m']:.2f}  {ph['outage_h_max_m']:.2f}")
+            print(f"    pooled : {pooled['n_outages']:3d}  {pooled['outage_h_rms_m']:.2f}  "
+                  f"{pooled['outage_h_end_mean_m']:.2f} / {pooled['outage_h_end_max_m']:.2f}  {pooled['outage_h_max_m']:.2f}")
+        print(f"  wrote {out}/trajectory.csv, metrics.json, error.png (the first phase)")
     return 0
 
 

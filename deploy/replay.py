@@ -10,6 +10,7 @@ nothing is smoothed backwards.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
 import math
 import time
@@ -299,6 +300,42 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
     res.metrics["filter_stats"] = {"imu_samples": flt.stats.imu_samples, "cov_steps": flt.stats.cov_steps,
                                    "updates": flt.stats.updates, "rejected": flt.stats.rejected}
     return res
+
+
+def phase_protocols(protocol: OutageProtocol, n: int) -> list[OutageProtocol]:
+    """The outage protocol at ``n`` phases evenly spread over its period: the first outage
+    starts at ``first + k · period / n`` for k = 0 … n − 1 (k = 0 is ``protocol`` itself), so
+    the outages of all phases together cover the drive evenly."""
+    if n < 1:
+        raise ValueError("the number of phases must be at least 1")
+    return [dataclasses.replace(protocol, first=protocol.first + k * protocol.period / n) for k in range(n)]
+
+
+def run_phases(drive: RtklibDrive, cfg: ReplayConfig, n: int) -> list[ReplayResult]:
+    """:func:`run_replay` at each of the ``n`` outage phases of :func:`phase_protocols`."""
+    return [run_replay(drive, dataclasses.replace(cfg, outage=p)) for p in phase_protocols(cfg.outage, n)]
+
+
+def pooled_metrics(results: list[ReplayResult]) -> dict:
+    """Outage metrics over several replays of one drive (e.g. :func:`run_phases`): the RMS over
+    every withheld fix of every run, the end-of-outage mean and max over every outage, the
+    largest error; and each run's own figures under ``phases`` (``first_outage_s`` after t0)."""
+    withheld = np.concatenate([r.h_err[r.withheld] for r in results])
+    ends = [e for r in results for e in r.metrics["outage_end_errors_m"]]
+    phases = [{"first_outage_s": (r.outages[0][0] - r.t0) if r.outages else None,
+               **{k: r.metrics[k] for k in ("n_outages", "n_withheld_fixes", "outage_h_rms_m",
+                                            "outage_h_end_mean_m", "outage_h_end_max_m", "outage_h_max_m")}}
+              for r in results]
+    return {
+        "n_phases": len(results),
+        "n_outages": len(ends),
+        "n_withheld_fixes": int(withheld.size),
+        "outage_h_rms_m": float(np.sqrt(np.mean(np.square(withheld)))) if withheld.size else float("nan"),
+        "outage_h_end_mean_m": float(np.mean(ends)) if ends else float("nan"),
+        "outage_h_end_max_m": float(np.max(ends)) if ends else float("nan"),
+        "outage_h_max_m": float(np.max(withheld)) if withheld.size else float("nan"),
+        "phases": phases,
+    }
 
 
 def _nhc(state: NavState, w_b: np.ndarray, cfg: ReplayConfig):

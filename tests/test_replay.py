@@ -11,7 +11,7 @@ import pytest
 from deploy.cli import main
 from deploy.datasets import DatasetError
 from deploy.datasets.rtklib import load_drive, read_imu_csv, read_pos, read_time_tag
-from deploy.replay import OutageProtocol, ReplayConfig, run_replay
+from deploy.replay import OutageProtocol, ReplayConfig, phase_protocols, run_replay
 
 from conftest import SHARED_DRIVE
 
@@ -103,3 +103,31 @@ def test_bad_inputs_give_clear_errors(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit):
         main(["replay", "rtklib", str(tmp_path), "--outage", "15"])
     assert "LENGTH:GNSS_ON" in capsys.readouterr().err
+
+
+@needs_drive
+def test_outage_phases_pool_their_runs(replay_result, tmp_path, capsys) -> None:
+    """``--phases 2``: phase 0 is the protocol itself, phase 1 starts half a period later, and
+    the pooled figures equal those recomputed from the two runs' own metrics."""
+    protocols = phase_protocols(OutageProtocol(), 3)
+    assert [p.first for p in protocols] == [40.0, 55.0, 70.0]
+    assert all(p.period == 45.0 and p.length == 15.0 for p in protocols)
+    with pytest.raises(ValueError):
+        phase_protocols(OutageProtocol(), 0)
+    rc = main(["replay", "rtklib", str(SHARED_DRIVE), "--phases", "2", "--out", str(tmp_path), "--json"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    pooled, base = out["phases_pooled"], replay_result.metrics
+    first, second = pooled["phases"]
+    assert first["first_outage_s"] == pytest.approx(40.0) and second["first_outage_s"] == pytest.approx(62.5)
+    for k in ("n_outages", "outage_h_rms_m", "outage_h_end_mean_m", "outage_h_max_m"):
+        assert first[k] == pytest.approx(base[k], rel=1e-9)  # phase 0 is the plain run
+    n = [p["n_withheld_fixes"] for p in pooled["phases"]]
+    assert pooled["n_withheld_fixes"] == sum(n) and pooled["n_outages"] == sum(p["n_outages"] for p in pooled["phases"])
+    rms = np.sqrt(sum(k * p["outage_h_rms_m"] ** 2 for k, p in zip(n, pooled["phases"])) / sum(n))
+    assert pooled["outage_h_rms_m"] == pytest.approx(rms, rel=1e-9)
+    ends = [p["n_outages"] * p["outage_h_end_mean_m"] for p in pooled["phases"]]
+    assert pooled["outage_h_end_mean_m"] == pytest.approx(sum(ends) / pooled["n_outages"], rel=1e-9)
+    assert pooled["outage_h_max_m"] == max(p["outage_h_max_m"] for p in pooled["phases"])
+    assert json.loads((tmp_path / "metrics.json").read_text())["phases_pooled"]["n_phases"] == 2
+    assert main(["replay", "rtklib", str(SHARED_DRIVE), "--phases", "2", "--no-outage"]) == 2
