@@ -262,17 +262,36 @@ class StopTracker:
         "first heard at rest", i.e. stopped before the head, and held the head off)."""
         self._ranges.pop(vehicle, None)
 
+    def moving_decision(self, t: float, speed: float) -> tuple[Decision, bool] | None:
+        """Update the rest bookkeeping with the own filter speed [m/s] at sensor time ``t`` [s];
+        if the vehicle has not been at rest for ``min_stationary`` and holds no veto, return
+        what :meth:`decide` returns then ("moving", without any geometry), else None.
+
+        The caller can then skip the map and neighbour geometry, most of a decision's cost,
+        whenever the vehicle drives (:func:`agent.methods.first_stopped_step`)."""
+        if speed < self.s.stop_speed:
+            if self.since is None:
+                self.since, self.vetoed, self._stop_marks = t, None, None
+        elif speed >= 2.0 * self.s.stop_speed:
+            self.since, self.vetoed, self._stop_marks = None, None, None
+        if self.vetoed is not None:
+            return None
+        still = t - self.since if self.since is not None and speed < self.s.stop_speed else 0.0
+        if still >= self.s.min_stationary:
+            return None
+        changed = self.claim
+        self.claim, self.lane, self.along_only = False, None, False
+        return Decision(False, None, False, "moving"), changed
+
     def decide(self, t: float, ne: np.ndarray, cov_ne: np.ndarray, yaw: float, speed: float,
                neighbour_ne: dict[str, np.ndarray],
                neighbour_cov: dict[str, np.ndarray] | None = None) -> tuple[Decision, bool]:
         """Decide at sensor time ``t`` [s]; ``neighbour_ne`` maps each neighbour heard to its beacon
         position (map NED [m], (2,)), ``neighbour_cov`` to its horizontal covariance ((2, 2) [m²]).
         Returns the decision and whether the claim changed."""
-        if speed < self.s.stop_speed:
-            if self.since is None:
-                self.since, self.vetoed, self._stop_marks = t, None, None
-        elif speed >= 2.0 * self.s.stop_speed:
-            self.since, self.vetoed, self._stop_marks = None, None, None
+        quick = self.moving_decision(t, speed)
+        if quick is not None:
+            return quick
         if self.vetoed is not None and self.beside(self.vetoed, t):
             self.vetoed = None  # the ranges now show it beside me, not ahead of me in my lane
         if self.vetoed is not None:

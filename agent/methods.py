@@ -602,7 +602,6 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
     (llh (3,), NED covariance (3, 3) [m²]): they count as standing there, so that a vehicle that
     cannot hear the queue ahead of it does not take the stop line."""
     st = f.filter.state
-    ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
     known = {o: (table.entries[o].llh, table.entries[o].cov) for o in table.vehicles()}
     for o, (llh, cov) in (ghosts or {}).items():
         if o not in known:
@@ -610,14 +609,21 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
             # standing there: since it was last seen coming to rest, since now if it was last
             # seen moving, or "forever" if it was never seen (observe_neighbour's rules)
             tracker.observe_neighbour(o, t, 0.0, False)
-    nb_ne = {}
-    if known:  # one vectorised conversion for all neighbours
-        llh = np.array([v[0] for v in known.values()])
-        n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], *origin_llh, deg=False)
-        nb_ne = {o: np.array([n[i], e[i]]) for i, o in enumerate(known)}
-    nb_cov = {o: cov[:2, :2] for o, (_, cov) in known.items()}
-    dec, changed = tracker.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
-                                  float(np.hypot(st.v[0], st.v[1])), nb_ne, nb_cov)
+    speed = float(np.hypot(st.v[0], st.v[1]))
+    # driving: "moving" needs no geometry (the same decision, for a fraction of the cost)
+    quick = tracker.moving_decision(t, speed)
+    if quick is not None:
+        dec, changed = quick
+    else:
+        ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
+        nb_ne = {}
+        if known:  # one vectorised conversion for all neighbours
+            llh = np.array([v[0] for v in known.values()])
+            n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], *origin_llh, deg=False)
+            nb_ne = {o: np.array([n[i], e[i]]) for i, o in enumerate(known)}
+        nb_cov = {o: cov[:2, :2] for o, (_, cov) in known.items()}
+        dec, changed = tracker.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
+                                      speed, nb_ne, nb_cov)
     if changed:
         f.last_stop_line = -math.inf
     if tracker.since is None:  # moving: the stop is over

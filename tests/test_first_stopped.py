@@ -297,3 +297,26 @@ def test_my_own_estimate_3_sigma_to_the_side_of_a_single_lane_still_finds_its_st
     d = det.decide(p, np.eye(2) * 9.0, 0.0, 3.0, [])
     assert d.first and d.lane == "NB"
     assert not det.decide(p + np.array([0.0, 2.0 * 3.0]), np.eye(2) * 9.0, 0.0, 3.0, []).first  # 5 σ: no
+
+
+def test_the_geometry_free_moving_decision_is_the_full_decision() -> None:
+    """``first_stopped_step`` skips the geometry while ``moving_decision`` answers: over a drive,
+    stop, claim, veto and drive-off, a tracker that takes that path decides exactly as one that
+    always runs the full decision, and both paths are exercised."""
+    a, b, cov = _queue(err_ahead=0.0)
+    full, quick = StopTracker(FirstStoppedDetector(_lanes(), GAP)), StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    speeds = [8.0, 5.0, 2.0, 0.5, 0.15, 0.05] + [0.0] * 12 + [0.12, 0.08] + [0.0] * 6 + [1.0, 3.0] + [0.0] * 6
+    paths = set()
+    for k, v in enumerate(speeds):
+        t = 0.1 * k
+        nb = {"A": a} if 8 <= k < 22 else {}  # a leader heard for a while, then gone
+        for tr in (full, quick):
+            tr.observe_neighbour("A", t, 0.0 if k < 24 else 3.0, False)
+        want = full.decide(t, b, cov, 0.0, v, nb)
+        got = quick.moving_decision(t, v)
+        paths.add(got is None)
+        if got is None:
+            got = quick.decide(t, b, cov, 0.0, v, nb)
+        assert got == want, (k, got, want)
+        assert (quick.since, quick.claim, quick.vetoed, quick.lane) == (full.since, full.claim, full.vetoed, full.lane)
+    assert paths == {True, False} and full.claim  # claimed again after the drive-off
