@@ -311,15 +311,11 @@ def phase_protocols(protocol: OutageProtocol, n: int) -> list[OutageProtocol]:
     return [dataclasses.replace(protocol, first=protocol.first + k * protocol.period / n) for k in range(n)]
 
 
-def run_phases(drive: RtklibDrive, cfg: ReplayConfig, n: int) -> list[ReplayResult]:
-    """:func:`run_replay` at each of the ``n`` outage phases of :func:`phase_protocols`."""
-    return [run_replay(drive, dataclasses.replace(cfg, outage=p)) for p in phase_protocols(cfg.outage, n)]
-
-
 def pooled_metrics(results: list[ReplayResult]) -> dict:
-    """Outage metrics over several replays of one drive (e.g. :func:`run_phases`): the RMS over
-    every withheld fix of every run, the end-of-outage mean and max over every outage, the
-    largest error; and each run's own figures under ``phases`` (``first_outage_s`` after t0)."""
+    """Outage metrics over several replays of one drive (e.g. at the :func:`phase_protocols`):
+    the RMS over every withheld fix of every run, the end-of-outage mean and max over every
+    outage, the largest error; and each run's own figures under ``phases`` (``first_outage_s``
+    after t0, [s]). Errors in metres."""
     withheld = np.concatenate([r.h_err[r.withheld] for r in results])
     ends = [e for r in results for e in r.metrics["outage_end_errors_m"]]
     phases = [{"first_outage_s": (r.outages[0][0] - r.t0) if r.outages else None,
