@@ -4,7 +4,8 @@ are not timed tests).
 Per-step costs in microseconds (median of repeated timings of a batch): the strapdown step alone,
 the filter's IMU step (mechanisation plus its share of the 10 Hz covariance propagation), one
 covariance propagation, a GNSS update (position and velocity), a UWB range update with split
-CI, a stop-line fix, beacon encode/decode and sign/verify (ECDSA P-256). Then the real-time factor of the SP replay of
+CI, a stop-line fix, a first-stopped decision (driving and standing), beacon encode/decode and
+sign/verify (ECDSA P-256). Then the real-time factor of the SP replay of
 the shared real drive, if it is there.
 """
 
@@ -89,6 +90,7 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
         f.last_stop_line = -math.inf
         f.stop_line(lane, stop_id=1.0)
     out["stop_line_update_us"] = _time_us(sl, n(500))
+    out.update(_decision_costs(fresh, tr.llh[k], float(tr.t[k]), cfg, rm, n(500)))
     b = Beacon("V1", 1, "SL-CP", 30.0, tr.llh[k], v, np.eye(3))
     payload = encode(b)
     out["beacon_encode_us"] = _time_us(lambda: encode(b), n(5000))
@@ -111,6 +113,31 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     per_s = (4 * 100 * out["imu_step_us"] + 4 * 5 * out["gnss_update_us"]
              + 2 * 2 * 10 * out["range_update_split_ci_us"] + 2 * out["stop_line_update_us"])
     out["four_methods_cpu_share"] = per_s / 1e6
+    return out
+
+
+def _decision_costs(fresh, llh: np.ndarray, t: float, cfg, rm: float, n: int) -> dict[str, float]:
+    """One first-stopped decision [µs] with seven neighbours in the table (stopped, 20–50 m
+    behind): driving at 10 m/s (no geometry needed) and standing for 1 s at the stop line (the
+    map and neighbour geometry; the stop-line fix it triggers applies once, then waits for its
+    interval)."""
+    from agent.first_stopped import FirstStoppedDetector, StopTracker
+    from agent.methods import first_stopped_step
+    from agent.neighbours import NeighbourTable
+
+    out = {}
+    for name, speed in (("decision_moving_us", 10.0), ("decision_standing_us", 0.0)):
+        f = fresh("SL-CP")
+        f.filter.state.v = np.array([speed, 0.0, 0.0])
+        table = NeighbourTable()
+        for i in range(7):
+            nb_llh = llh + np.array([-(20.0 + 5.0 * i) / rm, 0.0, 0.0])
+            table.update(f"N{i}", 1, t, nb_llh, np.zeros(3), np.eye(3) * 4.0, "SL-CP", t)
+        tracker = StopTracker(FirstStoppedDetector(cfg.lanes, cfg.gap))
+        for nb in table.vehicles():
+            tracker.observe_neighbour(nb, t - 5.0, 0.0, False)
+        first_stopped_step(tracker, f, table, cfg.lanes, cfg.origin_llh, t - 1.0)  # at rest since then
+        out[name] = _time_us(lambda: first_stopped_step(tracker, f, table, cfg.lanes, cfg.origin_llh, t), n)
     return out
 
 
