@@ -186,6 +186,10 @@ def build_parser() -> argparse.ArgumentParser:
     chk.add_argument("name", help="shipped scenario name or path to a .toml file")
     chk.add_argument("--seeds", type=int, default=20, help="sensor seeds to average (default 20)")
     chk.add_argument("--json", action="store_true", help="print one JSON object")
+    gt = ssub.add_parser("gates", help="range-gate outcomes over many seeds (in process, spread over the cores)")
+    gt.add_argument("name", help="shipped scenario name or path to a .toml file")
+    gt.add_argument("--seeds", type=_positive_int, default=25, help="seeds 0..N-1 (default 25)")
+    gt.add_argument("--json", action="store_true", help="print one JSON object")
     ev = ssub.add_parser("evaluate", help="run all vehicles and the four methods in one process (no bus)")
     ev.add_argument("name", help="shipped scenario name or path to a .toml file")
     ev.add_argument("--seed", type=int, default=0, help="sensor seed (default 0)")
@@ -205,6 +209,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
     from hw_emulation.truth import build_truth
 
     scn = load_scenario(args.name)
+    if args.scenario_command == "gates":
+        return _gates(args, scn)
     # evaluate: a run's seed also redraws where the drivers stop, as in `slcp run --seed`
     truth = build_truth(scn, stop_seed=args.seed if args.scenario_command == "evaluate" else None)
     if args.scenario_command == "sp-check":
@@ -641,6 +647,22 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
     print("first-stopped detection (SL-SP filter, seconds): " + "; ".join(
         f"{v}: truth {d['true_first_s']:.1f}, claimed {d['claimed_s']:.1f}, wrongly {d['claimed_while_not_first_s']:.1f}"
         for v, d in detect.items()))
+    return 0
+
+
+def _gates(args: argparse.Namespace, scn) -> int:
+    from .gates_study import range_outcomes, summarise
+
+    seeds = list(range(args.seeds))
+    summary = summarise(range_outcomes(args.name, seeds))
+    if args.json:
+        print(json.dumps({"scenario": scn.name, "seeds": seeds, "ranges": summary}))
+        return 0
+    print(f"{scn.name}, seeds 0-{seeds[-1]}: ranges rejected by the gates / fused, per injected error")
+    for m, kinds in summary.items():
+        cells = [f"{kind} {d['rejected']}/{d['n']} ({100 * d['rejected_share']:.2f} %), fused {d['fused']}"
+                 for kind, d in kinds.items() if d["n"]]
+        print(f"  {m:6s} " + "; ".join(cells))
     return 0
 
 
