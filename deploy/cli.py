@@ -603,6 +603,7 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
     from agent.methods import METHODS
     from hw_emulation.events import window_bounds
 
+    from .gates_study import summarise
     from .inprocess import run_inprocess
 
     r = run_inprocess(truth, args.seed)
@@ -621,13 +622,7 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
         claims = r.first[(vid, "SL-SP")]
         detect[vid] = {"true_first_s": float(true_first.sum() / 10), "claimed_s": float(claims.sum() / 10),
                        "claimed_while_not_first_s": float((claims & ~true_first).sum() / 10)}
-    ranges = {}
-    for m, kinds in r.range_outcomes.items():
-        for kind, outcomes in kinds.items():
-            n = sum(outcomes.values())
-            rej = sum(v for k, v in outcomes.items() if k.startswith("gate"))
-            ranges.setdefault(m, {})[kind] = {"n": n, "rejected": rej, "rejected_share": rej / n if n else None,
-                                              "outcomes": outcomes}
+    ranges = summarise(r.range_outcomes)
     if args.json:
         print(json.dumps({"scenario": scn.name, "seed": args.seed, "rows": rows, "first_stopped": detect,
                           "ranges": ranges}))

@@ -28,22 +28,13 @@ def range_outcomes(scenario: str, seeds: list[int], processes: int | None = None
     """Range outcomes summed over ``seeds``: method -> injected kind -> outcome -> count."""
     total: dict[str, dict[str, dict[str, int]]] = {}
     workers = max(1, min(processes or os.cpu_count() or 1, len(seeds)))
-    jobs = [(scenario, s) for s in seeds]
-    if workers == 1:
-        results = map(_one_seed, jobs)
-    else:
-        pool = ProcessPoolExecutor(workers)
-        results = pool.map(_one_seed, jobs)
-    try:
-        for ro in results:
+    with ProcessPoolExecutor(workers) as pool:
+        for ro in pool.map(_one_seed, [(scenario, s) for s in seeds]):
             for m, kinds in ro.items():
                 for kind, outcomes in kinds.items():
                     d = total.setdefault(m, {}).setdefault(kind, {})
                     for o, c in outcomes.items():
                         d[o] = d.get(o, 0) + c
-    finally:
-        if workers > 1:
-            pool.shutdown()
     return total
 
 
