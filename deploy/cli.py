@@ -83,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
     em.add_argument("--speed", type=float, default=None, help="real-time factor (default: as fast as agents keep up)")
     em.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     em.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    em.add_argument("--mode", choices=("peer", "client"), default="peer",
+                    help="Zenoh mode (default peer; client: through the router given by --connect only)")
     em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, see README)")
     em.add_argument("--wait-agents", type=float, default=20.0,
                     help="wait up to this long for every vehicle's agent before starting [s] (default 20)")
@@ -133,6 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--agent-nice", type=int, choices=range(0, 20), default=5, metavar="0-19",
                     help="run the agents this many steps below normal priority, so that the emulated "
                          "sensors and radio and the Zenoh router are served first (default 5; 0: equal)")
+    rn.add_argument("--zenoh-mode", choices=("client", "peer"), default="client",
+                    help="how the agents and the emulator join the launcher's Zenoh router: client (default; "
+                         "every message through the router) or peer (they also dial each other, a full mesh)")
     rn.add_argument("--no-lane-constraint", action="store_true",
                     help="SL methods use the stop line only, as the paper's (default: they also keep to the map's lanes)")
     rn.add_argument("--no-sign", action="store_true",
@@ -173,6 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also run the fleet scaling benchmark with these agent counts (e.g. 10,25,50,75)")
     bn.add_argument("--fleet-duration", type=float, default=40.0, help="scenario length of each fleet point [s] (default 40)")
     bn.add_argument("--fleet-method", default="SL-CP", help="the one method each agent runs (default SL-CP)")
+    bn.add_argument("--fleet-zenoh-mode", choices=("client", "peer"), default="client",
+                    help="how the fleet's processes join the router (as slcp run --zenoh-mode; default client)")
     rp2 = sub.add_parser("report", help="rebuild the report of a run (from its recording) or a study (from its seeds)")
     rp2.add_argument("run_dir", type=Path)
 
@@ -386,7 +393,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
             print(f"  [{'#' * k}{'.' * (30 - k)}] {done}/{total} (seed {seed} done)", flush=True)
 
         study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign,
-                          agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint)
+                          agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
+                          zenoh_mode=args.zenoh_mode)
         text = study_markdown(scn, study)
         (out / "report.md").write_text(text)
         print(text)
@@ -395,7 +403,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")
     m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
                   progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign,
-                  faults=args.faults, agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint)
+                  faults=args.faults, agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
+                  zenoh_mode=args.zenoh_mode)
     print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
     print((out / "report.md").read_text())
     return 0
@@ -553,7 +562,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         for n in counts:
             if not args.json:
                 print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
-            out["fleet"].append(run_fleet_point(n, args.fleet_duration, args.fleet_method))
+            out["fleet"].append(run_fleet_point(n, args.fleet_duration, args.fleet_method,
+                                                    zenoh_mode=args.fleet_zenoh_mode))
     if args.json:
         print(json.dumps(out))
         return 0
@@ -573,9 +583,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             print(f"  fleet {f['agents']:3d} agents: {f['error']}")
             continue
         lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
-        print(f"  fleet {f['agents']:3d} agents ({f['method']}): real-time factor {f['realtime_factor']:.2f}, "
-              f"lag p99 {f['lag_p99_s']:.2f} s, CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
-              f"(max {f['cpu_pct_per_agent']['max']:.1f}), emulator {f['emulator_cpu_pct']:.0f} %, "
+        print(f"  fleet {f['agents']:3d} agents ({f['method']}, Zenoh {f['zenoh_mode']}): real-time factor "
+              f"{f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
+              f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
+              f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, machine {f['machine_cpu_pct']:.0f} %, "
               f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "
               f"beacon latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms, sensor drops {f['sensor_dropped']}")
     return 0
@@ -711,7 +722,7 @@ def main(argv: list[str] | None = None) -> int:
 
             from .processes import emulator_main
 
-            z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
+            z = ZenohConfig(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen))
             if args.fleet:
                 from .zenoh_security import client_config
 

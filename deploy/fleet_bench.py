@@ -11,8 +11,12 @@ staggered (:mod:`hw_emulation.grid`). Measured:
   agents do not keep up;
 * ``lag_p99_s``: how far the slowest agent's newest estimate trails the emulator's clock at the
   end (sensor time) — it grows when the fleet falls behind;
-* ``cpu_pct_per_agent`` (mean, max) and ``emulator_cpu_pct``: CPU time over the steady part
-  per wall time (/proc), 100 % = one core; ``machine_cpu_pct``: all processes of the run;
+* ``cpu_pct_per_agent`` (mean, max), ``emulator_cpu_pct`` and ``launcher_cpu_pct`` (the
+  launcher: its Zenoh router, the recorder and this monitor): CPU time over the steady part per
+  wall time (/proc), 100 % = one core; ``machine_cpu_pct``: all processes of the run, the
+  launcher included;
+* ``threads_per_agent``: the threads of an agent process (max over agents; Python's and
+  Zenoh's);
 * ``rss_mb_per_agent`` (mean, max of each agent's peak resident set, /proc ``VmHWM``);
 * ``beacon_latency_ms`` p50/p99: from a beacon's publication by its sender to its delivery to
   each receiver by the emulated radio (whose own emulated latency is 0 in this scenario), both
@@ -51,16 +55,22 @@ def _proc_cpu_s(pid: int) -> float | None:
         return None
 
 
-def _proc_peak_rss_mb(pid: int) -> float | None:
-    """Peak resident set size (VmHWM) [MB]."""
+def _proc_status(pid: int, field: str) -> int | None:
+    """An integer field of /proc/<pid>/status (kB for sizes; None once the process is gone)."""
     try:
         with open(f"/proc/{pid}/status") as fh:
             for line in fh:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError):
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+def _proc_peak_rss_mb(pid: int) -> float | None:
+    """Peak resident set size (VmHWM) [MB]."""
+    kb = _proc_status(pid, "VmHWM")
+    return None if kb is None else kb / 1024.0
 
 
 @dataclasses.dataclass
@@ -81,6 +91,7 @@ class FleetMonitor:
         self.emulator_t0: float | None = None
         self.lag_end: list[float] = []
         self.rss: dict[str, float] = {}
+        self.threads: dict[str, int] = {}
         self._next = 0.0
 
     def attach(self, bus, procs: dict) -> None:
@@ -112,7 +123,10 @@ class FleetMonitor:
                 self._tx = {h: t for h, t in self._tx.items() if t > cutoff}
 
     def _cpu(self) -> dict[str, float]:
-        return {n: c for n, p in self.procs.items() if (c := _proc_cpu_s(p.pid)) is not None}
+        cpu = {n: c for n, p in self.procs.items() if (c := _proc_cpu_s(p.pid)) is not None}
+        if (c := _proc_cpu_s(os.getpid())) is not None:
+            cpu["launcher"] = c
+        return cpu
 
     def sample(self, rec) -> None:
         """Called by the launcher every 0.2 s with its recorder."""
@@ -126,6 +140,9 @@ class FleetMonitor:
             r = _proc_peak_rss_mb(p.pid)
             if r is not None:
                 self.rss[n] = max(self.rss.get(n, 0.0), r)
+            k = _proc_status(p.pid, "Threads")
+            if k is not None:
+                self.threads[n] = max(self.threads.get(n, 0), k)
         ts = [rec.latest_t[v] for v in self.vehicles if v in rec.latest_t]
         if len(ts) < len(self.vehicles):
             return  # not every agent publishes yet
@@ -161,9 +178,11 @@ class FleetMonitor:
             "lag_p99_s": float(np.percentile(self.lag_end, 99)) if self.lag_end else None,
             "cpu_pct_per_agent": {"mean": float(np.mean(agent_pct)), "max": float(np.max(agent_pct))} if agent_pct else None,
             "emulator_cpu_pct": pct.get("emulator"),
+            "launcher_cpu_pct": pct.get("launcher"),
             "machine_cpu_pct": float(sum(pct.values())),
             "rss_mb_per_agent": {"mean": float(np.mean(agent_rss)), "max": float(np.max(agent_rss))} if agent_rss else None,
             "emulator_rss_mb": self.rss.get("emulator"),
+            "threads_per_agent": max((k for n, k in self.threads.items() if n.startswith("agent-")), default=None),
             "beacon_latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                                    "n": int(len(lat))} if len(lat) else None),
             "beacons_unmatched": self.unmatched,
@@ -174,7 +193,7 @@ class FleetMonitor:
 
 
 def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign: bool = True,
-                    out: Path | None = None, agent_nice: int = 5) -> dict:
+                    out: Path | None = None, agent_nice: int = 5, zenoh_mode: str = "client") -> dict:
     """One benchmark point: ``n`` agents on the grid at 1×; returns :meth:`FleetMonitor.result`."""
     from .launcher import run_fleet
 
@@ -186,10 +205,12 @@ def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign:
         mon = FleetMonitor([f"G{i}" for i in range(n)])
         wall0 = time.monotonic()
         stats = run_fleet(str(scn), methods=(method,), speed=1.0, seed=0, out=base / "run", sign=sign,
-                          monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n), agent_nice=agent_nice)
+                          monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n), agent_nice=agent_nice,
+                          zenoh_mode=zenoh_mode)
         res = mon.result()
         res["method"] = method
         res["agent_nice"] = agent_nice
+        res["zenoh_mode"] = zenoh_mode
         res["duration_s"] = duration
         res["total_wall_s"] = time.monotonic() - wall0
         res["restarts"] = len(stats["processes"].get("restarts", []))

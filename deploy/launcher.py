@@ -53,6 +53,9 @@ from .recorder import Recorder
 
 log = logging.getLogger(__name__)
 
+#: How the agents and the emulator join the launcher's Zenoh router (see :func:`run_fleet`).
+ZENOH_MODES = ("client", "peer")
+
 
 def free_port() -> int:
     with socket.socket() as s:
@@ -67,7 +70,8 @@ def _slcp(*args: str) -> list[str]:
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = "split-ci",
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
-              wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True) -> dict:
+              wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True,
+              zenoh_mode: str = "client") -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called every 2 s with a multi-line status text. With ``sign``
@@ -79,7 +83,15 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     ``agent_nice`` steps below the normal scheduling priority (``nice``): on one machine the
     emulated sensors and radio, and the Zenoh router, stand for hardware that does not wait for
     the vehicles' computers, so they are served first when the CPUs are busy. Without
-    ``lane_constraint`` the SL methods use the stop line only (the paper's), and so does the bound."""
+    ``lane_constraint`` the SL methods use the stop line only (the paper's), and so does the bound.
+
+    ``zenoh_mode`` says how the agents and the emulator join the launcher's router: ``"client"``
+    (default) sends every message through the router, one link per process; ``"peer"`` lets them
+    dial each other as well (a full mesh of N²/2 links whose keep-alives alone cost a 50-agent
+    fleet about a third of a core on one machine). Agents get Zenoh's light runtime
+    (:data:`transport.zenoh_bus.LIGHT_CLIENT_RUNTIME`) unless ``ZENOH_RUNTIME`` is set."""
+    if zenoh_mode not in ZENOH_MODES:
+        raise ValueError(f"zenoh_mode must be one of {', '.join(ZENOH_MODES)}, got {zenoh_mode!r}")
     scn = load_scenario(scenario)
     schedule = load_faults(faults, {v.id for v in scn.vehicles}) if faults is not None else []
     out = Path(out)
@@ -99,12 +111,12 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
         p = out / "config" / f"agent-{vid}.toml"
         p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
                      f'fusion = "{fusion}"\nlane_constraint = {str(lane_constraint).lower()}\n\n{security}'
-                     f'[zenoh]\nmode = "peer"\nconnect = ["{endpoint}"]\n')
+                     f'[zenoh]\nmode = "{zenoh_mode}"\nconnect = ["{endpoint}"]\n')
         configs[vid] = p
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
-                                   agent_nice=agent_nice))
+                                   agent_nice=agent_nice, zenoh_mode=zenoh_mode))
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}
@@ -123,8 +135,10 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
 
 async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Path, progress,
                      max_restarts: int = 3, faults: list | None = None, monitor=None,
-                     wait_agents: float = 20.0, agent_nice: int = 0) -> dict:
-    from transport.zenoh_bus import ZenohBus, ZenohConfig
+                     wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client") -> dict:
+    from transport.zenoh_bus import LIGHT_CLIENT_RUNTIME, ZenohBus, ZenohConfig
+
+    agent_env = {} if "ZENOH_RUNTIME" in os.environ else {"ZENOH_RUNTIME": LIGHT_CLIENT_RUNTIME}
 
     def agent_args(vid: str) -> list[str]:
         return _slcp("-v", "agent", "--vehicle", vid, "--config", str(configs[vid]), "--nice", str(agent_nice))
@@ -143,10 +157,10 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         for vid in vehicles:
             lf = open(out / "logs" / f"agent-{vid}.log", "w")
             logs.append(lf)
-            _spawn(procs, f"agent-{vid}", agent_args(vid), lf)
+            _spawn(procs, f"agent-{vid}", agent_args(vid), lf, agent_env)
         lf = open(out / "logs" / "emulator.log", "w")
         logs.append(lf)
-        emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint,
+        emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint, "--mode", zenoh_mode,
                     "--wait-agents", f"{wait_agents:g}"]
         if faults:
             emu_args += ["--faults", str(out / "config" / "faults.toml")]
@@ -201,7 +215,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 log.warning("%s exited with %s; restarting it", n, rc)
                 lf = open(out / "logs" / f"{n}.log", "a")
                 logs.append(lf)
-                _spawn(procs, n, agent_args(vid), lf)
+                _spawn(procs, n, agent_args(vid), lf, agent_env)
                 restarts.append({"process": n, "exit_code": rc, "at_s": now - wall0, "_t": now,
                                  "rejoined_after_s": None})
             for r in restarts:  # an agent is back with its first estimate; the emulator with anyone's
@@ -297,12 +311,14 @@ def _termination_deferred():
             raise KeyboardInterrupt(f"signal {pending[0]}")
 
 
-def _spawn(procs: dict[str, subprocess.Popen], name: str, args: list[str], log) -> subprocess.Popen:
-    """Start ``args`` in its own session with output to ``log`` and enter it in ``procs`` before
-    any termination signal can interrupt (see `_termination_deferred`)."""
+def _spawn(procs: dict[str, subprocess.Popen], name: str, args: list[str], log,
+           env: dict[str, str] | None = None) -> subprocess.Popen:
+    """Start ``args`` in its own session with output to ``log`` (and ``env`` added to this
+    process's environment) and enter it in ``procs`` before any termination signal can
+    interrupt (see `_termination_deferred`)."""
     with _termination_deferred():
         p = procs[name] = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                                           env={**os.environ, SUPERVISOR_ENV: str(os.getpid())})
+                                           env={**os.environ, **(env or {}), SUPERVISOR_ENV: str(os.getpid())})
     return p
 
 

@@ -34,11 +34,11 @@ def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[fl
 
 
 def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
-         agent_nice: int = 5, lane_constraint: bool = True) -> dict:
+         agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client") -> dict:
     from .launcher import run_fleet
 
     return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice,
-                     lane_constraint=lane_constraint)
+                     lane_constraint=lane_constraint, zenoh_mode=zenoh_mode)
 
 
 def _interruptible(fn, *args):
@@ -78,7 +78,7 @@ def _stop_with_parent(period: float = 0.5) -> None:
 
 def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHODS, out: Path = Path("runs/study"),
               fusion: str = "split-ci", jobs: int | None = None, progress=None, sign: bool = True,
-              agent_nice: int = 5, lane_constraint: bool = True) -> dict:
+              agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client") -> dict:
     """Run the seeds and aggregate; ``progress(done, total, seed)`` after each run."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -87,7 +87,7 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
     try:
         futs = {pool.submit(_interruptible, _one, scenario, methods, s, str(out / f"seed-{s}"), fusion, sign,
-                            agent_nice, lane_constraint): s for s in seeds}
+                            agent_nice, lane_constraint, zenoh_mode): s for s in seeds}
         for fut in as_completed(futs):
             per_seed[futs[fut]] = fut.result()
             if progress:

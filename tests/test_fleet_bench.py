@@ -96,4 +96,5 @@ def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None
     assert res["sensor_dropped"] == 4
     assert 0.5 < res["realtime_factor"] < 2.0
     assert res["rss_mb_per_agent"]["max"] > 10 and res["cpu_pct_per_agent"]["max"] > 0
+    assert res["launcher_cpu_pct"] > 0 and res["threads_per_agent"] >= 1  # the "agent" is this process
     assert _proc_cpu_s(2**22 + 12345) is None and _proc_peak_rss_mb(2**22 + 12345) is None

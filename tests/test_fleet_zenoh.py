@@ -18,6 +18,10 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
     out = tmp_path / "run"
     m = run_fleet("paper-1", out=out, seed=0)
     assert m["processes"]["exit_codes"] == {"agent-V0": 0, "agent-V1": 0, "agent-V2": 0, "emulator": 0}
+    # the agents are Zenoh clients of the launcher's router (no peer mesh)
+    assert 'mode = "client"' in (out / "config" / "agent-V1.toml").read_text()
+    with pytest.raises(ValueError, match="zenoh_mode"):
+        run_fleet("paper-1", out=tmp_path / "mesh", zenoh_mode="mesh")
     for name in ("metrics.json", "report.md", "recorded/messages.jsonl", "estimates/V1.csv", "logs/emulator.log",
                  "errors.png", "map.png"):
         assert (out / name).exists(), name

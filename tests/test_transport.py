@@ -251,6 +251,56 @@ def test_two_zenoh_peers_on_loopback() -> None:
     asyncio.run(main())
 
 
+_RUNTIME_PROBE = """
+import asyncio, json, os, sys
+from transport.zenoh_bus import ZenohBus, ZenohConfig
+
+async def main():
+    ep = f"tcp/127.0.0.1:{sys.argv[1]}"
+    router = ZenohBus(ZenohConfig(mode="router", listen=(ep,)))
+    client = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
+    sub = client.subscribe("slcp/v1/probe")
+    await asyncio.sleep(0.3)
+    await router.publish("slcp/v1/probe", b"x")
+    got = (await asyncio.wait_for(sub.get(), 5.0))[1]
+    names = sorted(open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task"))
+    await client.close()
+    await router.close()
+    print(json.dumps({"got": got.decode(), "threads": names}))
+
+asyncio.run(main())
+"""
+
+
+@pytest.mark.timeout(60)
+def test_the_light_runtime_runs_zenoh_on_one_thread_and_a_bad_one_is_a_clear_error() -> None:
+    """slcp run gives its agents LIGHT_CLIENT_RUNTIME (ZENOH_RUNTIME): a router and a client on
+    loopback in one process still talk, with Zenoh's work on its application threads only; an
+    invalid ZENOH_RUNTIME is a RuntimeError that names it, not a bare Rust panic."""
+    import subprocess
+    import sys
+
+    from transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
+
+    def probe(runtime: str | None) -> subprocess.CompletedProcess:
+        env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+        if runtime is not None:
+            env["ZENOH_RUNTIME"] = runtime
+        return subprocess.run([sys.executable, "-c", _RUNTIME_PROBE, str(free_port())], env=env,
+                              capture_output=True, text=True, timeout=40)
+
+    default, light = probe(None), probe(LIGHT_CLIENT_RUNTIME)
+    assert default.returncode == 0 and light.returncode == 0, light.stderr[-2000:]
+    d, li = json.loads(default.stdout), json.loads(light.stdout)
+    assert d["got"] == li["got"] == "x"
+    zenoh_threads = lambda names: [n for n in names if not n.startswith("python")]  # noqa: E731
+    assert {n.split("-")[0] for n in zenoh_threads(d["threads"])} >= {"app", "acc", "net"}
+    assert zenoh_threads(li["threads"]) and all(n.startswith("app-") for n in zenoh_threads(li["threads"]))
+    assert len(zenoh_threads(li["threads"])) < len(zenoh_threads(d["threads"]))
+    bad = probe("(bogus: 1)")
+    assert bad.returncode != 0 and "RuntimeError: Zenoh could not start (is ZENOH_RUNTIME='(bogus: 1)'" in bad.stderr
+
+
 def test_zenoh_peer_settings_and_a_bad_strategy() -> None:
     from transport.zenoh_bus import ZenohConfig
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import os
 from dataclasses import dataclass, field
 
 import zenoh
@@ -21,6 +22,15 @@ log = logging.getLogger(__name__)
 
 
 AUTOCONNECT_STRATEGIES = ("greater-zid", "always")
+
+#: A Zenoh runtime configuration (``ZENOH_RUNTIME``, RON) for a light client process: the
+#: receive, transmit, accept and network runtimes hand their work over to one application worker
+#: thread, so a process runs 2 Zenoh threads instead of 6. Zenoh reads the variable once, when
+#: its first session opens. ``slcp run`` gives it to the agents (unless ``ZENOH_RUNTIME`` is set
+#: already): on one machine dozens of processes each waking six threads cost the CPUs more than
+#: the work itself.
+LIGHT_CLIENT_RUNTIME = ("(rx: (handover: app), acc: (handover: app), tx: (handover: app), "
+                        "net: (handover: app), app: (worker_threads: 1))")
 
 
 @dataclass(frozen=True)
@@ -84,7 +94,14 @@ class ZenohBus:
 
     def __init__(self, config: ZenohConfig) -> None:
         self.loop = asyncio.get_running_loop()
-        self.session = zenoh.open(config.to_zenoh())
+        conf = config.to_zenoh()
+        try:
+            self.session = zenoh.open(conf)
+        except BaseException as e:  # a Rust panic (pyo3 PanicException) is not an Exception
+            if type(e).__name__ != "PanicException":
+                raise
+            raise RuntimeError(f"Zenoh could not start (is ZENOH_RUNTIME={os.environ.get('ZENOH_RUNTIME')!r} "
+                               f"valid?): {str(e)[:300]}") from None
         self._publishers: dict[str, object] = {}
         self._subscribers: list[object] = []
         self._subs: list[Subscription] = []
