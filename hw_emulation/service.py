@@ -21,8 +21,8 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import pymap3d
 
-from agent.nav import earth
 from transport import keys
 from transport.bus import Bus
 from transport.codec import CodecError, decode, encode
@@ -85,6 +85,9 @@ class EmulatorService:
         self.attack_rng = np.random.default_rng(self.seed + 2_000_003)
         self.radio: RadioModel = self.truth.scenario.radio
         self.ids = sorted(self.truth.vehicles)
+        self._index = {vid: k for k, vid in enumerate(self.ids)}
+        self._ne: list[np.ndarray] | None = None  # per vehicle (n, 2) north, east [m] (see _radio_positions)
+        self._ne_at: tuple[float, np.ndarray] | None = None
         self._pending: list[tuple[float, str, bytes]] = []  # (deliver at, receiver, payload)
         self._ge_bad: dict[tuple[str, str], bool] = {}
         self.now = float(next(iter(self.truth.vehicles.values())).truth.t[0])
@@ -96,12 +99,23 @@ class EmulatorService:
         self.stalled: dict[str, float] = {}
 
     # ----------------------------------------------------------------- radio
-    def _positions(self, t: float) -> dict[str, np.ndarray]:
-        out = {}
-        for vid, vt in self.truth.vehicles.items():
-            k = min(int(np.searchsorted(vt.truth.t, t)), len(vt.truth.t) - 1)
-            out[vid] = vt.truth.llh[k]
-        return out
+    def _radio_positions(self) -> np.ndarray:
+        """True horizontal positions of ``self.ids`` at the radio's clock ``self.now``, shape
+        (N, 2) [m] north and east of the scenario's origin (computed once per clock value)."""
+        if self._ne_at is None or self._ne_at[0] != self.now:
+            if self._ne is None:  # every vehicle's truth in the local frame, once
+                lat0, lon0, h0 = self.truth.scenario.origin_llh
+                self._ne = []
+                for vid in self.ids:
+                    llh = self.truth.vehicles[vid].truth.llh
+                    n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], lat0, lon0, h0, deg=False)
+                    self._ne.append(np.stack([n, e], 1))
+            rows = []
+            for vid, ne in zip(self.ids, self._ne):
+                t = self.truth.vehicles[vid].truth.t
+                rows.append(ne[min(int(np.searchsorted(t, self.now)), len(t) - 1)])
+            self._ne_at = (self.now, np.array(rows))
+        return self._ne_at[1]
 
     def _radio_send(self, payload: bytes) -> None:
         try:
@@ -119,14 +133,13 @@ class EmulatorService:
                 signer = self.signers.get(b.vehicle)
                 forged = signer.sign(forged) if signer is not None else forged
                 payload, b = encode(forged), forged
-        pos = self._positions(self.now)
         r = self.radio
-        for rx in self.ids:
+        ne = self._radio_positions()
+        d = np.hypot(*(ne - ne[self._index[b.vehicle]]).T)
+        self.radio_stats.out_of_range += int(np.count_nonzero(d > r.max_range))
+        for k in np.flatnonzero(d <= r.max_range):  # receivers in range, in id order
+            rx = self.ids[k]
             if rx == b.vehicle:
-                continue
-            d = float(np.linalg.norm(earth.ned_offset(*pos[b.vehicle], *pos[rx])[:2]))
-            if d > r.max_range:
-                self.radio_stats.out_of_range += 1
                 continue
             active = [f for f in self.faults if f.kind in LINK_FAULTS and f.active(b.t) and f.hits_link(b.vehicle, rx)]
             if any(f.kind == "v2v_blackout" for f in active):

@@ -195,3 +195,42 @@ def test_the_filters_start_from_the_fix_nearest_the_first_imu_sample_whatever_ha
     assert starts[1].seq.counters.get("late_dropped", 0) == 0 and len(starts[1].seq._heap) == 2
     far = asyncio.run(start([fix(0, 5.0)]))
     assert not far.filters and far.counters["before_init"] == 1
+
+
+def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
+    """The radio's positions (the truth in the scenario's local frame, once per clock value) give
+    the same horizontal distances as pymap3d's exact offset of each vehicle in every other's
+    local frame (to a millimetre per kilometre), and a
+    beacon goes to every other vehicle within ``max_range`` and to no one beyond it."""
+    import dataclasses
+
+    import pymap3d
+
+    from transport.codec import encode
+    from transport.messages import Beacon
+
+    truth = build_truth(load_scenario("rush-hour"))
+    emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0)
+    ids = emu.ids
+    for now in (5.0, 31.7, 60.0, 88.8):
+        emu.now = now
+        ne = emu._radio_positions()
+        llh = {}
+        for v in ids:
+            t = truth.vehicles[v].truth.t
+            llh[v] = truth.vehicles[v].truth.llh[min(int(np.searchsorted(t, now)), len(t) - 1)]
+        for i, a in enumerate(ids):
+            for j, b in enumerate(ids):
+                n, e, _ = pymap3d.geodetic2ned(*llh[a], *llh[b], deg=False)
+                assert np.hypot(*(ne[i] - ne[j])) == pytest.approx(np.hypot(n, e), rel=1e-6, abs=1e-4)
+        # a lossless radio whose range cuts the fleet in two
+        sender = ids[len(ids) // 2]
+        dist = {v: float(np.hypot(*(ne[ids.index(v)] - ne[ids.index(sender)]))) for v in ids if v != sender}
+        reach = float(np.median(list(dist.values())))
+        emu.radio = dataclasses.replace(emu.radio, loss=0.0, ge_p_good_to_bad=0.0, stale_prob=0.0, max_range=reach)
+        emu._pending.clear()
+        before = emu.radio_stats.out_of_range
+        emu._radio_send(encode(Beacon(sender, 1, "SL-CP", now, llh[sender], np.zeros(3), np.eye(3))))
+        got = [rx for _, rx, _ in emu._pending]
+        assert got == sorted(v for v, d in dist.items() if d <= reach) and got
+        assert emu.radio_stats.out_of_range - before == sum(d > reach for d in dist.values()) > 0
