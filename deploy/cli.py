@@ -180,6 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
     bn.add_argument("--fleet-method", default="SL-CP", help="the one method each agent runs (default SL-CP)")
     bn.add_argument("--fleet-zenoh-mode", choices=("client", "peer"), default="client",
                     help="how the fleet's processes join the router (as slcp run --zenoh-mode; default client)")
+    bn.add_argument("--fleet-imu-batch", type=int, choices=range(1, 101), default=20, metavar="1-100",
+                    help="IMU samples per message in the fleet's grid (default 20: 5 messages a second at 100 Hz)")
     rp2 = sub.add_parser("report", help="rebuild the report of a run (from its recording) or a study (from its seeds)")
     rp2.add_argument("run_dir", type=Path)
 
@@ -563,7 +565,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             if not args.json:
                 print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
             out["fleet"].append(run_fleet_point(n, args.fleet_duration, args.fleet_method,
-                                                    zenoh_mode=args.fleet_zenoh_mode))
+                                                    zenoh_mode=args.fleet_zenoh_mode,
+                                                    imu_batch=args.fleet_imu_batch))
     if args.json:
         print(json.dumps(out))
         return 0
@@ -583,7 +586,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             print(f"  fleet {f['agents']:3d} agents: {f['error']}")
             continue
         lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
-        print(f"  fleet {f['agents']:3d} agents ({f['method']}, Zenoh {f['zenoh_mode']}): real-time factor "
+        print(f"  fleet {f['agents']:3d} agents ({f['method']}, Zenoh {f['zenoh_mode']}, IMU batch {f['imu_batch']}): "
+              f"real-time factor "
               f"{f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
               f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
               f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, machine {f['machine_cpu_pct']:.0f} %, "

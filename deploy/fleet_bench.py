@@ -193,15 +193,17 @@ class FleetMonitor:
 
 
 def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign: bool = True,
-                    out: Path | None = None, agent_nice: int = 5, zenoh_mode: str = "client") -> dict:
-    """One benchmark point: ``n`` agents on the grid at 1×; returns :meth:`FleetMonitor.result`."""
+                    out: Path | None = None, agent_nice: int = 5, zenoh_mode: str = "client",
+                    imu_batch: int = 20) -> dict:
+    """One benchmark point: ``n`` agents on the grid at 1× with ``imu_batch`` IMU samples per
+    message (20: 5 messages a second at 100 Hz); returns :meth:`FleetMonitor.result`."""
     from .launcher import run_fleet
 
     with tempfile.TemporaryDirectory(prefix=f"slcp-bench-{n}-") as tmp:
         base = Path(out) if out is not None else Path(tmp)
         base.mkdir(parents=True, exist_ok=True)
         scn = base / f"grid-{n}.toml"
-        scn.write_text(grid_scenario_toml(n, duration))
+        scn.write_text(grid_scenario_toml(n, duration, imu_batch=imu_batch))
         mon = FleetMonitor([f"G{i}" for i in range(n)])
         wall0 = time.monotonic()
         stats = run_fleet(str(scn), methods=(method,), speed=1.0, seed=0, out=base / "run", sign=sign,
@@ -211,6 +213,7 @@ def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign:
         res["method"] = method
         res["agent_nice"] = agent_nice
         res["zenoh_mode"] = zenoh_mode
+        res["imu_batch"] = imu_batch
         res["duration_s"] = duration
         res["total_wall_s"] = time.monotonic() - wall0
         res["restarts"] = len(stats["processes"].get("restarts", []))

@@ -10,7 +10,8 @@ vehicle is within radio (300 m) or UWB (200 m) range of another intersection's, 
 most ``per_intersection - 1`` neighbours. The radio's emulated latency, jitter and stale
 deliveries are off (latency measured on the benchmark is the system's own); loss stays. The
 vehicles' IMU batches are staggered (``imu_stagger``): independent vehicles' clocks are not
-synchronised, so a fleet does not process its sensor data in lockstep.
+synchronised, so a fleet does not process its sensor data in lockstep. ``imu_batch`` sets the
+IMU samples per message (the scenario option of the same name).
 """
 
 from __future__ import annotations
@@ -29,12 +30,15 @@ LANE_WIDTH = 3.5
 
 
 def grid_scenario_toml(n_vehicles: int, duration: float = 40.0, per_intersection: int = 8,
-                       spacing: float = 1000.0, seed: int = 1, imu_stagger: bool = True) -> str:
+                       spacing: float = 1000.0, seed: int = 1, imu_stagger: bool = True,
+                       imu_batch: int = 10) -> str:
     """The TOML text of a grid scenario with ``n_vehicles`` vehicles (see the module docstring)."""
     if n_vehicles < 1:
         raise ValueError("a grid needs at least one vehicle")
     if not 1 <= per_intersection <= 8:
         raise ValueError("per_intersection must be 1 to 8 (two vehicles per approach)")
+    if not 1 <= imu_batch <= 100:
+        raise ValueError("imu_batch must be 1 to 100 samples (at most 1 s at 100 Hz)")
     if not (duration > 0 and spacing > 2 * APPROACH_LENGTH):
         raise ValueError("duration must be > 0 and spacing > twice the approach length")
     n_int = math.ceil(n_vehicles / per_intersection)
@@ -46,6 +50,7 @@ def grid_scenario_toml(n_vehicles: int, duration: float = 40.0, per_intersection
         f'description = "{n_vehicles} vehicles on a grid of {n_int} signalised intersections"',
         f"seed = {seed}",
         f"imu_stagger = {'true' if imu_stagger else 'false'}",
+        f"imu_batch = {int(imu_batch)}",
         f"duration = {duration}",
         "imu_rate = 100.0",
         "origin = { lat = 39.9552, lon = 116.3194, h = 50.0 }",

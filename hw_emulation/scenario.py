@@ -144,6 +144,8 @@ class Scenario:
     #: the vehicles' IMU batches start at evenly spread phases instead of all at once (clocks of
     #: different vehicles are not synchronised; spreads a large fleet's load over time)
     imu_stagger: bool = False
+    #: IMU samples per message (an IMU driver's batch): 10 at 100 Hz is a message every 0.1 s
+    imu_batch: int = 10
     camera: LaneCameraModel = field(default_factory=LaneCameraModel)  #: every vehicle's lane camera
 
 
@@ -220,7 +222,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
                             "events", "windows", "paper"}, "")
     sc = ctx.table(data, "scenario", "", required=True)
     _check_keys(ctx, sc, {"name", "description", "seed", "duration", "imu_rate", "origin",
-                          "common_mode_sigma", "common_mode_tau", "imu_stagger"}, "scenario")
+                          "common_mode_sigma", "common_mode_tau", "imu_stagger", "imu_batch"}, "scenario")
     imu_stagger = sc.get("imu_stagger", False)
     if not isinstance(imu_stagger, bool):
         raise ctx.fail("scenario.imu_stagger", f"must be true or false, got {imu_stagger!r}")
@@ -232,6 +234,10 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     imu_rate = ctx.number(sc, "imu_rate", "scenario", 100.0, positive=True)
     if abs(round(imu_rate / 10.0) * 10.0 - imu_rate) > 1e-9:
         raise ctx.fail("scenario.imu_rate", "must be a multiple of 10 Hz (the traffic step is 0.1 s)")
+    imu_batch = sc.get("imu_batch", 10)
+    if isinstance(imu_batch, bool) or not isinstance(imu_batch, int) or not 1 <= imu_batch <= imu_rate:
+        raise ctx.fail("scenario.imu_batch", f"must be an integer from 1 to imu_rate (at most 1 s of samples), "
+                                             f"got {imu_batch!r}")
     org = ctx.table(sc, "origin", "scenario", required=True)
     lat = ctx.number(org, "lat", "scenario.origin")
     lon = ctx.number(org, "lon", "scenario.origin")
@@ -380,7 +386,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
         common_mode_sigma=ctx.number(sc, "common_mode_sigma", "scenario", 1.5, non_negative=True),
         common_mode_tau=ctx.number(sc, "common_mode_tau", "scenario", 600.0, positive=True),
         events=tuple(events), windows=windows, paper_table=ctx.table(data, "paper", ""), source=source,
-        imu_stagger=imu_stagger, camera=camera,
+        imu_stagger=imu_stagger, imu_batch=imu_batch, camera=camera,
     )
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -52,8 +53,13 @@ class EmulatorService:
     bus: Bus
     seed: int = 0
     speed: float | None = None
-    batch: int = 10
-    lead: float = 0.5
+    #: IMU samples per message (default: the scenario's ``imu_batch``)
+    batch: int | None = None
+    #: agent-paced mode: how far [s of sensor time] the clock may run ahead of the slowest agent
+    #: (default: what the agents' batches and hold need plus a margin; 0.5 s for 0.1 s batches)
+    lead: float | None = None
+    #: the agents' IMU hold [s] (``AgentConfig.imu_hold``), for the default ``lead``
+    agent_hold: float = 0.25
     #: in agent-paced mode, never faster than this real-time factor: spreads publication so that
     #: reordering across topics stays far below the agents' IMU hold time
     max_speed: float = 20.0
@@ -78,6 +84,17 @@ class EmulatorService:
     fault_stats: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if self.batch is None:
+            self.batch = self.truth.scenario.imu_batch
+        # At a batch end t the clock has published IMU data up to t - P (P: a batch's duration),
+        # and an agent has processed the whole batches that end ``agent_hold`` before that, up to
+        # t - P - ceil(hold / P)·P; its newest estimate (10 Hz) is up to 0.1 s older when batches
+        # are shorter than that. Leading by less would wait for agents that wait for data. The
+        # margin (0.1 s, and a batch beyond 0.1 s) covers the start, where an agent initialised
+        # inside a batch reports its next estimate only after the following one.
+        period = self.batch / self.truth.scenario.imu_rate
+        need = period + math.ceil(self.agent_hold / period - 1e-9) * period + max(0.0, 0.1 - period)
+        self._lead = float(self.lead) if self.lead is not None else need + 0.1 + max(0.0, period - 0.1)
         rng = np.random.default_rng(self.seed)
         self.sensors = emulate_vehicle_sensors(self.truth, rng)
         self.ranges = emulate_uwb(self.truth, rng)
@@ -364,14 +381,14 @@ class EmulatorService:
             # the slowest agent that reports (one that left is forgotten until it reports again,
             # so a dead agent never stalls the fleet and a restarted one rejoins the pacing)
             slow = min((self.agent_time[v] for v in self.ids if v in self.agent_time), default=-np.inf)
-            if slow >= t - self.lead or (not final and slow == -np.inf and (t - t0 < self.lead or self.stalled)):
+            if slow >= t - self._lead or (not final and slow == -np.inf and (t - t0 < self._lead or self.stalled)):
                 break  # (with every agent set aside, the clock runs at max_speed until one reports)
             if time.monotonic() > deadline:
                 if final:
                     break
                 # set the laggards aside (a hung agent, or one whose estimates no longer get
                 # through): the clock would otherwise wait this long again at every event
-                behind = sorted(v for v in self.ids if self.agent_time.get(v, np.inf) < t - self.lead)
+                behind = sorted(v for v in self.ids if self.agent_time.get(v, np.inf) < t - self._lead)
                 for v in behind:
                     self.stalled[v] = self.agent_time.pop(v)
                 if behind:

@@ -40,13 +40,13 @@ def test_the_grid_has_the_vehicles_and_at_most_seven_neighbours_each(tmp_path) -
             grid_scenario_toml(*bad)
 
 
-@pytest.mark.parametrize("stagger", [True, False])
-def test_staggered_imu_batches_end_at_evenly_spread_phases(tmp_path, stagger) -> None:
+@pytest.mark.parametrize(("stagger", "batch"), [(True, 10), (False, 10), (True, 20)])
+def test_staggered_imu_batches_end_at_evenly_spread_phases(tmp_path, stagger, batch) -> None:
     from hw_emulation.service import EmulatorService
     from hw_emulation.truth import build_truth
 
     p = tmp_path / "grid.toml"
-    p.write_text(grid_scenario_toml(5, duration=3.0, imu_stagger=stagger))
+    p.write_text(grid_scenario_toml(5, duration=3.0, imu_stagger=stagger, imu_batch=batch))
     truth = build_truth(load_scenario(p))
 
     async def events():
@@ -58,10 +58,11 @@ def test_staggered_imu_batches_end_at_evenly_spread_phases(tmp_path, stagger) ->
     for t, _, kind, who, idx in ev:
         if kind == "imu":
             ends.setdefault(who, []).append(idx)
-    # every vehicle gets whole batches of 10 samples; staggered, vehicle k's end k*10//5 samples later
-    assert all(np.all(np.diff(v) == emu.batch) for v in ends.values())
+    # every vehicle gets whole batches (the scenario's imu_batch); staggered, vehicle k's end
+    # k*batch//5 samples later
+    assert emu.batch == batch and all(np.all(np.diff(v) == batch) for v in ends.values())
     first = [ends[v][0] for v in emu.ids]
-    assert first == ([10, 12, 14, 16, 18] if stagger else [10] * 5)
+    assert first == ([batch + k * batch // 5 for k in range(5)] if stagger else [batch] * 5)
 
 
 def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None:

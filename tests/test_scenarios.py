@@ -157,6 +157,9 @@ def _base() -> dict:
     (lambda d: d["windows"].update(w=["t_s1", "nope"]), r"windows.w: must be \[start_event, end_event\]"),
     (lambda d: d["signals"]["phases"][0].update(lanes=["NB_out"]), r"lane 'NB_out' has no stop line"),
     (lambda d: d.update(extra=1), r"extra: unknown field"),
+    (lambda d: d["scenario"].update(imu_batch=0), r"scenario.imu_batch: must be an integer from 1 to imu_rate"),
+    (lambda d: d["scenario"].update(imu_batch=101), r"scenario.imu_batch: must be an integer from 1 to imu_rate"),
+    (lambda d: d["scenario"].update(imu_batch=2.5), r"scenario.imu_batch: must be an integer"),
     (lambda d: d.setdefault("sensors", {}).update(camera={"rate": 0.0}), r"sensors.camera: LaneCameraModel.rate"),
 ])
 def test_bad_scenarios_name_the_field(mutate, match) -> None:
