@@ -25,10 +25,10 @@ AUTOCONNECT_STRATEGIES = ("greater-zid", "always")
 
 #: A Zenoh runtime configuration (``ZENOH_RUNTIME``, RON) for a light client process: the
 #: receive, transmit, accept and network runtimes hand their work over to one application worker
-#: thread, so a process runs 2 Zenoh threads instead of 6. Zenoh reads the variable once, when
-#: its first session opens. ``slcp run`` gives it to the agents (unless ``ZENOH_RUNTIME`` is set
-#: already): on one machine dozens of processes each waking six threads cost the CPUs more than
-#: the work itself.
+#: thread, so a client process runs 2 Zenoh threads instead of 6. Zenoh reads the variable once,
+#: when its first session opens. ``slcp run`` gives it to the agents (unless ``ZENOH_RUNTIME`` is
+#: set already): on one machine dozens of processes share a few cores, and fewer threads to wake
+#: cost them less.
 LIGHT_CLIENT_RUNTIME = ("(rx: (handover: app), acc: (handover: app), tx: (handover: app), "
                         "net: (handover: app), app: (worker_threads: 1))")
 
