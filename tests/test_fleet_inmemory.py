@@ -200,8 +200,8 @@ def test_the_filters_start_from_the_fix_nearest_the_first_imu_sample_whatever_ha
 def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
     """The radio's positions (the truth in the scenario's local frame, once per clock value) give
     the same horizontal distances as pymap3d's exact offset of each vehicle in every other's
-    local frame (to a millimetre per kilometre), and a
-    beacon goes to every other vehicle within ``max_range`` and to no one beyond it."""
+    local frame (to a millimetre per kilometre), and a beacon goes to every other vehicle within
+    ``max_range`` and to no one beyond it."""
     import dataclasses
 
     import pymap3d
@@ -240,7 +240,7 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
 def test_agent_paced_play_with_longer_imu_batches_does_not_wait_for_itself() -> None:
     """With 0.2 s IMU messages (imu_batch 20) an agent reports up to 0.2 s + its hold behind the
     clock: the agent-paced clock leads by that much more, so the run neither stalls nor drops
-    sensor data, and the methods work as with 0.1 s messages."""
+    sensor data, and every agent reports throughout."""
     import dataclasses
 
     scn = dataclasses.replace(load_scenario("paper-1"), imu_batch=20)
