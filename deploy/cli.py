@@ -587,8 +587,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             continue
         lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
         print(f"  fleet {f['agents']:3d} agents ({f['method']}, Zenoh {f['zenoh_mode']}, IMU batch {f['imu_batch']}): "
-              f"real-time factor "
-              f"{f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
+              f"real-time factor {f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
               f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
               f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, machine {f['machine_cpu_pct']:.0f} %, "
               f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "

@@ -103,7 +103,12 @@ class EmulatorService:
         self.radio: RadioModel = self.truth.scenario.radio
         self.ids = sorted(self.truth.vehicles)
         self._index = {vid: k for k, vid in enumerate(self.ids)}
-        self._ne: list[np.ndarray] | None = None  # per vehicle (n, 2) north, east [m] (see _radio_positions)
+        lat0, lon0, h0 = self.truth.scenario.origin_llh
+        self._ne = []  # per vehicle: its truth north, east [m] of the origin, (n, 2)
+        for vid in self.ids:
+            llh = self.truth.vehicles[vid].truth.llh
+            n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], lat0, lon0, h0, deg=False)
+            self._ne.append(np.stack([n, e], 1))
         self._ne_at: tuple[float, np.ndarray] | None = None
         self._pending: list[tuple[float, str, bytes]] = []  # (deliver at, receiver, payload)
         self._ge_bad: dict[tuple[str, str], bool] = {}
@@ -120,13 +125,6 @@ class EmulatorService:
         """True horizontal positions of ``self.ids`` at the radio's clock ``self.now``, shape
         (N, 2) [m] north and east of the scenario's origin (computed once per clock value)."""
         if self._ne_at is None or self._ne_at[0] != self.now:
-            if self._ne is None:  # every vehicle's truth in the local frame, once
-                lat0, lon0, h0 = self.truth.scenario.origin_llh
-                self._ne = []
-                for vid in self.ids:
-                    llh = self.truth.vehicles[vid].truth.llh
-                    n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], lat0, lon0, h0, deg=False)
-                    self._ne.append(np.stack([n, e], 1))
             rows = []
             for vid, ne in zip(self.ids, self._ne):
                 t = self.truth.vehicles[vid].truth.t
