@@ -37,7 +37,7 @@ from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
 from .nav.state import POS, VEL, NavState
 from .neighbours import NeighbourState, NeighbourTable
-from .range_gate import NlosModel, RangeRateGate
+from .range_gate import NlosLinkTracker, NlosModel, RangeRateGate
 
 METHODS = ("SP", "SL-SP", "CP", "SL-CP")
 #: residual error of a stop-line fix beyond the stop gap's spread: map and model [m]
@@ -50,6 +50,9 @@ LANE_MARKING_FRAMES = 10
 HEADING_WAIT = 1.0
 #: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
 FUSION_RULES = ("paper", "split-ci", "ci")
+#: below this horizontal speed [m/s] (own estimate, the neighbour's beacon) a vehicle counts as
+#: standing for the UWB link's range track
+STANDING_SPEED = 0.3
 
 
 def lane_row_markings(window: MarkingWindow, t: float) -> tuple[int, int]:
@@ -139,6 +142,11 @@ class FilterSettings:
     #: and reject those more probably NLOS than ``nlos_reject_probability``
     uwb_nlos: NlosModel | None = None
     nlos_reject_probability: float = 0.5
+    #: the CI rules follow each link's NLOS episodes from its range series
+    #: (:class:`~agent.range_gate.NlosLinkTracker`): the link's NLOS probability is the
+    #: classifier's prior, and its bias variance replaces ``uwb_nlos_sigma``² as the range's
+    #: dependent noise
+    nlos_link_tracking: bool = True
     #: GNSS receiver characteristics: correlated (multipath) error carried as three
     #: Gauss-Markov states, so that correlated fixes are not averaged as if independent;
     #: None treats the reported sigma as white noise (the paper's filter)
@@ -247,6 +255,8 @@ class MethodFilter:
                          "ranges_gate_rate": 0, "ranges_gate_nis": 0, "ranges_gate_nlos": 0, "ranges_skipped_near": 0, "stop_line": 0,
                          "lane_line": 0, "lane_line_rejected": 0}
         self.rate_gate = RangeRateGate()
+        self.nlos_tracker = (NlosLinkTracker(s.uwb_nlos, s.sigma_uwb)
+                             if s.uwb_nlos is not None and s.nlos_link_tracking and s.fusion != "paper" else None)
         self._range_gate_nis = chi2_gate(1, s.range_gate) if s.range_gate is not None else None
         # INS displacement (NED, m) integrated from the nominal velocity, unaffected by updates:
         # places a delayed range at its own time (p(t) = p(now) - (D(now) - D(t)))
@@ -442,8 +452,14 @@ class MethodFilter:
         # the line of sight as the range model takes it: horizontal unless the 3-D model is chosen
         los = d if s.range_height_sigma is None else np.array([d[0], d[1], 0.0])
         u = los / max(float(np.linalg.norm(los)), 1e-3)
-        if not self.rate_gate.check(neighbour.vehicle, t_meas, measured,
-                                    float(u @ (self.filter.state.v - neighbour.v_ned))):
+        v_rel = self.filter.state.v - neighbour.v_ned
+        rate = float(u @ v_rel)
+        if not self.rate_gate.check(neighbour.vehicle, t_meas, measured, rate):
+            return self._count_range("gate_rate")
+        link = None if self.nlos_tracker is None else self.nlos_tracker.belief(
+            neighbour.vehicle, t_meas, measured, rate, float(v_rel[0] ** 2 + v_rel[1] ** 2),
+            standing=_standing(self.filter.state.v) and _standing(neighbour.v_ned))
+        if link is not None and link.outlier:
             return self._count_range("gate_rate")
         own_cov = self.filter.position_cov
         if s.range_min_sigmas > 0.0 and _too_near(d, own_cov, neighbour.cov_ned, s.range_min_sigmas):
@@ -456,9 +472,10 @@ class MethodFilter:
             res = self.filter.update(m, s.range_gate)
         else:
             nu, var = self._range_innovation(m)
-            if s.uwb_nlos is not None and s.uwb_nlos.classify(nu, var, s.nlos_reject_probability):
+            if s.uwb_nlos is not None and s.uwb_nlos.classify(nu, var, s.nlos_reject_probability,
+                                                              None if link is None else link.p_nlos):
                 return self._count_range("gate_nlos")
-            r_bias = s.uwb_nlos_sigma**2
+            r_bias = s.uwb_nlos_sigma**2 if link is None else link.bias_variance
             # the NIS gate on the whole spread, uninflated: the split-CI update gates on its
             # inflated covariances, P/ω and R_dep/(1-ω), and when most of P is shared with the
             # neighbours ω is small and a gross outlier passes (rush-hour seed 7 in the fleet:
@@ -576,6 +593,11 @@ class MethodFilter:
         """``(llh, v_ned, cov_pos)`` to broadcast."""
         st = self.filter.state
         return st.llh.copy(), st.v.copy(), self.filter.position_cov
+
+
+def _standing(v_ned: np.ndarray) -> bool:
+    """Whether a horizontal velocity [m/s] is that of a standing vehicle (for the range track)."""
+    return float(v_ned[0] ** 2 + v_ned[1] ** 2) < STANDING_SPEED**2
 
 
 def _too_near(d: np.ndarray, own_cov: np.ndarray, nb_cov: np.ndarray, k: float) -> bool:

@@ -1,5 +1,6 @@
-"""Gates on UWB ranges (pure logic): a physical range-rate gate, one track per neighbour, and
-an NLOS classifier (:meth:`NlosModel.classify`).
+"""Gates on UWB ranges (pure logic): a physical range-rate gate, one track per neighbour, an
+NLOS classifier (:meth:`NlosModel.classify`) and a per-link NLOS tracker
+(:class:`NlosLinkTracker`) that follows each link's bias episodes from the range series itself.
 
 A gross UWB outlier (3-30 m) is an isolated jump in range that the two vehicles' motion cannot
 explain. The gate predicts the range from the last accepted one and the relative velocity along
@@ -76,6 +77,12 @@ def _cdf_between(a: float, b: float) -> float:
     return 1.0 - 0.5 * (math.erfc(-a / _SQRT2) + math.erfc(b / _SQRT2))
 
 
+def _log_normal(x: float, var: float) -> float:
+    """log N(x; 0, var)."""
+    var = max(var, 1e-12)
+    return -0.5 * x * x / var - 0.5 * math.log(var) - _LOG_SQRT_2PI
+
+
 def _log_lower_tail(x: float) -> float:
     """log Φ(x) for a standard normal, x ≤ -30 (where Φ underflows), by its asymptotic series
     (relative error below 1e-7 there). An agent process loads no scipy (its memory budget)."""
@@ -94,15 +101,44 @@ class NlosModel:
     exit: float
     bias_min: float
     bias_max: float
+    #: probability that a range is a gross outlier, and the outlier's size range [m] (added
+    #: with either sign); 0 leaves outliers to :class:`RangeRateGate`
+    outlier_prob: float = 0.0
+    outlier_min: float = 3.0
+    outlier_max: float = 30.0
 
     def __post_init__(self) -> None:
-        if not (self.enter > 0.0 and self.exit > 0.0 and 0.0 <= self.bias_min < self.bias_max):
+        if not (self.enter > 0.0 and self.exit > 0.0 and 0.0 <= self.bias_min < self.bias_max
+                and 0.0 <= self.outlier_prob < 1.0 and 0.0 <= self.outlier_min < self.outlier_max):
             raise ValueError(f"invalid NLOS model {self}")
 
     @property
     def steady(self) -> float:
         """Share of time a link spends in NLOS."""
         return self.enter / (self.enter + self.exit)
+
+    @property
+    def bias_mean(self) -> float:
+        """E[b] of an episode's bias [m]."""
+        return 0.5 * (self.bias_min + self.bias_max)
+
+    @property
+    def bias_mean_square(self) -> float:
+        """E[b²] of an episode's bias [m²]."""
+        a, b = self.bias_min, self.bias_max
+        return (a * a + a * b + b * b) / 3.0
+
+    def log_bias_likelihood(self, nu: float, var: float) -> float:
+        """log of ∫ U(b) N(nu − b; 0, var) db: the density of an innovation ``nu`` [m] that
+        carries a fresh bias on top of a zero-mean error of variance ``var`` [m²]."""
+        s = math.sqrt(max(var, 1e-12))
+        lo, hi = (self.bias_min - nu) / s, (self.bias_max - nu) / s
+        z = _cdf_between(lo, hi)
+        if z > 1e-300:
+            log_z = math.log(z)
+        else:  # the innovation is many σ from every bias: in logarithms
+            log_z = _log_lower_tail(hi) if hi < 0.0 else _log_lower_tail(-lo)
+        return log_z - math.log(self.bias_max - self.bias_min)
 
     def posterior(self, prior: float, nu: float, var: float) -> float:
         """Probability that a range is NLOS.
@@ -119,19 +155,13 @@ class NlosModel:
         """
         if prior <= 0.0 or prior >= 1.0:
             return float(prior >= 1.0)
-        s = math.sqrt(max(var, 1e-12))
-        lo, hi = (self.bias_min - nu) / s, (self.bias_max - nu) / s
-        z = _cdf_between(lo, hi)
-        if z > 1e-300:
-            log_z = math.log(z)
-        else:  # the innovation is many σ from every bias: in logarithms
-            log_z = _log_lower_tail(hi) if hi < 0.0 else _log_lower_tail(-lo)
-        log_los = -0.5 * (nu / s) ** 2 - math.log(s) - _LOG_SQRT_2PI
-        log_nlos = log_z - math.log(self.bias_max - self.bias_min)
+        log_los = _log_normal(nu, var)
+        log_nlos = self.log_bias_likelihood(nu, var)
         x = math.log1p(-prior) + log_los - math.log(prior) - log_nlos
         return 1.0 / (1.0 + math.exp(x)) if x < 700.0 else 0.0
 
-    def classify(self, nu: float, var: float, reject_probability: float = 0.5) -> bool:
+    def classify(self, nu: float, var: float, reject_probability: float = 0.5,
+                 prior: float | None = None) -> bool:
         """Whether a range with innovation ``nu`` [m] of variance ``var`` [m²] (see
         :meth:`posterior`) is more probably NLOS than ``reject_probability``: reject it.
 
@@ -147,5 +177,209 @@ class NlosModel:
         to V0 1.6 m too long for a clean one (p = 0.04), kept the 1.6 m at σ 0.3 m, and then
         refused the clean ranges; over seeds 10-14 in process, V2's SL-CP ANEES was 26.9
         against 3.15, and 18.9 % of the clean ranges were rejected against 0.4 %.
+
+        ``prior`` replaces the steady share by the link's NLOS probability from its own range
+        series (:class:`NlosLinkTracker`): evidence that does not share the position errors.
+        A kept range then carries that probability's p · E[b²] as dependent noise.
         """
-        return self.posterior(self.steady, nu, var) > reject_probability
+        return self.posterior(self.steady if prior is None else prior, nu, var) > reject_probability
+
+
+@dataclass(frozen=True)
+class LinkBelief:
+    """What a link's range series says about its current range.
+
+    Attributes
+    ----------
+    p_nlos : float
+        Probability that the range carries an NLOS bias.
+    bias_mean_square : float
+        E[b² | NLOS] of that bias [m²].
+    outlier : bool
+        The range is more probably a gross outlier than anything else (the track ignored it).
+    """
+
+    p_nlos: float
+    bias_mean_square: float
+    outlier: bool = False
+
+    @property
+    def bias_variance(self) -> float:
+        """The bias's contribution to the range's error variance, P(NLOS) E[b² | NLOS] [m²]."""
+        return self.p_nlos * self.bias_mean_square
+
+
+@dataclass
+class _Link:
+    t: float
+    r: float  # range level as measured (any bias included) [m]
+    rd: float  # its rate [m/s]
+    p11: float
+    p12: float
+    p22: float
+    p: float  # P(NLOS)
+    b: float  # E[b | NLOS] [m]
+    b2: float  # E[b² | NLOS] [m²]
+
+
+@dataclass
+class NlosLinkTracker:
+    """The NLOS state of each UWB link, followed from the link's own range series.
+
+    An NLOS episode adds one bias for its whole duration (:class:`NlosModel`): the range steps
+    up by 0.3-3 m when it starts and back down when it ends, both far beyond the UWB noise
+    between two ranges 0.1 s apart. A constant-velocity Kalman filter follows the range level
+    (process noise: the relative acceleration); each new range is scored against four
+    transitions of the two-state chain (LOS or NLOS staying, an episode starting with a fresh
+    bias, an episode ending with the link's bias) and, if the model has one, a gross outlier,
+    and the link's NLOS probability and bias moments are updated (a Gaussian-sum filter
+    collapsed at every range). A step, once the next range confirms it, resets the level.
+
+    The evidence is the range's difference from the link's own recent ranges, so it does not
+    share the two vehicles' persistent position errors, which a range's innovation against
+    the two estimates does (:meth:`NlosModel.classify`). Only a link that starts inside an
+    episode has no step to see; its probability starts at the chain's steady share and decays
+    with every range that shows no step down.
+
+    Attributes
+    ----------
+    model : NlosModel
+    sigma : float
+        UWB range noise [m].
+    accel_psd : float
+        Power spectral density of the relative range acceleration [m²/s³] while either
+        vehicle moves (braking, turning: the part straight relative motion does not explain).
+    accel_psd_standing : float
+        The same while both stand (a ZUPT-held estimate, the car rocking on its springs).
+    rate_sigma : float
+        Uncertainty of the range rate given with a link's first range [m/s].
+    max_gap : float
+        A link silent for longer than this [s] restarts (its NLOS probability carried over by
+        the chain).
+    """
+
+    model: NlosModel
+    sigma: float
+    accel_psd: float = 4.0
+    accel_psd_standing: float = 0.01
+    rate_sigma: float = 1.0
+    max_gap: float = 10.0
+    _links: dict[str, _Link] = field(default_factory=dict)
+    #: the last range off the track until the next one confirms or refutes it: (t, range,
+    #: its hypotheses' weights or None for an outlier, its innovation)
+    _pending: dict[str, tuple] = field(default_factory=dict)
+
+    def belief(self, link: str, t: float, measured: float, rate: float, rel_speed2: float = 0.0,
+               standing: bool = False) -> LinkBelief:
+        """Score the range ``measured`` [m] of ``link`` at time ``t`` [s] and update the link.
+
+        ``rate`` [m/s] is the range rate predicted from the two estimates, used to start a
+        link; ``rel_speed2`` [m²/s²] is the squared horizontal relative speed from the two
+        estimates: the level's prediction assumes straight relative motion, exact for two
+        cars passing each other, whose range rate reverses within a fraction of a second
+        (a constant-velocity range model misses that by metres). ``standing``: both vehicles
+        stand (``accel_psd_standing``). A range older than the link's last one is scored
+        on the link's current state without changing it. A range off the track (a step or a
+        gross outlier) is judged but not followed until the next range agrees with it
+        (within the UWB noise and the level's prediction): an isolated error leaves the track
+        as it was, a step moves the level there, and two agreeing ranges too far off for any
+        step restart the link (a change the track could not follow).
+        """
+        m = self.model
+        lk = self._links.get(link)
+        if lk is None or t - lk.t > self.max_gap:
+            return self._restart(link, t, measured, rate, lk)
+        dt = max(t - lk.t, 0.0)
+        # predict the level (constant velocity, white relative acceleration)
+        q = self.accel_psd_standing if standing else self.accel_psd
+        # straight relative motion: the line-of-sight part of the relative velocity is the
+        # rate, the rest (w) is across it
+        w2 = max(rel_speed2 - lk.rd * lk.rd, 0.0)
+        along, across = lk.r + lk.rd * dt, math.sqrt(w2) * dt
+        r_p = math.hypot(along, across)
+        rd_p = (along * lk.rd + w2 * dt) / max(r_p, 1e-6)
+        p11 = lk.p11 + dt * (2.0 * lk.p12 + dt * lk.p22) + q * dt**3 / 3.0
+        p12 = lk.p12 + dt * lk.p22 + q * dt * dt / 2.0
+        p22 = lk.p22 + q * dt
+        var = p11 + self.sigma**2
+        nu = measured - r_p
+        # the two-state chain over dt
+        pi = m.steady
+        e = math.exp(-(m.enter + m.exit) * dt)
+        p_nn = pi + (1.0 - pi) * e
+        p_ln = pi * (1.0 - e)
+        p_los = 1.0 - lk.p
+        stay = _log_normal(nu, var)
+        logs = {
+            "LL": _safe_log(p_los * (1.0 - p_ln)) + stay,
+            "NN": _safe_log(lk.p * p_nn) + stay,
+            "LN": _safe_log(p_los * p_ln) + m.log_bias_likelihood(nu, var),
+            "NL": _safe_log(lk.p * (1.0 - p_nn)) + _log_normal(nu + lk.b, var + max(lk.b2 - lk.b**2, 0.0)),
+        }
+        if m.outlier_prob > 0.0:
+            for k in logs:
+                logs[k] += math.log1p(-m.outlier_prob)
+            sd = math.sqrt(var)
+            z = _cdf_between((m.outlier_min - abs(nu)) / sd, (m.outlier_max - abs(nu)) / sd)
+            logs["out"] = _safe_log(m.outlier_prob * z / (2.0 * (m.outlier_max - m.outlier_min)))
+        top = max(logs.values())
+        w = {k: math.exp(v - top) for k, v in logs.items()}
+        total = w["LL"] + w["NN"] + w["LN"] + w["NL"]
+        outlier = w.get("out", 0.0) >= max(w["LL"], w["NN"], w["LN"], w["NL"])
+        step = outlier or w["LN"] + w["NL"] > w["LL"] + w["NN"]
+        if t < lk.t:  # out of order: scored, not kept
+            return LinkBelief(lk.p, lk.b2, outlier=True) if outlier else LinkBelief((w["LN"] + w["NN"]) / total, lk.b2)
+        pending = self._pending.pop(link, None)
+        if pending is not None and self._agrees(pending[0], pending[1], t, measured, rate):
+            if pending[2] is None:  # an outlier confirmed: a change the level's prediction missed
+                return self._restart(link, t, measured, rate, lk)
+            # the step judged on the first range off the track, confirmed by this one
+            step, w, nu = True, pending[2], pending[3]
+            total = w["LL"] + w["NN"] + w["LN"] + w["NL"]
+        elif step:  # the first range off the track: judged, not yet followed
+            self._pending[link] = (t, measured, None if outlier else w, nu)
+            if outlier:
+                return LinkBelief(lk.p, lk.b2, outlier=True)
+            b_on = min(max(nu, m.bias_min), m.bias_max)
+            return LinkBelief((w["LN"] + w["NN"]) / total, b_on * b_on + var if w["LN"] > w["NN"] else lk.b2)
+        if step:  # the level restarts at this range
+            lk.r, lk.rd, lk.p11, lk.p12, lk.p22 = measured, rd_p, self.sigma**2, 0.0, p22
+        else:
+            k1, k2 = p11 / var, p12 / var
+            lk.r, lk.rd = r_p + k1 * nu, rd_p + k2 * nu
+            lk.p11, lk.p12, lk.p22 = p11 - k1 * p11, p12 - k1 * p12, p22 - k2 * p12
+        # the bias moments given NLOS: a fresh bias near the step, or the link's own
+        nlos = w["LN"] + w["NN"]
+        if nlos > 0.0:
+            b_on = min(max(nu, m.bias_min), m.bias_max)
+            lk.b = (w["LN"] * b_on + w["NN"] * lk.b) / nlos
+            lk.b2 = (w["LN"] * (b_on * b_on + min(var, m.bias_mean_square)) + w["NN"] * lk.b2) / nlos
+        else:
+            lk.b, lk.b2 = m.bias_mean, m.bias_mean_square
+        lk.p = nlos / total
+        lk.t = t
+        return LinkBelief(lk.p, lk.b2)
+
+    def _agrees(self, t0: float, r0: float, t: float, measured: float, rate: float) -> bool:
+        """Whether ``measured`` at ``t`` continues the range ``r0`` at ``t0`` with ``rate``."""
+        dt = t - t0
+        return dt > 0.0 and abs(measured - r0 - rate * dt) <= \
+            3.0 * math.sqrt(2.0 * self.sigma**2 + self.accel_psd * dt**3 / 3.0) + self.rate_sigma * dt
+
+    def _restart(self, link: str, t: float, measured: float, rate: float, old: _Link | None) -> LinkBelief:
+        """Start ``link``'s track at this range; its NLOS probability carried over by the chain."""
+        m = self.model
+        pi = m.steady
+        p = pi if old is None else pi + (old.p - pi) * math.exp(-(m.enter + m.exit) * max(t - old.t, 0.0))
+        b, b2 = (m.bias_mean, m.bias_mean_square) if old is None else (old.b, old.b2)
+        self._links[link] = _Link(t, measured, rate, self.sigma**2, 0.0, self.rate_sigma**2, p, b, b2)
+        self._pending.pop(link, None)
+        return LinkBelief(p, b2)
+
+    def forget(self, link: str) -> None:
+        self._links.pop(link, None)
+        self._pending.pop(link, None)
+
+
+def _safe_log(x: float) -> float:
+    return math.log(x) if x > 0.0 else -math.inf

@@ -57,7 +57,8 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
                               gnss_white_sigma=max(gm.white_h, 0.1),
                               fusion=fusion, lane_constraint=lane_constraint)
     u = scn.uwb
-    nlos = (NlosModel(u.nlos_enter, u.nlos_exit, u.nlos_bias_min, u.nlos_bias_max)
+    nlos = (NlosModel(u.nlos_enter, u.nlos_exit, u.nlos_bias_min, u.nlos_bias_max,
+                      u.outlier_prob, u.outlier_min, u.outlier_max)
             if u.nlos_enter > 0 and u.nlos_exit > 0 and u.nlos_bias_max > u.nlos_bias_min else None)
     p_nlos = u.nlos_enter / (u.nlos_enter + u.nlos_exit) if u.nlos_enter > 0 else 0.0
     nlos_ms = (u.nlos_bias_min**2 + u.nlos_bias_min * u.nlos_bias_max + u.nlos_bias_max**2) / 3.0
