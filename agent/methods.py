@@ -53,6 +53,8 @@ FUSION_RULES = ("paper", "split-ci", "ci")
 #: below this horizontal speed [m/s] (own estimate, the neighbour's beacon) a vehicle counts as
 #: standing for the UWB link's range track
 STANDING_SPEED = 0.3
+#: σ [m/s] of a relative velocity from two inertial estimates along a known line of sight
+RATE_VELOCITY_SIGMA = 0.3
 
 
 def lane_row_markings(window: MarkingWindow, t: float) -> tuple[int, int]:
@@ -456,12 +458,16 @@ class MethodFilter:
         rate = float(u @ v_rel)
         if not self.rate_gate.check(neighbour.vehicle, t_meas, measured, rate):
             return self._count_range("gate_rate")
-        link = None if self.nlos_tracker is None else self.nlos_tracker.belief(
-            neighbour.vehicle, t_meas, measured, rate, float(v_rel[0] ** 2 + v_rel[1] ** 2),
-            standing=_standing(self.filter.state.v) and _standing(neighbour.v_ned))
-        if link is not None and link.outlier:
-            return self._count_range("gate_rate")
         own_cov = self.filter.position_cov
+        link = None
+        if self.nlos_tracker is not None:
+            speed2 = float(v_rel[0] ** 2 + v_rel[1] ** 2)
+            link = self.nlos_tracker.belief(
+                neighbour.vehicle, t_meas, measured, rate, speed2,
+                standing=_standing(self.filter.state.v) and _standing(neighbour.v_ned),
+                rate_var=_rate_variance(u, d, own_cov, neighbour.cov_ned, speed2))
+            if link.outlier:
+                return self._count_range("gate_rate")
         if s.range_min_sigmas > 0.0 and _too_near(d, own_cov, neighbour.cov_ned, s.range_min_sigmas):
             return self._count_range("skipped_near")
         m = range_measurement(self.filter.state, measured, s.sigma_uwb, nb_llh, neighbour.cov_ned,
@@ -593,6 +599,18 @@ class MethodFilter:
         """``(llh, v_ned, cov_pos)`` to broadcast."""
         st = self.filter.state
         return st.llh.copy(), st.v.copy(), self.filter.position_cov
+
+
+def _rate_variance(u: np.ndarray, d: np.ndarray, own_cov: np.ndarray, nb_cov: np.ndarray, speed2: float) -> float:
+    """Variance [m²/s²] of the range rate u·(v_i − v_j) from two estimates: the velocities'
+    (``RATE_VELOCITY_SIGMA``) and the line of sight's, whose direction is off by the two
+    positions' combined σ across it over the distance (``u`` horizontal unit (3,), ``d`` the
+    relative position (3,) [m], ``own_cov``/``nb_cov`` (3, 3) [m²], ``speed2`` the squared
+    horizontal relative speed)."""
+    across = np.array([-u[1], u[0]])
+    c = own_cov[:2, :2] + nb_cov[:2, :2]
+    r2 = max(float(d[0] ** 2 + d[1] ** 2), 1.0)
+    return RATE_VELOCITY_SIGMA**2 + speed2 * min(float(across @ c @ across) / r2, 1.0)
 
 
 def _standing(v_ned: np.ndarray) -> bool:

@@ -252,7 +252,8 @@ class NlosLinkTracker:
     accel_psd_standing : float
         The same while both stand (a ZUPT-held estimate, the car rocking on its springs).
     rate_sigma : float
-        Uncertainty of the range rate given with a link's first range [m/s].
+        Least uncertainty of the range rate given with a link's first range [m/s] (at least
+        the relative speed).
     max_gap : float
         A link silent for longer than this [s] restarts (its NLOS probability carried over by
         the chain).
@@ -260,7 +261,7 @@ class NlosLinkTracker:
 
     model: NlosModel
     sigma: float
-    accel_psd: float = 4.0
+    accel_psd: float = 10.0
     accel_psd_standing: float = 0.01
     rate_sigma: float = 1.0
     max_gap: float = 10.0
@@ -270,7 +271,7 @@ class NlosLinkTracker:
     _pending: dict[str, tuple] = field(default_factory=dict)
 
     def belief(self, link: str, t: float, measured: float, rate: float, rel_speed2: float = 0.0,
-               standing: bool = False) -> LinkBelief:
+               standing: bool = False, rate_var: float | None = None) -> LinkBelief:
         """Score the range ``measured`` [m] of ``link`` at time ``t`` [s] and update the link.
 
         ``rate`` [m/s] is the range rate predicted from the two estimates, used to start a
@@ -278,7 +279,10 @@ class NlosLinkTracker:
         estimates: the level's prediction assumes straight relative motion, exact for two
         cars passing each other, whose range rate reverses within a fraction of a second
         (a constant-velocity range model misses that by metres). ``standing``: both vehicles
-        stand (``accel_psd_standing``). A range older than the link's last one is scored
+        stand (``accel_psd_standing``). ``rate_var`` [m²/s²], if given, is the variance of
+        ``rate``, which then also updates the level's rate at every range: two cars braking
+        towards each other change their range rate by 16 m/s within a second, which the
+        inertial velocities see at once and a range series only after the fact. A range older than the link's last one is scored
         on the link's current state without changing it. A range off the track (a step or a
         gross outlier) is judged but not followed until the next range agrees with it
         (within the UWB noise and the level's prediction): an isolated error leaves the track
@@ -288,7 +292,7 @@ class NlosLinkTracker:
         m = self.model
         lk = self._links.get(link)
         if lk is None or t - lk.t > self.max_gap:
-            return self._restart(link, t, measured, rate, lk)
+            return self._restart(link, t, measured, rate, lk, rel_speed2 if rate_var is None else rate_var)
         dt = max(t - lk.t, 0.0)
         # predict the level (constant velocity, white relative acceleration)
         q = self.accel_psd_standing if standing else self.accel_psd
@@ -301,6 +305,12 @@ class NlosLinkTracker:
         p11 = lk.p11 + dt * (2.0 * lk.p12 + dt * lk.p22) + q * dt**3 / 3.0
         p12 = lk.p12 + dt * lk.p22 + q * dt * dt / 2.0
         p22 = lk.p22 + q * dt
+        if rate_var is not None:  # the estimates' range rate now
+            s_rate = p22 + rate_var
+            k1, k2 = p12 / s_rate, p22 / s_rate
+            innov = rate - rd_p
+            r_p, rd_p = r_p + k1 * innov, rd_p + k2 * innov
+            p11, p12, p22 = p11 - k1 * p12, p12 - k1 * p22, p22 - k2 * p22
         var = p11 + self.sigma**2
         nu = measured - r_p
         # the two-state chain over dt
@@ -314,7 +324,9 @@ class NlosLinkTracker:
             "LL": _safe_log(p_los * (1.0 - p_ln)) + stay,
             "NN": _safe_log(lk.p * p_nn) + stay,
             "LN": _safe_log(p_los * p_ln) + m.log_bias_likelihood(nu, var),
-            "NL": _safe_log(lk.p * (1.0 - p_nn)) + _log_normal(nu + lk.b, var + max(lk.b2 - lk.b**2, 0.0)),
+            # an episode's end shortens the range by its bias, at least bias_min
+            "NL": (_safe_log(lk.p * (1.0 - p_nn)) + _log_normal(nu + lk.b, var + max(lk.b2 - lk.b**2, 0.0))
+                   if nu < 3.0 * math.sqrt(var) - m.bias_min else -math.inf),
         }
         if m.outlier_prob > 0.0:
             for k in logs:
@@ -332,7 +344,7 @@ class NlosLinkTracker:
         pending = self._pending.pop(link, None)
         if pending is not None and self._agrees(pending[0], pending[1], t, measured, rate):
             if pending[2] is None:  # an outlier confirmed: a change the level's prediction missed
-                return self._restart(link, t, measured, rate, lk)
+                return self._restart(link, t, measured, rate, lk, rel_speed2 if rate_var is None else rate_var)
             # the step judged on the first range off the track, confirmed by this one
             step, w, nu = True, pending[2], pending[3]
             total = w["LL"] + w["NN"] + w["LN"] + w["NL"]
@@ -366,13 +378,18 @@ class NlosLinkTracker:
         return dt > 0.0 and abs(measured - r0 - rate * dt) <= \
             3.0 * math.sqrt(2.0 * self.sigma**2 + self.accel_psd * dt**3 / 3.0) + self.rate_sigma * dt
 
-    def _restart(self, link: str, t: float, measured: float, rate: float, old: _Link | None) -> LinkBelief:
+    def _restart(self, link: str, t: float, measured: float, rate: float, old: _Link | None,
+                 rate_var: float) -> LinkBelief:
         """Start ``link``'s track at this range; its NLOS probability carried over by the chain."""
         m = self.model
         pi = m.steady
         p = pi if old is None else pi + (old.p - pi) * math.exp(-(m.enter + m.exit) * max(t - old.t, 0.0))
         b, b2 = (m.bias_mean, m.bias_mean_square) if old is None else (old.b, old.b2)
-        self._links[link] = _Link(t, measured, rate, self.sigma**2, 0.0, self.rate_sigma**2, p, b, b2)
+        # the estimates' rate is only as good as their line of sight: at a few metres with
+        # metres of position error it can have the wrong sign (rush-hour N5 at the start:
+        # -8.9 m/s for +10.7); without its variance, take the relative speed squared
+        self._links[link] = _Link(t, measured, rate, self.sigma**2, 0.0, max(self.rate_sigma**2, rate_var),
+                                  p, b, b2)
         self._pending.pop(link, None)
         return LinkBelief(p, b2)
 

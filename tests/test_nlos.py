@@ -122,11 +122,16 @@ def test_the_link_tracker_follows_an_episode_step_for_step() -> None:
     tr = _tracker()
     t = np.arange(0.0, 13.0, 0.1)
     bias = np.where((t >= 5.0) & (t < 8.0), 1.2, 0.0)
-    beliefs = [tr.belief("V2", float(tk), 20.0 + b + float(rng.normal(0.0, 0.07)), 0.0)
+    beliefs = [tr.belief("V2", float(tk), 20.0 + b + float(rng.normal(0.0, 0.07)), 0.0, standing=True)
                for tk, b in zip(t, bias)]
     p = np.array([b.p_nlos for b in beliefs])
     assert p[0] == pytest.approx(MODEL.steady)
-    assert p[49] < 0.05 and p[49] < p[10] < p[0]  # no step down for 5 s: LOS ever more likely
+    # no step for 4 s: the odds of NLOS fall as the chain says (each 0.1 s, an episode that
+    # would have ended but did not, against one that would have started but did not)
+    e = math.exp(-(MODEL.enter + MODEL.exit) * 0.1)
+    per_step = (MODEL.steady + (1 - MODEL.steady) * e) / (1 - MODEL.steady * (1 - e))
+    odds = p[:50] / (1 - p[:50])
+    assert odds[49] / odds[10] == pytest.approx(per_step**39, rel=0.02) and p[49] < 0.1
     assert p[50] > 0.99 and np.all(p[50:80] > 0.99)
     assert math.sqrt(beliefs[50].bias_mean_square) == pytest.approx(1.2, abs=0.25)
     assert p[80] < 0.01 and np.all(p[80:] < 0.01)
@@ -159,7 +164,7 @@ def test_passing_cars_and_outliers_on_the_link_tracker() -> None:
 
 def test_the_link_tracker_is_calibrated_on_emulated_links() -> None:
     """Seeded links drawn by the emulator's UWB model (two cars closing at 0-12 m/s and
-    passing, the estimates' range rate off by 0.2 m/s): among ranges given probability p of
+    passing, the estimates' range rate off by 0.2 m/s and given with that σ): among ranges given probability p of
     NLOS, a share p is NLOS; most NLOS ranges are found from the series alone, few clean ones
     are taken for NLOS, and the gross outliers are flagged."""
     from agent.range_gate import NlosLinkTracker
@@ -178,7 +183,8 @@ def test_the_link_tracker_is_calibrated_on_emulated_links() -> None:
         rr = simulate_pair(u, t, d, rng)
         tr = NlosLinkTracker(model, u.sigma_los)
         for i in np.flatnonzero(rr.delivered):
-            b = tr.belief("j", float(t[i]), float(rr.range[i]), float(-v * x[i] / d[i] + rng.normal(0.0, 0.2)), v * v)
+            b = tr.belief("j", float(t[i]), float(rr.range[i]), float(-v * x[i] / d[i] + rng.normal(0.0, 0.2)), v * v,
+                          rate_var=0.04)
             p.append(b.p_nlos)
             flagged.append(b.outlier)
             nlos.append(rr.nlos[i])
@@ -225,3 +231,27 @@ def test_a_known_link_rejects_an_episode_the_estimates_cannot_see() -> None:
         outcomes[tracking] = out
     assert all(o == "gate_nlos" for o in outcomes[True][41:])  # the first is the rate gate's? no: a 0.8 m step passes it
     assert "gate_nlos" not in outcomes[False][40:]
+
+
+def test_braking_towards_each_other_is_no_step_with_the_inertial_rate() -> None:
+    """Two cars 70 m apart on one road brake towards each other from 12 m/s at 8 m/s²: the
+    range rate goes from -24 to 0 m/s in 1.5 s. Given the range rate of the two inertial
+    velocities (σ 0.3 m/s) at every range, the track follows it and no clean range looks like
+    a step, while a 0.6 m NLOS bias that starts in the middle of the braking is found at once."""
+    t = np.arange(0.0, 4.0, 0.1)
+    v = np.maximum(12.0 - 8.0 * np.maximum(t - 1.0, 0.0), 0.0)
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * 0.1)])
+    d = 70.0 - 2.0 * x
+    rng = np.random.default_rng(2)
+    noise = rng.normal(0.0, 0.07, len(t))
+    rate = -2.0 * v + rng.normal(0.0, 0.3, len(t))
+    for bias in (0.0, 0.6):
+        tr = _tracker()
+        measured = d + noise + np.where(t >= 1.75, bias, 0.0)
+        p = np.array([tr.belief("V2", float(tk), float(r), float(rr), float((2 * vk) ** 2), rate_var=0.09).p_nlos
+                      for tk, r, rr, vk in zip(t, measured, rate, v)])
+        assert p[t < 1.75].max() <= MODEL.steady + 1e-9
+        if bias:
+            assert p[t >= 1.75].min() > 0.9
+        else:
+            assert p.max() <= MODEL.steady + 1e-9
