@@ -252,8 +252,7 @@ class NlosLinkTracker:
     accel_psd_standing : float
         The same while both stand (a ZUPT-held estimate, the car rocking on its springs).
     rate_sigma : float
-        Least uncertainty of the range rate given with a link's first range [m/s] (at least
-        the relative speed).
+        Least uncertainty of the range rate a link starts with [m/s].
     max_gap : float
         A link silent for longer than this [s] restarts (its NLOS probability carried over by
         the chain).
@@ -274,20 +273,36 @@ class NlosLinkTracker:
                standing: bool = False, rate_var: float | None = None) -> LinkBelief:
         """Score the range ``measured`` [m] of ``link`` at time ``t`` [s] and update the link.
 
-        ``rate`` [m/s] is the range rate predicted from the two estimates, used to start a
-        link; ``rel_speed2`` [m²/s²] is the squared horizontal relative speed from the two
-        estimates: the level's prediction assumes straight relative motion, exact for two
-        cars passing each other, whose range rate reverses within a fraction of a second
-        (a constant-velocity range model misses that by metres). ``standing``: both vehicles
-        stand (``accel_psd_standing``). ``rate_var`` [m²/s²], if given, is the variance of
-        ``rate``, which then also updates the level's rate at every range: two cars braking
-        towards each other change their range rate by 16 m/s within a second, which the
-        inertial velocities see at once and a range series only after the fact. A range older than the link's last one is scored
-        on the link's current state without changing it. A range off the track (a step or a
-        gross outlier) is judged but not followed until the next range agrees with it
-        (within the UWB noise and the level's prediction): an isolated error leaves the track
-        as it was, a step moves the level there, and two agreeing ranges too far off for any
-        step restart the link (a change the track could not follow).
+        Parameters
+        ----------
+        link : str
+            The neighbour at the other end.
+        t : float
+            Sensor time of the range [s]. A range older than the link's last one is scored
+            on the link's current state without changing it.
+        measured : float
+            The range [m].
+        rate : float
+            Range rate predicted from the two estimates [m/s]: it starts a link, and with
+            ``rate_var`` it also updates the level's rate at every range (two cars braking
+            towards each other change their range rate by 16 m/s within a second, which the
+            inertial velocities see at once and a range series only after the fact).
+        rel_speed2 : float
+            Squared horizontal relative speed from the two estimates [m²/s²]: the level's
+            prediction assumes straight relative motion, exact for two cars passing each
+            other, whose range rate reverses within a fraction of a second (a
+            constant-velocity range model misses that by metres).
+        standing : bool
+            Both vehicles stand (``accel_psd_standing``).
+        rate_var : float, optional
+            Variance of ``rate`` [m²/s²]; without it, ``rate`` only starts a link, with the
+            relative speed squared as its variance.
+
+        A range off the track (a step or a gross outlier) is judged but not followed until
+        the next range agrees with it (within the UWB noise and the level's prediction): an
+        isolated error leaves the track as it was, a step moves the level there, and two
+        agreeing ranges too far off for any step restart the link (a change the track could
+        not follow).
         """
         m = self.model
         lk = self._links.get(link)
