@@ -1,6 +1,8 @@
 """The UWB NLOS classifier: its posterior against numerical integration, its far tail against
 scipy, its steady prior against the Markov chain's matrix exponential, its calibration on seeded
-Monte-Carlo links, and its use by the CI range update."""
+Monte-Carlo links, and its use by the CI range update. The per-link NLOS tracker: step for step
+on an episode, the chain's closed-form decay, passing and braking cars, outliers, and its
+calibration on links drawn by the emulator."""
 
 from __future__ import annotations
 
@@ -164,9 +166,9 @@ def test_passing_cars_and_outliers_on_the_link_tracker() -> None:
 
 def test_the_link_tracker_is_calibrated_on_emulated_links() -> None:
     """Seeded links drawn by the emulator's UWB model (two cars closing at 0-12 m/s and
-    passing, the estimates' range rate off by 0.2 m/s and given with that σ): among ranges given probability p of
-    NLOS, a share p is NLOS; most NLOS ranges are found from the series alone, few clean ones
-    are taken for NLOS, and the gross outliers are flagged."""
+    passing, the estimates' range rate off by 0.2 m/s and given with that σ): among ranges
+    given probability p of NLOS, a share p is NLOS; most NLOS ranges are found from the series
+    alone, few clean ones are taken for NLOS, and the gross outliers are flagged."""
     from agent.range_gate import NlosLinkTracker
     from hw_emulation.sensors.uwb import UwbModel, simulate_pair
 
