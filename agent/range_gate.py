@@ -306,8 +306,9 @@ class NlosLinkTracker:
         """
         m = self.model
         lk = self._links.get(link)
+        start_var = rel_speed2 if rate_var is None else rate_var  # of the rate a restart takes
         if lk is None or t - lk.t > self.max_gap:
-            return self._restart(link, t, measured, rate, lk, rel_speed2 if rate_var is None else rate_var)
+            return self._restart(link, t, measured, rate, lk, start_var)
         dt = max(t - lk.t, 0.0)
         # predict the level (constant velocity, white relative acceleration)
         q = self.accel_psd_standing if standing else self.accel_psd
@@ -359,7 +360,7 @@ class NlosLinkTracker:
         pending = self._pending.pop(link, None)
         if pending is not None and self._agrees(pending[0], pending[1], t, measured, rate):
             if pending[2] is None:  # an outlier confirmed: a change the level's prediction missed
-                return self._restart(link, t, measured, rate, lk, rel_speed2 if rate_var is None else rate_var)
+                return self._restart(link, t, measured, rate, lk, start_var)
             # the step judged on the first range off the track, confirmed by this one
             step, w, nu = True, pending[2], pending[3]
             total = w["LL"] + w["NN"] + w["LN"] + w["NL"]

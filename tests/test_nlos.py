@@ -109,10 +109,10 @@ def test_the_far_tail_matches_scipy() -> None:
 
 # --- the per-link tracker ------------------------------------------------------------------
 
-def _tracker(outlier_prob: float = 0.007):
+def _tracker():
     from agent.range_gate import NlosLinkTracker
 
-    model = NlosModel(MODEL.enter, MODEL.exit, MODEL.bias_min, MODEL.bias_max, outlier_prob, 3.0, 30.0)
+    model = NlosModel(MODEL.enter, MODEL.exit, MODEL.bias_min, MODEL.bias_max, 0.007, 3.0, 30.0)
     return NlosLinkTracker(model, 0.07)
 
 
