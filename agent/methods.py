@@ -35,6 +35,7 @@ from .nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, 
 from .nav.measurements.v2v_range import range_measurement, relative_position
 from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
+from .nav.source_fusion import ANY, SourcePart
 from .nav.state import POS, VEL, NavState
 from .neighbours import NeighbourState, NeighbourTable
 from .range_gate import NlosLinkTracker, NlosModel, RangeRateGate
@@ -49,7 +50,7 @@ LANE_MARKING_FRAMES = 10
 #: longest wait [s] of the GNSS updates of a vehicle that drives off with its heading unknown
 HEADING_WAIT = 1.0
 #: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
-FUSION_RULES = ("paper", "split-ci", "ci")
+FUSION_RULES = ("paper", "source-ci", "split-ci", "ci")
 #: below this horizontal speed [m/s] (own estimate, the neighbour's beacon) a vehicle counts as
 #: standing for the UWB link's range track
 STANDING_SPEED = 0.3
@@ -176,8 +177,9 @@ class MethodFilter:
 
     def __init__(self, spec: MethodSpec, state: NavState, sigma_pos: np.ndarray, settings: FilterSettings,
                  t: float, gap: StopGapModel | None = None, origin_llh: tuple[float, float, float] | None = None,
-                 heading_known: bool = True) -> None:
+                 heading_known: bool = True, vehicle: str = "self") -> None:
         s = settings
+        self.vehicle = vehicle
         n = s.noise
         att = np.array(s.init_att_sigma)
         if not heading_known:
@@ -221,7 +223,7 @@ class MethodFilter:
             self._init_from_fix_errors()
         if s.fusion not in FUSION_RULES:
             raise ValueError(f"unknown fusion rule {s.fusion!r}; choose from {', '.join(FUSION_RULES)}")
-        if spec.ranges and s.fusion == "split-ci":
+        if spec.ranges and s.fusion in ("split-ci", "source-ci"):
             # the common-mode GNSS error is shared with the neighbours: what we know of it is
             # not independent of their estimates
             cm = tuple(range(3, self._mp.stop)) if self._mp.stop > 3 else ()
@@ -245,7 +247,10 @@ class MethodFilter:
                 if self._lane is not None:  # the same, for the lane offset (reset between lanes)
                     shared_h.add(off + self._lane.start)
                 unshared = tuple(i for i in range(self.filter.n) if i not in shared_h)
-            self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=unshared)
+            if s.fusion == "split-ci":
+                self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=unshared)
+            else:
+                self.filter.track_sources(vehicle, self._common_mode_part(), shared=cm, unshared=unshared)
         self.gap = gap
         self.origin = origin_llh
         self.heading_known = heading_known
@@ -495,10 +500,35 @@ class MethodFilter:
             h = m.H[0, POS]  # the line of sight as the model uses it (horizontal or 3-D)
             r_nb = max(float(h @ neighbour.cov_ned @ h), 0.0)
             m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
-            r_dep = np.array([[r_nb + r_bias]])
-            res = self.filter.update_split_ci(m_ind, r_dep, own_independent=s.fusion == "split-ci",
-                                              gate_probability=s.range_gate, min_gain=s.min_gain)
+            if s.fusion == "source-ci":
+                res = self._range_source_ci(m_ind, h, neighbour, r_bias)
+            else:
+                r_dep = np.array([[r_nb + r_bias]])
+                res = self.filter.update_split_ci(m_ind, r_dep, own_independent=s.fusion == "split-ci",
+                                                  gate_probability=s.range_gate, min_gain=s.min_gain)
         return self._count_range("skipped" if res.skipped else "fused" if res.accepted else "gate_nis")
+
+    def _range_source_ci(self, m: Measurement, h: np.ndarray, neighbour: NeighbourState,
+                         r_bias: float) -> UpdateResult:
+        """A range's source-CI update (:mod:`agent.nav.source_fusion`). ``m`` carries the range's
+        white noise; the neighbour's estimate enters by source (its beacon's breakdown, projected
+        on the line of sight ``h`` (3,)), and the link's NLOS bias ``r_bias`` [m²] under the
+        link's name. Both ends of a link receive the same range, so its noise is kept under the
+        same name at both: the smaller of the two ids. A beacon no older than the range may
+        already hold this very range: its white noise then counts with the link's source too."""
+        link = frozenset({min(self.vehicle, neighbour.vehicle)})
+        if neighbour.sources:
+            parts = [SourcePart(lab, max(float(h @ c @ h), 0.0)) for lab, c in neighbour.sources]
+        else:  # no breakdown: the neighbour's estimate may hold anything
+            parts = [SourcePart(frozenset({ANY}), max(float(h @ neighbour.cov_ned @ h), 0.0))]
+        if r_bias > 0.0:
+            parts.append(SourcePart(link, r_bias, correlated=True))
+        if neighbour.age <= 0.0:
+            white = float(m.R[0, 0])
+            parts.append(SourcePart(link, white, correlated=True))
+            m = Measurement(m.z, m.H, np.zeros((1, 1)), m.name)
+        s = self.settings
+        return self.filter.update_source_ci(m, parts, link, s.range_gate, s.min_gain)
 
     def _range_innovation(self, m: Measurement) -> tuple[float, float]:
         """The range's innovation, measured minus predicted [m] (the model's ``z`` is predicted
@@ -576,6 +606,8 @@ class MethodFilter:
                 P[k, :] = 0.0
                 P[:, k] = 0.0
                 P[k, k] = sigma**2
+        if f.sources is not None:
+            f.sources.clear_states(k)
         f.extra[states] = 0.0
 
     def _count_range(self, outcome: str) -> str:
@@ -599,6 +631,15 @@ class MethodFilter:
         """``(llh, v_ned, cov_pos)`` to broadcast."""
         st = self.filter.state
         return st.llh.copy(), st.v.copy(), self.filter.position_cov
+
+    def beacon_sources(self) -> tuple[tuple[tuple[str, ...], np.ndarray], ...]:
+        """The broadcast position covariance by information source: ``(labels, (3, 3) [m²])``
+        pairs, own first, summing to :meth:`beacon`'s; empty unless the rule is source CI."""
+        f = self.filter
+        if f.sources is None:
+            return ()
+        f.flush_covariance()
+        return tuple(f.sources.blocks(f.P, POS))
 
 
 def _rate_variance(u: np.ndarray, d: np.ndarray, own_cov: np.ndarray, nb_cov: np.ndarray, speed2: float) -> float:

@@ -27,6 +27,9 @@ class NeighbourState:
     cov_ned: np.ndarray  #: (3, 3) [m²]
     age: float  #: [s] since the beacon's time
     v_ned: np.ndarray = field(default_factory=lambda: np.zeros(3))  #: (3,) [m/s]
+    #: ``cov_ned`` by information source (:mod:`agent.nav.source_fusion`): ``(labels, (3, 3))``
+    #: pairs summing to it; empty if the beacon had no breakdown
+    sources: tuple[tuple[frozenset[str], np.ndarray], ...] = ()
 
 
 @dataclass
@@ -38,6 +41,7 @@ class _Entry:
     cov: np.ndarray
     method: str
     received_at: float
+    sources: tuple[tuple[frozenset[str], np.ndarray], ...] = ()
 
 
 @dataclass
@@ -64,18 +68,26 @@ class NeighbourTable:
     entries: dict[str, _Entry] = field(default_factory=dict)
     _past: dict[str, deque] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=lambda: {
-        "beacons": 0, "duplicate_or_old": 0, "stale": 0, "timed_out": 0})
+        "beacons": 0, "duplicate_or_old": 0, "stale": 0, "timed_out": 0, "sources_dropped": 0})
 
     def update(self, vehicle: str, seq: int, t: float, llh: np.ndarray, v_ned: np.ndarray,
-               cov_pos: np.ndarray, method: str, now: float) -> bool:
+               cov_pos: np.ndarray, method: str, now: float, sources=()) -> bool:
         """Store a beacon; returns False (and counts) for a duplicate, replayed or out-of-order one
-        (generation time ``t`` not newer than the last stored)."""
+        (generation time ``t`` not newer than the last stored). ``sources``: the covariance by
+        information source, ``(labels, (3, 3) [m²])`` pairs (labels: a sequence of str)."""
         old = self.entries.get(vehicle)
         if old is not None and t <= old.t:  # by generation time: a restarted sender restarts seq
             self.counters["duplicate_or_old"] += 1
             return False
+        cov_pos = np.asarray(cov_pos, float)
+        split = tuple((frozenset(lab), np.asarray(c, float)) for lab, c in sources)
+        if split and not np.allclose(sum(c for _, c in split), cov_pos, rtol=1e-6, atol=1e-9):
+            # a breakdown that does not add up is not used: the estimate counts as of unknown
+            # composition (plain CI)
+            self.counters["sources_dropped"] += 1
+            split = ()
         e = _Entry(seq, float(t), np.asarray(llh, float), np.asarray(v_ned, float),
-                   np.asarray(cov_pos, float), method, float(now))
+                   cov_pos, method, float(now), split)
         self.entries[vehicle] = e
         self._past.setdefault(vehicle, deque(maxlen=self.history)).append(e)
         self.counters["beacons"] += 1
@@ -109,7 +121,16 @@ class NeighbourTable:
         llh = earth.offset_llh(e.llh, e.v_ned * age)
         a = abs(age)
         grow = a * a * self.sigma_v**2 + a**3 * self.accel_psd / 3.0
-        return NeighbourState(vehicle, llh, e.cov + np.diag([grow, grow, grow]), age, e.v_ned)
+        G = np.diag([grow, grow, grow])
+        # the extrapolation's uncertainty is the sender's own (its motion)
+        sources = list(e.sources)
+        if sources and grow > 0.0:
+            k = next((i for i, (lab, _) in enumerate(sources) if vehicle in lab), None)
+            if k is None:
+                sources.append((frozenset({vehicle}), G))
+            else:
+                sources[k] = (sources[k][0], sources[k][1] + G)
+        return NeighbourState(vehicle, llh, e.cov + G, age, e.v_ned, tuple(sources))
 
     def newest_time(self, vehicle: str) -> float | None:
         """Time [s] of the newest beacon of ``vehicle``, or None."""

@@ -305,7 +305,8 @@ class Agent:
                 self.excluded_from[msg.vehicle] = self.excluded_from.get(msg.vehicle, 0) + 1
                 return
             now = self.seq.t if self.seq.t is not None else msg.t
-            tab.update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos, msg.method, now)
+            tab.update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos, msg.method, now,
+                       msg.sources)
             if self._deferred:
                 self._fuse_ranges()
             if msg.method in self.trackers:
@@ -451,7 +452,8 @@ class Agent:
         moving = math.hypot(fix.v_ned[0], fix.v_ned[1]) > 1.0
         for m in self.cfg.methods:
             self.filters[m] = MethodFilter(MethodSpec.of(m), st0.copy(), fix.sigma_ned, self.cfg.settings,
-                                           t0, self.cfg.gap, self.cfg.origin_llh, heading_known=moving)
+                                           t0, self.cfg.gap, self.cfg.origin_llh, heading_known=moving,
+                                           vehicle=self.cfg.vehicle)
         self.seq.t = t0
         for name, rate in (("beacon", self.cfg.beacon_rate), ("estimate", self.cfg.estimate_rate),
                            ("decision", self.cfg.decision_rate), ("diag", 1.0)):
@@ -535,7 +537,7 @@ class Agent:
                 if f.spec.ranges or f.spec.stop_line:
                     llh, v, cov = f.beacon()
                     b = Beacon(self.cfg.vehicle, self._beacon_seq, m, t, llh, v, cov,
-                               first_stopped=self.claim(m))
+                               first_stopped=self.claim(m), sources=f.beacon_sources())
                     if self.cfg.signer is not None:
                         b = self.cfg.signer.sign(b)
                     await self.bus.publish(keys.radio_tx(self.cfg.vehicle), encode(b))

@@ -71,7 +71,8 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
         sigma_uwb[vid] = settings.sigma_uwb
         for m in methods:
             filters[(vid, m)] = MethodFilter(MethodSpec.of(m), st0.copy(), g.sigma_ned[0], settings, float(t[0]),
-                                             gap, scn.origin_llh, heading_known=np.hypot(*g.v_ned[0, :2]) > 1.0)
+                                             gap, scn.origin_llh, heading_known=np.hypot(*g.v_ned[0, :2]) > 1.0,
+                                             vehicle=vid)
     tables = {(vid, m): NeighbourTable() for vid in ids for m in methods}
     trackers = {(vid, m): StopTracker(detectors[vid]) for vid in ids for m in methods if MethodSpec.of(m).stop_line}
 
@@ -144,16 +145,17 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                     if not (spec.ranges or spec.stop_line):  # SL methods need beacons to detect "first"
                         continue
                     llh, v, cov = filters[(a, m)].beacon()
+                    src = filters[(a, m)].beacon_sources()
                     for b in ids:
                         if b != a and fates[(a, b)].delivered[j]:
                             pending.append((float(fates[(a, b)].t_arrive[j]), a, b, m,
-                                            (j, tk, llh, v, cov, claim_of(a, m))))
+                                            (j, tk, llh, v, cov, claim_of(a, m), src)))
         if pending:
             still = []
             for item in pending:
-                arrive, a, b, m, (seq, tb, llh, v, cov, claim_at_send) = item
+                arrive, a, b, m, (seq, tb, llh, v, cov, claim_at_send, src) = item
                 if arrive <= tk:
-                    if tables[(b, m)].update(a, seq, tb, llh, v, cov, m, tk) and (b, m) in trackers:
+                    if tables[(b, m)].update(a, seq, tb, llh, v, cov, m, tk, src) and (b, m) in trackers:
                         trackers[(b, m)].observe_neighbour(a, tb, float(np.hypot(v[0], v[1])), claim_at_send)
                 else:
                     still.append(item)

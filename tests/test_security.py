@@ -152,11 +152,17 @@ def test_an_agent_signs_what_it_sends(fleet) -> None:
 
     agent.bus = Bus()
     agent.filters = {"CP": type("F", (), {"spec": type("S", (), {"ranges": True, "stop_line": False})(),
-                                          "beacon": lambda self: (np.array([0.7, 2.0, 5.0]), np.zeros(3), np.eye(3))})()}
+                                          "beacon": lambda self: (np.array([0.7, 2.0, 5.0]), np.zeros(3), np.eye(3)),
+                                          "beacon_sources": lambda self: ((("V2",), 0.75 * np.eye(3)),
+                                                                          (("V0", "~common"), 0.25 * np.eye(3)))})()}
     agent._next["beacon"] = 10.0
     asyncio.run(agent._timers(10.0))
     store = TrustStore.from_dir(fleet)
     assert len(sent) == 1 and store.verify(decode(sent[0])) == "ok"
+    # the breakdown by source is signed with the rest
+    b = decode(sent[0])
+    assert [lab for lab, _ in b.sources] == [("V2",), ("V0", "~common")]
+    assert store.verify(dataclasses.replace(b, sources=((("V2",), np.eye(3)),))) == "bad_signature"
 
 
 def test_security_section_errors_name_the_field(fleet, tmp_path) -> None:

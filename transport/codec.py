@@ -21,6 +21,7 @@ SCHEMA_VERSION = 1
 MAX_PAYLOAD = 256 * 1024  #: bytes; larger payloads are rejected
 MAX_SAMPLES = 1000  #: max samples in an IMU batch
 MAX_STR = 64  #: max length of ids and method names
+MAX_SOURCES = 64  #: max components of a beacon's covariance by source, and labels per component
 _TYPE_NAME = {cls: name for name, cls in MESSAGE_TYPES.items()}
 
 #: per-type array fields and their shapes; None = leading dimension n (shared within the message)
@@ -53,6 +54,9 @@ def encode(msg: Message) -> bytes:
         val = getattr(msg, f.name)
         if f.name in _ARRAYS[name]:
             out[f.name] = np.ascontiguousarray(val, dtype="<f8").tobytes()
+        elif f.name == "sources":
+            if val:  # absent when empty: beacons without the breakdown stay as they were
+                out[f.name] = [[list(lab), np.ascontiguousarray(c, dtype="<f8").tobytes()] for lab, c in val]
         elif isinstance(val, (np.floating, np.integer)):
             out[f.name] = val.item()
         else:
@@ -109,7 +113,25 @@ def _check_peers(name: str, fname: str, val: Any) -> tuple[str, ...]:
     return tuple(_check_str(name, fname, v) for v in val)
 
 
-_VALIDATORS = {"auth": _check_auth, "peers": _check_peers, "first_stopped": _check_bool, "counters": _check_counters,
+def _check_sources(name: str, fname: str, val: Any) -> tuple:
+    if not isinstance(val, (list, tuple)) or len(val) > MAX_SOURCES:
+        raise CodecError(f"{name}.sources: must be a list of at most {MAX_SOURCES} components")
+    out = []
+    for item in val:
+        if not isinstance(item, (list, tuple)) or len(item) != 2:
+            raise CodecError(f"{name}.sources: each component must be [labels, covariance]")
+        labels, cov = item
+        if not isinstance(labels, (list, tuple)) or not 0 < len(labels) <= MAX_SOURCES:
+            raise CodecError(f"{name}.sources: labels must be a list of 1-{MAX_SOURCES} strings")
+        labels = tuple(_check_str(name, fname, lab) for lab in labels)
+        c, _ = _array(name, fname, cov, (3, 3), None)
+        if np.any(np.diag(c) < 0.0) or not np.allclose(c, c.T, rtol=1e-9, atol=1e-12):
+            raise CodecError(f"{name}.sources: a covariance must be symmetric with a non-negative diagonal")
+        out.append((labels, c))
+    return tuple(out)
+
+
+_VALIDATORS = {"auth": _check_auth, "sources": _check_sources, "peers": _check_peers, "first_stopped": _check_bool, "counters": _check_counters,
                "status": _check_status}
 
 

@@ -102,6 +102,7 @@ class Beacon(Message):
 
     ``cov_pos`` is the NED position covariance [m²] (3, 3). ``first_stopped`` is the sender's
     claim to be the first stopped vehicle of its lane (used by the receivers' detectors).
+    ``sources`` splits ``cov_pos`` by the source of the information (:mod:`agent.nav.source_fusion`).
     ``auth`` carries an optional signature block (key id + signature), opaque to the codec.
     """
 
@@ -114,6 +115,9 @@ class Beacon(Message):
     cov_pos: np.ndarray
     auth: bytes = b""
     first_stopped: bool = False
+    #: ``cov_pos`` by information source (source CI): ``(labels, (3, 3) [m²])`` pairs, the
+    #: sender's own first; empty when the sender does not split its covariance
+    sources: tuple[tuple[tuple[str, ...], np.ndarray], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)

@@ -16,6 +16,7 @@ import numpy as np
 from .error_model import ImuNoise, discretize_density, process_noise_density, system_matrix
 from .fusion import split_ci_update
 from .kalman import Measurement, UpdateResult, joseph, kalman_update, stack
+from .source_fusion import COMMON_MODE, SourcePart, SourceSplit
 from .mechanization import mechanize_run
 from .rotation import euler_to_quat, quat_to_euler, wrap_angle
 from .state import ATT, N_STATES, POS, VEL, NavState, remove_error
@@ -113,6 +114,9 @@ class InsFilter:
         #: independent part of P for split covariance intersection (None: not tracked); see
         #: :meth:`track_independent`
         self.P_ind: np.ndarray | None = None
+        #: P split by information source for source CI (None: not tracked); see
+        #: :meth:`track_sources`
+        self.sources: SourceSplit | None = None
         #: the heading is unknown (a vehicle that starts standing): yaw takes no part in updates
         self.yaw_free = False
         self._shared = np.zeros(0, int)
@@ -149,6 +153,26 @@ class InsFilter:
         self.P_ind = self.P - (dependent if dependent is not None else 0.0)
         self._shared = np.array([self.n_scale + N_STATES + k for k in shared], int)
         self._unshared = np.array(unshared, int)
+
+    def track_sources(self, me: str, common_mode: np.ndarray | None = None, shared: tuple[int, ...] = (),
+                      unshared: tuple[int, ...] = ()) -> None:
+        """Start splitting P by information source (:mod:`agent.nav.source_fusion`).
+
+        Parameters
+        ----------
+        me : str
+            This vehicle's id, the name of its own source.
+        common_mode : ndarray, shape (n, n), optional
+            The part of the current P that comes from the GNSS error all vehicles share.
+        shared, unshared : tuple of int
+            As :meth:`track_independent`: extra states whose process noise is the shared GNSS
+            error's, and states no cooperative measurement observes.
+        """
+        self.flush_covariance()
+        self.sources = SourceSplit(me, self.n, unshared,
+                                   [self.n_scale + N_STATES + k for k in shared])
+        if common_mode is not None:
+            self.sources.add(frozenset({COMMON_MODE}), np.array(common_mode, float))
 
     # ------------------------------------------------------------------ propagation
     def propagate(self, dtheta, dvel, dt: float) -> None:
@@ -243,6 +267,8 @@ class InsFilter:
                 qd[:, self._shared] = 0.0
             Pi = phi @ self.P_ind @ phi.T + qd
             self.P_ind = 0.5 * (Pi + Pi.T)
+        if self.sources is not None:
+            self.sources.propagate(phi, qd)
         self._acc_dt = 0.0
         self._acc_dv_b = (0.0, 0.0, 0.0)
         self._acc_dth_b = (0.0, 0.0, 0.0)
@@ -271,6 +297,8 @@ class InsFilter:
         if result.accepted:
             if self.P_ind is not None:  # an own-sensor measurement: independent information
                 self.P_ind = joseph(self.P_ind, result.gain, meas.H, meas.R)
+            if self.sources is not None:  # the same: its noise is the own component's
+                self.sources.transform(result.gain, meas.H)
             self._feedback(dx)
             self.P = P
         self.stats.count(result)
@@ -308,6 +336,31 @@ class InsFilter:
             self.stats.count(result)
         return result
 
+    def update_source_ci(self, meas: Measurement, parts: list[SourcePart], noise_labels: frozenset[str],
+                         gate_probability: float | None = None, min_gain: float = 0.0) -> UpdateResult:
+        """Source-CI update (:mod:`agent.nav.source_fusion`) with closed-loop feedback.
+
+        ``meas.R`` is the measurement's white noise, kept under ``noise_labels``; ``parts`` the
+        rest of its error by source (e.g. the neighbour's components). The weights minimise the
+        horizontal position variance; ``min_gain`` as :meth:`update_split_ci`.
+        """
+        if self.sources is None:
+            raise RuntimeError("source CI needs track_sources() first")
+        self.flush_covariance()
+        self._isolate_yaw()
+        if meas.H.shape[1] < self.n:
+            H = np.zeros((meas.H.shape[0], self.n))
+            H[:, : meas.H.shape[1]] = meas.H
+            meas = Measurement(meas.z, H, meas.R, meas.name)
+        dx, P, result = self.sources.update(self.P, meas, parts, _HORIZONTAL, noise_labels,
+                                            gate_probability, min_gain)
+        if result.accepted:
+            self._feedback(dx)
+            self.P = P
+        if not result.skipped:
+            self.stats.count(result)
+        return result
+
     def _feedback(self, dx: np.ndarray) -> None:
         """Remove the estimated error from the nominal state (closed loop)."""
         self.state = remove_error(self.state, dx[:N_STATES])
@@ -340,6 +393,8 @@ class InsFilter:
                 P[2, :] = 0.0
                 P[:, 2] = 0.0
                 P[2, 2] = d
+        if self.sources is not None:
+            self.sources.decorrelate(2)
 
     def reset_yaw(self, yaw: float, sigma: float) -> None:
         """Replace the heading by ``yaw`` [rad] (e.g. from the GNSS course) with std ``sigma``.
@@ -360,6 +415,8 @@ class InsFilter:
             self.P_ind[2, :] = 0.0
             self.P_ind[:, 2] = 0.0
             self.P_ind[2, 2] = sigma**2
+        if self.sources is not None:
+            self.sources.clear_states([2])
 
     def reset_velocity(self, v_ned: np.ndarray, sigma: float) -> None:
         """Replace the velocity by ``v_ned`` (3,) [m/s] (e.g. a GNSS velocity) with std ``sigma``
@@ -372,6 +429,8 @@ class InsFilter:
                 P[VEL, :] = 0.0
                 P[:, VEL] = 0.0
                 P[VEL, VEL] = np.eye(3) * sigma**2
+        if self.sources is not None:
+            self.sources.clear_states(np.arange(VEL.start, VEL.stop))
 
     def inflate_position(self, variance: np.ndarray) -> None:
         """Add ``variance`` (3,) [m²] to the NED position error variances: uncertainty of the
