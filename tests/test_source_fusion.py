@@ -1,0 +1,147 @@
+"""Source CI (agent/nav/source_fusion.py): exact where the sources are disjoint, plain CI where
+nothing is known of the neighbour, conservative where information goes round a loop (where split
+CI is not), and its bookkeeping."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agent.nav.fusion import split_ci_update
+from agent.nav.kalman import Measurement, kalman_update
+from agent.nav.source_fusion import ANY, COMMON_MODE, MAX_COMPONENTS, SourcePart, SourceSplit
+
+IDX = np.array([0, 1])
+
+
+def _spd(rng: np.random.Generator, n: int, scale: float = 1.0) -> np.ndarray:
+    A = rng.normal(size=(n, n))
+    return scale * (A @ A.T / n + 0.1 * np.eye(n))
+
+
+def test_sources_the_neighbour_does_not_share_are_fused_as_independent() -> None:
+    """Nothing in common: the update is the Kalman update with the neighbour's variance added to
+    the noise, and its share is kept under the neighbour's name."""
+    rng = np.random.default_rng(1)
+    P = _spd(rng, 4)
+    h = np.array([[0.6, 0.8, 0.1, 0.0]])
+    m = Measurement(np.array([0.3]), h, np.array([[0.01]]), "range")
+    parts = [SourcePart(frozenset({"V1"}), 0.5), SourcePart(frozenset({"V2"}), 0.2)]
+    split = SourceSplit("V0", 4)
+    dx, P_post, res = split.update(P, m, parts, IDX, frozenset({"V0"}))
+    dx_k, P_k, _ = kalman_update(P, Measurement(m.z, h, np.array([[0.71]]), "range"))
+    assert res.accepted and res.omega == 1.0
+    np.testing.assert_allclose(dx, dx_k, rtol=1e-12)
+    np.testing.assert_allclose(P_post, P_k, rtol=1e-10, atol=1e-14)
+    K = res.gain[:, 0]
+    assert split.labels == [frozenset({"V1"}), frozenset({"V2"})]
+    np.testing.assert_allclose(split.parts[0], 0.5 * np.outer(K, K))
+    # the own component is the rest, and the parts add up to P
+    np.testing.assert_allclose(split.own(P_post) + sum(split.parts), P_post)
+
+
+def test_a_neighbour_of_unknown_composition_is_plain_ci() -> None:
+    """A beacon without the breakdown (:data:`ANY`) pairs with everything: the same posterior as
+    split CI with no independent part (plain CI)."""
+    rng = np.random.default_rng(2)
+    P = _spd(rng, 4)
+    h = np.array([[0.6, 0.8, 0.0, 0.2]])
+    m = Measurement(np.array([0.4]), h, np.array([[0.01]]), "range")
+    split = SourceSplit("V0", 4)
+    split.add(frozenset({"V3"}), 0.3 * P)
+    dx, P_post, res = split.update(P, m, [SourcePart(frozenset({ANY}), 0.05)], IDX, frozenset({"V0"}))
+    dx_ci, P_ci, _, res_ci = split_ci_update(P, np.zeros_like(P), m, np.array([[0.05]]), IDX)
+    assert 0.1 < res_ci.omega < 0.95 and res.omega == pytest.approx(res_ci.omega, abs=2e-3)
+    np.testing.assert_allclose(P_post, P_ci, rtol=2e-3, atol=1e-6)
+    np.testing.assert_allclose(dx, dx_ci, rtol=2e-3, atol=1e-6)
+    assert split.labels == [] and ANY in split.own_labels  # everything is of unknown source now
+
+
+def _loop(rule: str, runs: int = 400, steps: int = 15, seed: int = 7) -> tuple[float, float]:
+    """Two static vehicles on a line of sight ``e``. V0 starts from one good fix (σ 0.5 m);
+    V1 knows nothing (σ 5 m) and has no sensor of its own. At every step both fuse the same
+    range (σ 0.05 m) with the other's estimate of the step's start. Nothing ever adds to what
+    V0's fix told: V0's true error stays. Returns V0's NEES (n = 2) over the runs at the end,
+    and the ratio of its reported to its true variance along ``e``."""
+    rng = np.random.default_rng(seed)
+    e = np.array([0.8, 0.6])
+    nees, rep, err_e = [], [], []
+    for _ in range(runs):
+        p = [np.zeros(2), np.array([-8.0, -6.0])]
+        P = [0.25 * np.eye(2), 25.0 * np.eye(2)]
+        x = [p[0] + rng.normal(0.0, 0.5, 2), p[1] + rng.normal(0.0, 5.0, 2)]
+        src = [SourceSplit("V0", 2), SourceSplit("V1", 2)]
+        P_ind = [P[0].copy(), P[1].copy()]
+        for _ in range(steps):
+            z = float(e @ (p[0] - p[1])) + rng.normal(0.0, 0.05)
+            beacon = [(x[i].copy(), P[i].copy(), src[i].blocks(P[i], slice(0, 2))) for i in range(2)]
+            for i, j in ((0, 1), (1, 0)):
+                xj, Pj, bj = beacon[j]
+                sign = 1.0 if i == 0 else -1.0
+                h = sign * e
+                nu = z - sign * float(e @ (x[i] - xj))
+                m = Measurement(np.array([nu]), h[None, :], np.array([[0.05**2]]), "range")
+                if rule == "source-ci":
+                    parts = [SourcePart(frozenset(lab), float(h @ c @ h)) for lab, c in bj]
+                    dx, P[i], res = src[i].update(P[i], m, parts, IDX, frozenset({"V0"}))
+                else:
+                    dx, P[i], P_ind[i], res = split_ci_update(P[i], P_ind[i], m, np.array([[float(h @ Pj @ h)]]), IDX)
+                assert res.accepted
+                x[i] = x[i] + dx
+        d = x[0] - p[0]
+        nees.append(float(d @ np.linalg.solve(P[0], d)))
+        rep.append(float(e @ P[0] @ e))
+        err_e.append(float(e @ d))
+    return float(np.mean(nees)), float(np.mean(rep) / np.mean(np.square(err_e)))
+
+
+def test_own_information_coming_back_is_not_taken_for_news() -> None:
+    """The loop that made split CI overconfident: V1's estimate is V0's fix moved by the range,
+    and split CI counts it as independent of V0's own part. Source CI pairs it with V0's own
+    component and gains nothing from it."""
+    nees_split, ratio_split = _loop("split-ci")
+    nees_src, ratio_src = _loop("source-ci")
+    # 400 runs: the NEES of a consistent filter is 2 ± 0.2 (2 σ of χ²₂'s mean)
+    assert nees_split > 2.7 and ratio_split < 0.6  # split CI: V0 believes it halved its error
+    assert nees_src < 2.2 and 0.9 < ratio_src < 1.25
+
+
+def test_bookkeeping_merges_what_shares_a_source_and_caps_the_components() -> None:
+    rng = np.random.default_rng(3)
+    split = SourceSplit("V0", 3)
+    A, B, C = (_spd(rng, 3) for _ in range(3))
+    split.add(frozenset({"V1"}), A)
+    split.add(frozenset({"V2"}), B)
+    split.add(frozenset({"V1", "V2"}), C)  # names both: one component of both
+    assert split.labels == [frozenset({"V1", "V2"})]
+    np.testing.assert_allclose(split.parts[0], A + B + C)
+    split.add(frozenset({"V2", "V0"}), None)  # shares a source with the own one: all become own
+    assert split.labels == [] and split.own_labels == {"V0", "V1", "V2"}
+    for k in range(MAX_COMPONENTS + 3):
+        split.add(frozenset({f"W{k}"}), (k + 1) * np.eye(3))
+    assert len(split.parts) == MAX_COMPONENTS
+    assert sum(len(lab) for lab in split.labels) == MAX_COMPONENTS + 3  # no source lost
+    assert float(sum(np.trace(c) for c in split.parts)) == pytest.approx(3.0 * sum(range(1, MAX_COMPONENTS + 4)))
+
+
+def test_shared_process_noise_and_own_updates_keep_the_split() -> None:
+    """Process noise of the shared states goes to the common-mode component, the rest to the own
+    one; an own-sensor update carries every component through (I - KH)."""
+    rng = np.random.default_rng(4)
+    n = 4
+    split = SourceSplit("V0", n, shared_process=[3])
+    C = _spd(rng, n, 0.2)
+    split.add(frozenset({"V1"}), C)
+    phi = np.eye(n) + 0.1 * rng.normal(size=(n, n))
+    qd = np.diag([0.1, 0.2, 0.3, 0.4])
+    split.propagate(phi, qd)
+    np.testing.assert_allclose(split.parts[0], phi @ C @ phi.T)
+    assert split.labels[1] == {COMMON_MODE}
+    np.testing.assert_allclose(split.parts[1], np.diag([0.0, 0.0, 0.0, 0.4]))
+    K = rng.normal(size=(n, 1))
+    H = rng.normal(size=(1, n))
+    before = [c.copy() for c in split.parts]
+    split.transform(K, H)
+    A = np.eye(n) - K @ H
+    for b, c in zip(before, split.parts):
+        np.testing.assert_allclose(c, A @ b @ A.T, atol=1e-12)
