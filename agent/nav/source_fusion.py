@@ -156,6 +156,11 @@ class SourceSplit:
         """Carry every stored component through an own-sensor update with gain ``K`` (n, m) and
         Jacobian ``H`` (m, n): ``(I - K H) P_s (I - K H)ᵀ``; the measurement noise ``K R Kᵀ``
         is the own component's."""
+        if H.shape[0] == 1:
+            k, h = K[:, 0], H[0]
+            kk = np.outer(k, k)
+            self.parts = [_rank_one_transform(C, k, h, kk) for C in self.parts]
+            return
         A = -(K @ H)
         A.flat[:: self.n + 1] += 1.0
         for k, C in enumerate(self.parts):
@@ -299,28 +304,34 @@ class SourceSplit:
         P_post = P1 - np.outer(K, K) * S
         P_post = 0.5 * (P_post + P_post.T)
         # the components: carried through the update, mine inflated in their groups
-        A_ = -np.outer(K, h)
-        A_.flat[:: n + 1] += 1.0
         scale = {}
         for wg, (gm, gp, _, _) in zip(w, dep):
             for k in gm:
                 scale[k] = 1.0 / wg
             for j in gp:
                 scale[("p", j)] = 1.0 / (1.0 - wg)
-        mask = np.outer(shared, shared)
+        mask = np.outer(shared, shared) if self._unshared.size else None
+        KK = np.outer(K, K)
         for k in range(1, len(mine)):
             C = self.parts[k - 1]
             if k in scale:
-                C = C + (scale[k] - 1.0) * C * mask
-            C = A_ @ C @ A_.T
-            self.parts[k - 1] = 0.5 * (C + C.T)
-        KK = np.outer(K, K)
+                C = C + (scale[k] - 1.0) * (C if mask is None else C * mask)
+            self.parts[k - 1] = _rank_one_transform(C, K, h, KK)
         for j, p in enumerate(parts):
             var = share[j] * scale.get(("p", j), 1.0)
             if var > 0.0:
                 self.add(p.labels, KK * var)
         self.add(noise_labels, KK * float(meas.R[0, 0]))
         return dx, P_post, UpdateResult(dx, nis, 1, True, meas.name, K[:, None], omega)
+
+
+def _rank_one_transform(C: np.ndarray, k: np.ndarray, h: np.ndarray, kk: np.ndarray) -> np.ndarray:
+    """``(I - k hᵀ) C (I - k hᵀ)ᵀ`` for a symmetric ``C`` (n, n), gain ``k`` (n,) and
+    Jacobian row ``h`` (n,), in O(n²); ``kk`` is ``k kᵀ``."""
+    c = C @ h
+    kc = np.outer(k, c)
+    out = C - kc - kc.T + float(h @ c) * kk
+    return 0.5 * (out + out.T)
 
 
 def _combine(parts: list[SourcePart]) -> float:
