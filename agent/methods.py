@@ -513,10 +513,10 @@ class MethodFilter:
         """A range's source-CI update (:mod:`agent.nav.source_fusion`). ``m`` carries the range's
         white noise; the neighbour's estimate enters by source (its beacon's breakdown, projected
         on the line of sight ``h`` (3,)), and the link's NLOS bias ``r_bias`` [m²] under the
-        link's name. Both ends of a link receive the same range, so its noise is kept under the
-        same name at both: the smaller of the two ids. A beacon no older than the range may
+        link's name. Both ends of a link receive the same range, so its noise is a source of its
+        own, named after the link (``"V0|V1"``) at both ends. A beacon no older than the range may
         already hold this very range: its white noise then counts with the link's source too."""
-        link = frozenset({min(self.vehicle, neighbour.vehicle)})
+        link = frozenset({"|".join(sorted((self.vehicle, neighbour.vehicle)))})
         if neighbour.sources:
             parts = [SourcePart(lab, max(float(h @ c @ h), 0.0)) for lab, c in neighbour.sources]
         else:  # no breakdown: the neighbour's estimate may hold anything
