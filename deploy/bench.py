@@ -84,6 +84,7 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
         ff.P_ind = None if saved[2] is None else saved[2].copy()
         f.range(nb, 7.0)
     out["range_update_split_ci_us"] = _time_us(range_step, n(500))
+    out["range_update_source_ci_us"] = _source_ci_cost(cfg, st0, float(tr.t[k]), nb, n(500))
     lane = cfg.lanes["NB_in"].approach
 
     def sl():
@@ -96,6 +97,10 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     out["beacon_encode_us"] = _time_us(lambda: encode(b), n(5000))
     out["beacon_decode_us"] = _time_us(lambda: decode(payload), n(5000))
     out["beacon_bytes"] = float(len(payload))
+    # with source CI's breakdown: the own part, the common-mode error, two vehicles, two links
+    labels = (("V1",), ("~common",), ("V0",), ("V2",), ("V0|V1",), ("V1|V2",))
+    out["beacon_bytes_source_ci"] = float(len(encode(dataclasses.replace(
+        b, sources=tuple((lab, np.eye(3) / 6.0) for lab in labels)))))
     # signing (ECDSA P-256 / SHA-256 over the canonical encoding) and verifying
     import tempfile
 
@@ -114,6 +119,34 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
              + 2 * 2 * 10 * out["range_update_split_ci_us"] + 2 * out["stop_line_update_us"])
     out["four_methods_cpu_share"] = per_s / 1e6
     return out
+
+
+def _source_ci_cost(cfg, st0, t: float, nb, n: int) -> float:
+    """One source-CI range update [µs] of SL-CP by a vehicle whose covariance already has six
+    components (the common-mode GNSS error, three vehicles, two links) with a neighbour whose
+    beacon carries five, from the same prior each time."""
+    from agent.methods import MethodFilter, MethodSpec
+    from agent.nav.source_fusion import COMMON_MODE
+    from agent.neighbours import NeighbourState
+
+    settings = dataclasses.replace(cfg.settings, fusion="source-ci", min_gain=0.0)
+    f = MethodFilter(MethodSpec.of("SL-CP"), st0.copy(), np.array([3.0, 3.0, 5.0]), settings, t, cfg.gap,
+                     cfg.origin_llh, vehicle="V1")
+    ff = f.filter
+    ff.flush_covariance()
+    for lab in ("V0", "V3", "V4", "V0|V1", "V1|V3"):
+        ff.sources.add(frozenset({lab}), 0.05 * ff.P)
+    split = [(("V2",), 2.0 * np.eye(3)), ((COMMON_MODE,), 0.5 * np.eye(3)), (("V0",), 0.5 * np.eye(3)),
+             (("V1",), 0.5 * np.eye(3)), (("V1|V2",), 0.5 * np.eye(3))]
+    nb = NeighbourState(nb.vehicle, nb.llh, nb.cov_ned, nb.age, nb.v_ned,
+                        tuple((frozenset(lab), c) for lab, c in split))
+    saved = (ff.state.copy(), ff.P.copy(), list(ff.sources.labels), [c.copy() for c in ff.sources.parts])
+
+    def step():
+        ff.state, ff.P = saved[0].copy(), saved[1].copy()
+        ff.sources.labels, ff.sources.parts = list(saved[2]), [c.copy() for c in saved[3]]
+        f.range(nb, 7.0)
+    return _time_us(step, n)
 
 
 def _decision_costs(fresh, llh: np.ndarray, t: float, cfg, rm: float, n: int) -> dict[str, float]:

@@ -24,6 +24,21 @@ def test_extrapolation_and_covariance_growth() -> None:
     assert s.age == pytest.approx(0.2)
 
 
+def test_the_breakdown_by_source_grows_with_the_sender_and_must_add_up() -> None:
+    """The extrapolation's growth is the sender's own; a breakdown that does not add up to the
+    covariance is dropped (the estimate counts as of unknown composition) and counted."""
+    tab = NeighbourTable(sigma_v=0.5, accel_psd=1.0)
+    split = ((("V2",), 0.75 * np.eye(3)), (("~common", "V0"), 0.25 * np.eye(3)))
+    tab.update("V2", 1, 10.0, LLH, np.zeros(3), np.eye(3), "SL-CP", now=10.0, sources=split)
+    s = tab.at("V2", 10.2)
+    grow = 0.04 * 0.25 + 0.008 / 3
+    assert [set(lab) for lab, _ in s.sources] == [{"V2"}, {"V0", "~common"}]
+    assert np.allclose(s.sources[0][1], (0.75 + grow) * np.eye(3)) and np.allclose(s.sources[1][1], 0.25 * np.eye(3))
+    assert np.allclose(sum(c for _, c in s.sources), s.cov_ned)
+    tab.update("V2", 2, 10.1, LLH, np.zeros(3), 2.0 * np.eye(3), "SL-CP", now=10.1, sources=split)
+    assert tab.counters["sources_dropped"] == 1 and tab.at("V2", 10.1).sources == ()
+
+
 def test_stale_duplicate_and_timeout() -> None:
     tab = NeighbourTable(max_age=0.3, timeout=2.0)
     tab.update("V2", 5, 10.0, LLH, np.zeros(3), np.eye(3), "SP", now=10.0)

@@ -49,7 +49,8 @@ messages = st.one_of(
     st.builds(UwbRange, names, names, seqs, finite, finite),
     st.builds(LaneMarkings, names, seqs, finite, st.integers(0, 2), st.integers(0, 2)),
     st.builds(Beacon, names, seqs, names, finite, arr((3,)), arr((3,)), arr((3, 3)), st.binary(max_size=100),
-              st.booleans()),
+              st.booleans(), st.lists(st.tuples(st.lists(names, min_size=1, max_size=3).map(tuple),
+                                                 st.just(np.diag([0.5, 0.25, 2.0]))), max_size=4).map(tuple)),
     st.builds(Estimate, names, names, finite, arr((3,)), arr((3,)), arr((3,)), arr((3, 3)), st.booleans()),
     st.builds(Diagnostics, names, finite, st.dictionaries(names, st.integers(0, 2**40), max_size=5),
               st.dictionaries(names, st.one_of(st.integers(0, 100), names, finite), max_size=5)),
@@ -95,6 +96,20 @@ def test_truncated_and_wrong_version_and_types() -> None:
         bad = dict(obj, **change)
         with pytest.raises(CodecError, match=match):
             decode(msgpack.packb(bad, use_bin_type=True))
+    for sources, match in [
+        (3, "list of at most"),
+        ([[["V0"], np.eye(3).tobytes()]] * 65, "list of at most"),
+        ([["V0", np.eye(3).tobytes()]], "labels must be a list"),
+        ([[[], np.eye(3).tobytes()]], "labels must be a list"),
+        ([[["V0"]]], r"\[labels, covariance\]"),
+        ([[["V0"], np.eye(2).tobytes()]], "expected 9 values"),
+        ([[["V0"], (-np.eye(3)).tobytes()]], "non-negative diagonal"),
+        ([[["V0"], np.array([[1, 0.5, 0], [0, 1, 0], [0, 0, 1.0]]).tobytes()]], "symmetric"),
+        ([[["V0"], np.full(9, np.inf).tobytes()]], "non-finite"),
+        ([[[7], np.eye(3).tobytes()]], "string"),
+    ]:
+        with pytest.raises(CodecError, match=match):
+            decode(msgpack.packb(dict(obj, sources=sources), use_bin_type=True))
     del obj["llh"]
     with pytest.raises(CodecError, match="missing field 'llh'"):
         decode(msgpack.packb(obj, use_bin_type=True))

@@ -23,6 +23,10 @@ class Message:
             if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
                 if not np.array_equal(np.asarray(a), np.asarray(b)):
                     return False
+            elif f.name == "sources":  # (labels, array) pairs
+                if len(a) != len(b) or any(tuple(la) != tuple(lb) or not np.array_equal(ca, cb)
+                                           for (la, ca), (lb, cb) in zip(a, b)):
+                    return False
             elif a != b:
                 return False
         return True
