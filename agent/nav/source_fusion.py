@@ -226,8 +226,8 @@ class SourceSplit:
             As :func:`agent.nav.kalman.kalman_update`; the components are updated in place when
             the update is applied. ``result.omega`` is the smallest group weight (1 if none).
         """
-        if meas.dim != 1:
-            raise ValueError("source CI takes scalar measurements")
+        if meas.dim != 1 or len(idx) != 2:
+            raise ValueError("source CI takes scalar measurements and two states to minimise")
         n = self.n
         h = meas.H[0]
         r_ind = float(meas.R[0, 0])
@@ -238,7 +238,12 @@ class SourceSplit:
         shared = np.ones(n, bool)
         if self._unshared.size:
             shared[self._unshared] = False
-        dep: list[tuple[list[int], list[int], np.ndarray, float]] = []
+        # per group: my side (components) and the measurement side (variance b); projections
+        # first (O(n²) per component), the group's matrices only once the weights are chosen
+        Ch = [C @ h for _, C in mine]
+        i0, i1 = int(idx[0]), int(idx[1])
+        dep: list[tuple[list[int], list[int], float]] = []
+        terms: list[tuple[float, ...]] = []
         # a part's share of its group's variance (more than its own when it may correlate)
         share = [0.0] * len(parts)
         for gm, gp in groups:
@@ -249,34 +254,32 @@ class SourceSplit:
             if not gm or b <= 0.0:
                 r_ind += b
                 continue
-            A = sum(mine[k][1] for k in gm)
-            A = A * np.outer(shared, shared)
-            dep.append((gm, gp, A, b))
+            Ah = sum(Ch[k] for k in gm)
+            a = float(h @ Ah)
+            T = sum(float(mine[k][1][i0, i0] + mine[k][1][i1, i1]) for k in gm)
+            dep.append((gm, gp, b))
+            terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b, float(Ah[i0]), float(Ah[i1])))
         Ph = P @ h
         hPh = float(h @ Ph)
-        tr0 = float(P[idx, idx].sum())
-        terms = []
-        for _, _, A, b in dep:
-            Ah = A @ h
-            a = float(h @ Ah)
-            T = float(A[idx, idx].sum())
-            terms.append((max(a, 1e-9 * T, 1e-300), T, Ah, a, b))
+        tr0 = float(P[i0, i0] + P[i1, i1])
+        ph0, ph1 = float(Ph[i0]), float(Ph[i1])
 
         def weights(s: float) -> list[float]:
-            return [min(max(s * math.sqrt(ar) / (s * math.sqrt(ar) + (1.0 - s) * math.sqrt(b)),
-                            OMEGA_MIN), OMEGA_MAX) for ar, _, _, _, b in terms]
+            return [min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX)
+                    for sa, sb, *_ in terms]
 
         def posterior_trace(s: float) -> float:
-            w = weights(s)
-            tr, hph, r = tr0, hPh, r_ind
-            v = Ph[idx].copy()
-            for wg, (_, T, Ah, a, b) in zip(w, terms):
-                x = 1.0 / wg - 1.0
+            tr, hph, r, v0, v1 = tr0, hPh, r_ind, ph0, ph1
+            for sa, sb, T, a, b, c0, c1 in terms:
+                w = s * sa / (s * sa + (1.0 - s) * sb)
+                w = OMEGA_MIN if w < OMEGA_MIN else OMEGA_MAX if w > OMEGA_MAX else w
+                x = 1.0 / w - 1.0
                 tr += x * T
                 hph += x * a
-                v += x * Ah[idx]
-                r += b / (1.0 - wg)
-            return tr - float(v @ v) / (hph + r)
+                v0 += x * c0
+                v1 += x * c1
+                r += b / (1.0 - w)
+            return tr - (v0 * v0 + v1 * v1) / (hph + r)
 
         skip = UpdateResult(np.zeros(n), float("nan"), 1, False, meas.name, None, float("nan"), skipped=True)
         if min_gain > 0.0:
@@ -287,10 +290,12 @@ class SourceSplit:
         if min_gain > 0.0 and tr0 - posterior_trace(s) < min_gain * tr0:
             return np.zeros(n), P, skip
         w = weights(s)
+        mask = np.outer(shared, shared) if self._unshared.size else None
         P1 = P.copy()
         r1 = r_ind
-        for wg, (_, _, A, b) in zip(w, dep):
-            P1 += (1.0 / wg - 1.0) * A
+        for wg, (gm, _, b) in zip(w, dep):
+            A = sum(mine[k][1] for k in gm)
+            P1 += (1.0 / wg - 1.0) * (A if mask is None else A * mask)
             r1 += b / (1.0 - wg)
         P1h = P1 @ h
         S = float(h @ P1h) + r1
@@ -305,12 +310,11 @@ class SourceSplit:
         P_post = 0.5 * (P_post + P_post.T)
         # the components: carried through the update, mine inflated in their groups
         scale = {}
-        for wg, (gm, gp, _, _) in zip(w, dep):
+        for wg, (gm, gp, _) in zip(w, dep):
             for k in gm:
                 scale[k] = 1.0 / wg
             for j in gp:
                 scale[("p", j)] = 1.0 / (1.0 - wg)
-        mask = np.outer(shared, shared) if self._unshared.size else None
         KK = np.outer(K, K)
         for k in range(1, len(mine)):
             C = self.parts[k - 1]
@@ -346,8 +350,8 @@ def _combine(parts: list[SourcePart]) -> float:
 
 def _group(mine: list[frozenset[str]], theirs: list[frozenset[str]]) -> list[tuple[list[int], list[int]]]:
     """Connected groups of label sets that may share a source: ``(my indices, their indices)``."""
-    nodes = [("m", k, lab) for k, lab in enumerate(mine)] + [("t", j, lab) for j, lab in enumerate(theirs)]
-    parent = list(range(len(nodes)))
+    labels = list(mine) + list(theirs)
+    parent = list(range(len(labels)))
 
     def find(i: int) -> int:
         while parent[i] != i:
@@ -355,12 +359,20 @@ def _group(mine: list[frozenset[str]], theirs: list[frozenset[str]]) -> list[tup
             i = parent[i]
         return i
 
-    for i in range(len(nodes)):
-        for j in range(i + 1, len(nodes)):
-            if overlaps(nodes[i][2], nodes[j][2]):
+    first: dict[str, int] = {}  # a label's first node: every other node naming it joins it
+    wild = [i for i, lab in enumerate(labels) if ANY in lab]
+    for i, lab in enumerate(labels):
+        for x in lab:
+            j = first.setdefault(x, i)
+            if j != i:
                 parent[find(i)] = find(j)
+    if wild:  # ANY shares a source with every non-empty set
+        for i, lab in enumerate(labels):
+            if lab:
+                parent[find(i)] = find(wild[0])
     out: dict[int, tuple[list[int], list[int]]] = {}
-    for i, (side, k, _) in enumerate(nodes):
+    n_mine = len(mine)
+    for i in range(len(labels)):
         g = out.setdefault(find(i), ([], []))
-        (g[0] if side == "m" else g[1]).append(k)
+        (g[0] if i < n_mine else g[1]).append(i if i < n_mine else i - n_mine)
     return list(out.values())
