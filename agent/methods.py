@@ -51,6 +51,8 @@ LANE_MARKING_FRAMES = 10
 HEADING_WAIT = 1.0
 #: how CP methods fuse a range with a neighbour's beacon (see :mod:`agent.nav.fusion`)
 FUSION_RULES = ("paper", "source-ci", "split-ci", "ci")
+#: the rule the CP methods use unless told otherwise
+DEFAULT_FUSION = "source-ci"
 #: below this horizontal speed [m/s] (own estimate, the neighbour's beacon) a vehicle counts as
 #: standing for the UWB link's range track
 STANDING_SPEED = 0.3
@@ -122,10 +124,12 @@ class FilterSettings:
     lane_interval: float = 1.0
     lane_memory: float = 2.0
     #: ``paper``: R = σ² + uᵀP_j u, both estimates independent (the paper's eq. 26-28);
+    #: ``source-ci``: covariance intersection by information source (each source's part of
+    #: both estimates paired, different sources independent; :mod:`agent.nav.source_fusion`);
     #: ``split-ci``: split covariance intersection (what came from own sensors and the UWB
     #: noise independent; the neighbour's estimate and what came from it dependent);
     #: ``ci``: covariance intersection (both estimates wholly dependent, UWB noise independent)
-    fusion: str = "split-ci"
+    fusion: str = DEFAULT_FUSION
     #: zero-velocity updates while the IMU shows rest and GNSS is absent (all methods alike) [m/s];
     #: None switches them off
     zupt_sigma: float | None = 0.02

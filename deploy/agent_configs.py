@@ -7,7 +7,7 @@ import math
 
 from agent.first_stopped import ApproachLane
 from agent.lane_map import LaneMap
-from agent.methods import METHODS, FilterSettings
+from agent.methods import DEFAULT_FUSION, METHODS, FilterSettings
 from agent.nav.error_model import ImuNoise
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
 from agent.range_gate import NlosModel
@@ -41,7 +41,7 @@ def lane_map(scn: Scenario) -> LaneMap:
 
 
 def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS,
-                 fusion: str = "split-ci", lane_constraint: bool = True) -> AgentConfig:
+                 fusion: str = DEFAULT_FUSION, lane_constraint: bool = True) -> AgentConfig:
     """The configuration a vehicle computer would carry for this scenario's site and sensors
     (``lane_constraint``: the SL methods also keep to the map's lanes)."""
     specs = {v.id: v for v in scn.vehicles}
@@ -75,7 +75,7 @@ GNSS_FIELDS = {"multipath_sigma": "gnss_multipath_sigma", "multipath_tau": "gnss
                "gate": "gnss_gate", "reset_after": "gnss_reset_after"}
 
 
-def siteless_agent_config(vehicle: str, methods: tuple[str, ...] = METHODS, fusion: str = "split-ci",
+def siteless_agent_config(vehicle: str, methods: tuple[str, ...] = METHODS, fusion: str = DEFAULT_FUSION,
                           imu: ImuModel | None = None) -> AgentConfig:
     """A vehicle without a site map: no stop lines (SL-SP and SL-CP then equal SP and CP).
 

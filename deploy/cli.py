@@ -10,7 +10,7 @@ import logging
 import sys
 from pathlib import Path
 
-from agent.methods import FUSION_RULES
+from agent.methods import DEFAULT_FUSION, FUSION_RULES
 
 from .datasets import DatasetError
 
@@ -125,8 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--seed", type=int, default=0)
     rn.add_argument("--out", type=Path, default=None,
                     help="run directory (default runs/<scenario>-seed<S>, or runs/<scenario>-<N>seeds)")
-    rn.add_argument("--fusion", choices=FUSION_RULES, default="split-ci",
-                    help="how CP methods fuse ranges with beacons (default split-ci)")
+    rn.add_argument("--fusion", choices=FUSION_RULES, default=DEFAULT_FUSION,
+                    help=f"how CP methods fuse ranges with beacons (default {DEFAULT_FUSION})")
     rn.add_argument("--seeds", type=_positive_int, default=None, metavar="N",
                     help="N seeded runs (seeds S..S+N-1) spread over the cores, with mean ± sd")
     rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.first_stopped import FirstStoppedDetector, StopTracker
-from agent.methods import METHODS, MethodFilter, MethodSpec, first_stopped_step, initial_state
+from agent.methods import DEFAULT_FUSION, METHODS, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from agent.nav import earth
 from agent.nav.motion import StationarityMonitor, ZuptGate, speed_sigma
 from agent.neighbours import NeighbourTable
@@ -47,7 +47,7 @@ class RunResult:
 
 
 def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS,
-                  fusion: str = "split-ci") -> RunResult:
+                  fusion: str = DEFAULT_FUSION) -> RunResult:
     scn = truth.scenario
     rng = np.random.default_rng(seed)
     sensors = emulate_vehicle_sensors(truth, rng)

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.methods import METHODS, MethodSpec
+from agent.methods import DEFAULT_FUSION, METHODS, MethodSpec
 from agent.nav import earth
 from hw_emulation.events import event_times, window_bounds
 from hw_emulation.faults import PROCESS_FAULTS, load_faults
@@ -68,7 +68,7 @@ def _slcp(*args: str) -> list[str]:
 
 
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
-              seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = "split-ci",
+              seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = DEFAULT_FUSION,
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
               wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True,
               zenoh_mode: str = "client") -> dict:
@@ -472,7 +472,7 @@ def fault_recovery(fault, series: dict, vehicles: list[str], before: float = 5.0
 def report_markdown(scn, metrics: dict) -> str:
     """The run's report: paper-style RMSE tables with along/cross-track split and NEES, the
     first-stopped detection scores, events and plots."""
-    fusion = metrics.get("fusion", "split-ci")
+    fusion = metrics.get("fusion", "split-ci")  # runs from before source CI did not record it
     lane = lane_keeping_label(metrics.get("lane_constraint"))
     lines = [f"# slcp run: {scn.name} (seed {metrics.get('seed', '?')}, fusion `{fusion}`{lane})", "", scn.description, "",
              "Horizontal RMSE [m] per window, vehicle and method, the paper's figure in brackets. Below each value: "

@@ -7,7 +7,7 @@ Agent configuration file (TOML)::
     vehicle = "V1"                              # may also be given with --vehicle
     scenario = "paper-1"                        # site map and sensor characteristics
     methods = ["SP", "SL-SP", "CP", "SL-CP"]
-    fusion = "split-ci"                         # paper | split-ci | ci (how CP methods fuse ranges)
+    fusion = "source-ci"                        # paper | source-ci | split-ci | ci (how CP methods fuse ranges)
     lane_constraint = true                      # SL methods also keep to the map's lanes (false: stop line only)
 
     [security]                                  # optional; without it beacons are neither signed nor checked
@@ -71,7 +71,7 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
 
 
 def load_agent_config(path: Path, vehicle: str | None):
-    from agent.methods import FUSION_RULES, METHODS, MethodSpec
+    from agent.methods import DEFAULT_FUSION, FUSION_RULES, METHODS, MethodSpec
     from hw_emulation.scenario import load_scenario, model_from_table
     from hw_emulation.sensors.imu import ImuModel
 
@@ -95,7 +95,7 @@ def load_agent_config(path: Path, vehicle: str | None):
             MethodSpec.of(m)
         except ValueError as exc:
             raise ConfigError(f"{path}: agent.methods: {exc}") from None
-    fusion = a.get("fusion", "split-ci")
+    fusion = a.get("fusion", DEFAULT_FUSION)
     if fusion not in FUSION_RULES:
         raise ConfigError(f"{path}: agent.fusion: must be one of {', '.join(FUSION_RULES)}, got {fusion!r}")
     lane = a.get("lane_constraint", True)

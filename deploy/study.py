@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.methods import METHODS
+from agent.methods import DEFAULT_FUSION, METHODS
 
 
 def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[float, float]:
@@ -77,7 +77,7 @@ def _stop_with_parent(period: float = 0.5) -> None:
 
 
 def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHODS, out: Path = Path("runs/study"),
-              fusion: str = "split-ci", jobs: int | None = None, progress=None, sign: bool = True,
+              fusion: str = DEFAULT_FUSION, jobs: int | None = None, progress=None, sign: bool = True,
               agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client") -> dict:
     """Run the seeds and aggregate; ``progress(done, total, seed)`` after each run."""
     out = Path(out)
