@@ -113,9 +113,13 @@ def test_lane_rows_and_the_stop_line_share_one_lateral_offset() -> None:
     assert math.sqrt(f.position_cov[0, 0]) == pytest.approx(GAP.sigma_xb, rel=0.05)
 
 
-def test_the_offset_is_redrawn_in_a_new_lane_and_after_losing_the_lane() -> None:
-    f = _filter("SL-CP")
+@pytest.mark.parametrize("fusion", ["source-ci", "split-ci"])
+def test_the_offset_is_redrawn_in_a_new_lane_and_after_losing_the_lane(fusion: str) -> None:
+    f = _filter("SL-CP", fusion=fusion)
     flt = f.filter
+    if fusion == "source-ci":  # some information from a neighbour, which the lane row correlates too
+        flt.flush_covariance()
+        flt.sources.add(frozenset({"V2"}), 0.1 * flt.P)
     k = flt.extra_offset + f._lane.start
     others = np.setdiff1d(np.arange(flt.n), [k])
     f.lane_line("NB_in", APPROACH.left_lane_line)
@@ -126,8 +130,12 @@ def test_the_offset_is_redrawn_in_a_new_lane_and_after_losing_the_lane() -> None
     assert np.abs(flt.P[k, others]).max() > 1e-3
     _stand(f, 1.5)
     f.lane_line(None)  # lost for 2.5 s: redrawn
-    for P in (flt.P, flt.P_ind):
-        assert np.allclose(P[k, others], 0.0) and P[k, k] == pytest.approx(GAP.sigma_yb**2)
+    # in P and in its parts: split CI's independent part, or source CI's stored components
+    # (the redrawn offset is the own component's, the implicit rest)
+    parts = [(flt.P_ind, GAP.sigma_yb**2)] if fusion == "split-ci" else [(C, 0.0) for C in flt.sources.parts]
+    assert len(parts) >= 1
+    for P, var in [(flt.P, GAP.sigma_yb**2)] + parts:
+        assert np.allclose(P[k, others], 0.0) and P[k, k] == pytest.approx(var)
     f.lane_line("NB_in", APPROACH.left_lane_line)
     f.lane_line("other", APPROACH.left_lane_line)  # a new lane: redrawn before its row
     assert f.counters["lane_line"] == 3

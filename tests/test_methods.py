@@ -146,7 +146,7 @@ def test_ranges_to_a_vague_neighbour_do_not_sharpen_a_stop_line_fix() -> None:
     without ranges (SL-SP). With the stop-gap states counted as independent of what the
     neighbours know, it dropped by 1-2 % within seconds (paper-1 V1, below the bound)."""
     rm, _ = earth.radii(ORIGIN[0])
-    cp, approach, _, true_llh = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
+    cp, approach, _, true_llh = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0, fusion="split-ci")
     sp, _, _, _ = _stopped_filter("SL-SP", offset_ne=(0.0, 0.0))
     nb = NeighbourState("V2", true_llh + np.array([-7.0 / (rm + 50), 0.0, 0.0]), np.eye(3) * 9.0, 0.05)
     zero, dt = np.zeros(3), 0.01
@@ -163,22 +163,32 @@ def test_ranges_to_a_vague_neighbour_do_not_sharpen_a_stop_line_fix() -> None:
     assert s_cp >= 0.995 * s_sp, (s_cp, s_sp)
 
 
-def test_the_stop_gap_states_are_forgotten_when_the_stop_ends() -> None:
+@pytest.mark.parametrize("fusion", ["source-ci", "split-ci"])
+def test_the_stop_gap_states_are_forgotten_when_the_stop_ends(fusion: str) -> None:
     """After a stop-line fix the gap states are correlated with the position; when the vehicle
-    drives off they go back to their prior (in P and in its independent part), so that no
-    split-CI range can inflate them until the next stop; the position keeps its covariance."""
-    f, approach, gap, _ = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0))
-    f.stop_line(approach, stop_id=0.0)
+    drives off they go back to their prior (in P and in its parts: split CI's independent one,
+    source CI's components), so that no CI range can inflate them until the next stop; the
+    position keeps its covariance."""
+    f, approach, gap, _ = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), fusion=fusion)
     flt = f.filter
+    if fusion == "source-ci":  # some information from a neighbour, which the fix correlates too
+        flt.flush_covariance()
+        flt.sources.add(frozenset({"V2"}), 0.1 * flt.P)
+    f.stop_line(approach, stop_id=0.0)
     k = np.arange(flt.extra_offset + f._sl.start, flt.extra_offset + f._sl.stop)
     flt.flush_covariance()
     assert np.abs(flt.P[k][:, 6:8]).max() > 1e-4  # correlated with the horizontal position
+    if fusion == "source-ci":
+        assert np.abs(flt.sources.parts[0][k][:, 6:8]).max() > 1e-6
     before = flt.position_cov
     f.end_stop()
-    for P in (flt.P, flt.P_ind):
+    prior = np.array([gap.sigma_xb**2, gap.sigma_yb**2])
+    parts = [(flt.P_ind, prior)] if fusion == "split-ci" else [(C, 0.0 * prior) for C in flt.sources.parts]
+    assert len(parts) >= 1
+    for P, var in [(flt.P, prior)] + parts:
         others = np.setdiff1d(np.arange(flt.n), k)
         assert np.allclose(P[np.ix_(k, others)], 0.0)
-        assert np.allclose(np.diag(P)[k], [gap.sigma_xb**2, gap.sigma_yb**2])
+        assert np.allclose(np.diag(P)[k], var)
     assert np.allclose(flt.position_cov, before)
     assert f.stop_line(approach, stop_id=0.0).accepted  # the same stop claimed again: fixes at once
 
@@ -227,7 +237,7 @@ def test_a_gross_range_outlier_is_gated_on_the_uninflated_spread() -> None:
     east = np.array([0.0, 30.0 / ((rn + 50) * math.cos(ORIGIN[0])), 0.0])
 
     def shared_filter() -> tuple[MethodFilter, NeighbourState]:
-        f, _, _, true_llh = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
+        f, _, _, true_llh = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0, fusion="split-ci")
         f.filter.flush_covariance()
         f.filter.P_ind = f.filter.P * 0.05  # 95 % of its covariance shared with the neighbours
         return f, NeighbourState("V3", true_llh + east, np.eye(3) * 4.0, 0.05)
