@@ -145,3 +145,15 @@ def test_shared_process_noise_and_own_updates_keep_the_split() -> None:
     A = np.eye(n) - K @ H
     for b, c in zip(before, split.parts):
         np.testing.assert_allclose(c, A @ b @ A.T, atol=1e-12)
+
+
+def test_groups_join_every_label_set_that_may_share_a_source() -> None:
+    from agent.nav.source_fusion import _group
+
+    mine = [frozenset({"V0"}), frozenset({"V1", "V2"}), frozenset({"~common"}), frozenset({"V5"})]
+    theirs = [frozenset({"V2"}), frozenset({"V1|V3"}), frozenset({"V0", "V3"}), frozenset({"~common"})]
+    groups = sorted((sorted(m), sorted(t)) for m, t in _group(mine, theirs))
+    assert groups == [([], [1]), ([0], [2]), ([1], [0]), ([2], [3]), ([3], [])]
+    # ANY on either side pairs with everything that names a source
+    groups = _group(mine, [frozenset({ANY})])
+    assert len(groups) == 1 and sorted(groups[0][0]) == [0, 1, 2, 3]
