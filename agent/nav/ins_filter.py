@@ -285,14 +285,20 @@ class InsFilter:
             H[:, self.extra_offset:] = H_extra
         return H
 
-    def update(self, meas: Measurement, gate_probability: float | None = None) -> UpdateResult:
-        """Kalman update with one measurement, closed-loop feedback, and reset."""
+    def _prepare(self, meas: Measurement) -> Measurement:
+        """Before an update: the covariance brought to now, the heading isolated while unknown,
+        and ``meas.H`` widened to the whole state (a navigation-only H has 15 columns)."""
         self.flush_covariance()
         self._isolate_yaw()
         if meas.H.shape[1] < self.n:
             H = np.zeros((meas.H.shape[0], self.n))
             H[:, : meas.H.shape[1]] = meas.H
             meas = Measurement(meas.z, H, meas.R, meas.name)
+        return meas
+
+    def update(self, meas: Measurement, gate_probability: float | None = None) -> UpdateResult:
+        """Kalman update with one measurement, closed-loop feedback, and reset."""
+        meas = self._prepare(meas)
         dx, P, result = kalman_update(self.P, meas, gate_probability)
         if result.accepted:
             if self.P_ind is not None:  # an own-sensor measurement: independent information
@@ -314,12 +320,7 @@ class InsFilter:
         ω minimises the horizontal position variance; ``min_gain`` skips updates expected to
         reduce it by less than that fraction (node selection).
         """
-        self.flush_covariance()
-        self._isolate_yaw()
-        if meas.H.shape[1] < self.n:
-            H = np.zeros((meas.H.shape[0], self.n))
-            H[:, : meas.H.shape[1]] = meas.H
-            meas = Measurement(meas.z, H, meas.R, meas.name)
+        meas = self._prepare(meas)
         Pi = self.P_ind if (own_independent and self.P_ind is not None) else np.zeros_like(self.P)
         if self._unshared.size:  # their rows and columns of the dependent part are zero
             Pi = Pi.copy()
@@ -346,12 +347,7 @@ class InsFilter:
         """
         if self.sources is None:
             raise RuntimeError("source CI needs track_sources() first")
-        self.flush_covariance()
-        self._isolate_yaw()
-        if meas.H.shape[1] < self.n:
-            H = np.zeros((meas.H.shape[0], self.n))
-            H[:, : meas.H.shape[1]] = meas.H
-            meas = Measurement(meas.z, H, meas.R, meas.name)
+        meas = self._prepare(meas)
         dx, P, result = self.sources.update(self.P, meas, parts, _HORIZONTAL, noise_labels,
                                             gate_probability, min_gain)
         if result.accepted:
