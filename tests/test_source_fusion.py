@@ -9,7 +9,7 @@ import pytest
 
 from agent.nav.fusion import split_ci_update
 from agent.nav.kalman import Measurement, kalman_update
-from agent.nav.source_fusion import ANY, COMMON_MODE, MAX_COMPONENTS, SourcePart, SourceSplit
+from agent.nav.source_fusion import ANY, COMMON_MODE, MAX_COMPONENTS, MAX_LABELS, SourcePart, SourceSplit
 
 IDX = np.array([0, 1])
 
@@ -122,6 +122,11 @@ def test_bookkeeping_merges_what_shares_a_source_and_caps_the_components() -> No
     assert len(split.parts) == MAX_COMPONENTS
     assert sum(len(lab) for lab in split.labels) == MAX_COMPONENTS + 3  # no source lost
     assert float(sum(np.trace(c) for c in split.parts)) == pytest.approx(3.0 * sum(range(1, MAX_COMPONENTS + 4)))
+    # a component of more sources than a beacon may name goes out as ANY
+    split.add(frozenset({f"X{k}" for k in range(MAX_LABELS + 1)}), np.eye(3))
+    sent = split.blocks(10.0 * np.eye(3) + sum(split.parts), slice(0, 3))
+    assert sent[0][0] == ("V0", "V1", "V2") and (ANY,) in [lab for lab, _ in sent]
+    assert all(len(lab) <= MAX_LABELS for lab, _ in sent)
 
 
 def test_shared_process_noise_and_own_updates_keep_the_split() -> None:

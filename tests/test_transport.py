@@ -107,6 +107,7 @@ def test_truncated_and_wrong_version_and_types() -> None:
         ([[["V0"], np.array([[1, 0.5, 0], [0, 1, 0], [0, 0, 1.0]]).tobytes()]], "symmetric"),
         ([[["V0"], np.full(9, np.inf).tobytes()]], "non-finite"),
         ([[[7], np.eye(3).tobytes()]], "string"),
+        ([[["x" * 130], np.eye(3).tobytes()]], "string of 1-129"),
     ]:
         with pytest.raises(CodecError, match=match):
             decode(msgpack.packb(dict(obj, sources=sources), use_bin_type=True))

@@ -123,7 +123,10 @@ def _check_sources(name: str, fname: str, val: Any) -> tuple:
         labels, cov = item
         if not isinstance(labels, (list, tuple)) or not 0 < len(labels) <= MAX_SOURCES:
             raise CodecError(f"{name}.sources: labels must be a list of 1-{MAX_SOURCES} strings")
-        labels = tuple(_check_str(name, fname, lab) for lab in labels)
+        if not all(isinstance(lab, str) and 0 < len(lab) <= 2 * MAX_STR + 1 for lab in labels):
+            # a link's label joins two ids: "V0|V1"
+            raise CodecError(f"{name}.sources: a label must be a string of 1-{2 * MAX_STR + 1} characters")
+        labels = tuple(labels)
         c, _ = _array(name, fname, cov, (3, 3), None)
         if np.any(np.diag(c) < 0.0) or not np.allclose(c, c.T, rtol=1e-9, atol=1e-12):
             raise CodecError(f"{name}.sources: a covariance must be symmetric with a non-negative diagonal")

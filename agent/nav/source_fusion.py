@@ -49,13 +49,15 @@ import numpy as np
 from .fusion import OMEGA_MAX, OMEGA_MIN, fminbound, naive_gain
 from .kalman import Measurement, UpdateResult, chi2_gate
 
-#: the source of the GNSS error every vehicle shares (not a vehicle id: those are [A-Za-z0-9_-])
+#: the source of the GNSS error every vehicle shares (not a vehicle id: those are [A-Za-z0-9_.-])
 COMMON_MODE = "~common"
 #: a label that names every source (a neighbour's estimate of unknown composition)
 ANY = "*"
 
 #: components stored besides the own one; beyond, the two smallest are merged
 MAX_COMPONENTS = 12
+#: a component naming more sources than this is broadcast as :data:`ANY` (the codec's limit)
+MAX_LABELS = 64
 
 
 def overlaps(a: frozenset[str], b: frozenset[str]) -> bool:
@@ -184,14 +186,18 @@ class SourceSplit:
 
     def blocks(self, P: np.ndarray, idx: slice) -> list[tuple[tuple[str, ...], np.ndarray]]:
         """Every component's ``idx`` block (e.g. the NED position), own first, with its sorted
-        source labels: what a beacon carries."""
+        source labels: what a beacon carries. A component of more than :data:`MAX_LABELS`
+        sources goes as :data:`ANY` (its receivers then pair it with everything)."""
+        def named(lab: frozenset[str]) -> tuple[str, ...]:
+            return tuple(sorted(lab)) if len(lab) <= MAX_LABELS else (ANY,)
+
         own = P[idx, idx].copy()
         out = []
         for lab, C in zip(self.labels, self.parts):
             b = C[idx, idx].copy()
             own -= b
-            out.append((tuple(sorted(lab)), b))
-        return [(tuple(sorted(self.own_labels)), own)] + out
+            out.append((named(lab), b))
+        return [(named(self.own_labels), own)] + out
 
     # ------------------------------------------------------------------ the update
     def update(self, P: np.ndarray, meas: Measurement, parts: list[SourcePart], idx: np.ndarray,
