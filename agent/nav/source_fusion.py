@@ -240,7 +240,6 @@ class SourceSplit:
         own = self.own(P)
         mine = [(self.own_labels, own)] + list(zip(self.labels, self.parts))
         groups = _group([lab for lab, _ in mine], [p.labels for p in parts])
-        # per group: my side (components, summed) and the measurement side
         shared = np.ones(n, bool)
         if self._unshared.size:
             shared[self._unshared] = False
