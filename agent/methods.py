@@ -505,7 +505,7 @@ class MethodFilter:
             r_nb = max(float(h @ neighbour.cov_ned @ h), 0.0)
             m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
             if s.fusion == "source-ci":
-                res = self._range_source_ci(m_ind, h, neighbour, r_bias)
+                res = self._range_source_ci(m_ind, h, neighbour, r_nb, r_bias)
             else:
                 r_dep = np.array([[r_nb + r_bias]])
                 res = self.filter.update_split_ci(m_ind, r_dep, own_independent=s.fusion == "split-ci",
@@ -513,10 +513,11 @@ class MethodFilter:
         return self._count_range("skipped" if res.skipped else "fused" if res.accepted else "gate_nis")
 
     def _range_source_ci(self, m: Measurement, h: np.ndarray, neighbour: NeighbourState,
-                         r_bias: float) -> UpdateResult:
+                         r_nb: float, r_bias: float) -> UpdateResult:
         """A range's source-CI update (:mod:`agent.nav.source_fusion`). ``m`` carries the range's
         white noise; the neighbour's estimate enters by source (its beacon's breakdown, projected
-        on the line of sight ``h`` (3,)), and the link's NLOS bias ``r_bias`` [m²] under the
+        on the line of sight ``h`` (3,); ``r_nb`` [m²] the whole of it projected, used when the
+        beacon has no breakdown), and the link's NLOS bias ``r_bias`` [m²] under the
         link's name. Both ends of a link receive the same range, so its noise is a source of its
         own, named after the link (``"V0|V1"``) at both ends. A beacon no older than the range may
         already hold this very range: its white noise then counts with the link's source too."""
@@ -524,7 +525,7 @@ class MethodFilter:
         if neighbour.sources:
             parts = [SourcePart(lab, max(float(h @ c @ h), 0.0)) for lab, c in neighbour.sources]
         else:  # no breakdown: the neighbour's estimate may hold anything
-            parts = [SourcePart(frozenset({ANY}), max(float(h @ neighbour.cov_ned @ h), 0.0))]
+            parts = [SourcePart(frozenset({ANY}), r_nb)]
         if r_bias > 0.0:
             parts.append(SourcePart(link, r_bias, correlated=True))
         if neighbour.age <= 0.0:

@@ -98,7 +98,6 @@ class SourceSplit:
     """
 
     def __init__(self, me: str, n: int, unshared=(), shared_process=()) -> None:
-        self.me = me
         self.n = n
         self.own_labels: frozenset[str] = frozenset({me})
         self.labels: list[frozenset[str]] = []
