@@ -522,8 +522,9 @@ class MethodFilter:
         own, named after the link (``"V0|V1"``) at both ends. A beacon no older than the range may
         already hold this very range: its white noise then counts with the link's source too."""
         link = frozenset({"|".join(sorted((self.vehicle, neighbour.vehicle)))})
-        if neighbour.sources:
-            parts = [SourcePart(lab, max(float(h @ c @ h), 0.0)) for lab, c in neighbour.sources]
+        if neighbour.source_labels:
+            var = np.maximum((neighbour.source_cov @ h) @ h, 0.0).tolist()
+            parts = [SourcePart(lab, v) for lab, v in zip(neighbour.source_labels, var)]
         else:  # no breakdown: the neighbour's estimate may hold anything
             parts = [SourcePart(frozenset({ANY}), r_nb)]
         if r_bias > 0.0:

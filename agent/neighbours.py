@@ -27,9 +27,16 @@ class NeighbourState:
     cov_ned: np.ndarray  #: (3, 3) [m²]
     age: float  #: [s] since the beacon's time
     v_ned: np.ndarray = field(default_factory=lambda: np.zeros(3))  #: (3,) [m/s]
-    #: ``cov_ned`` by information source (:mod:`agent.nav.source_fusion`): ``(labels, (3, 3))``
-    #: pairs summing to it; empty if the beacon had no breakdown
-    sources: tuple[tuple[frozenset[str], np.ndarray], ...] = ()
+    #: ``cov_ned`` by information source (:mod:`agent.nav.source_fusion`): each component's
+    #: sources, and the components, shape (k, 3, 3) [m²], summing to it; k = 0 if the beacon
+    #: had no breakdown
+    source_labels: tuple[frozenset[str], ...] = ()
+    source_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+
+    @property
+    def sources(self) -> tuple[tuple[frozenset[str], np.ndarray], ...]:
+        """The breakdown as ``(labels, (3, 3))`` pairs; empty if none."""
+        return tuple(zip(self.source_labels, self.source_cov))
 
 
 @dataclass
@@ -41,7 +48,8 @@ class _Entry:
     cov: np.ndarray
     method: str
     received_at: float
-    sources: tuple[tuple[frozenset[str], np.ndarray], ...] = ()
+    source_labels: tuple[frozenset[str], ...] = ()
+    source_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
 
 
 @dataclass
@@ -80,14 +88,15 @@ class NeighbourTable:
             self.counters["duplicate_or_old"] += 1
             return False
         cov_pos = np.asarray(cov_pos, float)
-        split = tuple((frozenset(lab), np.asarray(c, float)) for lab, c in sources)
-        if split and float(np.abs(sum(c for _, c in split) - cov_pos).max()) > 1e-9 + 1e-6 * float(np.abs(cov_pos).max()):
+        labels = tuple(frozenset(lab) for lab, _ in sources)
+        split = np.array([c for _, c in sources], float).reshape(-1, 3, 3)
+        if labels and float(np.abs(split.sum(axis=0) - cov_pos).max()) > 1e-9 + 1e-6 * float(np.abs(cov_pos).max()):
             # a breakdown that does not add up is not used: the estimate counts as of unknown
             # composition (plain CI)
             self.counters["sources_dropped"] += 1
-            split = ()
+            labels, split = (), split[:0]
         e = _Entry(seq, float(t), np.asarray(llh, float), np.asarray(v_ned, float),
-                   cov_pos, method, float(now), split)
+                   cov_pos, method, float(now), labels, split)
         self.entries[vehicle] = e
         self._past.setdefault(vehicle, deque(maxlen=self.history)).append(e)
         self.counters["beacons"] += 1
@@ -123,14 +132,15 @@ class NeighbourTable:
         grow = a * a * self.sigma_v**2 + a**3 * self.accel_psd / 3.0
         G = np.diag([grow, grow, grow])
         # the extrapolation's uncertainty is the sender's own (its motion)
-        sources = list(e.sources)
-        if sources and grow > 0.0:
-            k = next((i for i, (lab, _) in enumerate(sources) if vehicle in lab), None)
+        labels, split = e.source_labels, e.source_cov
+        if labels and grow > 0.0:
+            k = next((i for i, lab in enumerate(labels) if vehicle in lab), None)
             if k is None:
-                sources.append((frozenset({vehicle}), G))
+                labels, split = labels + (frozenset({vehicle}),), np.concatenate([split, G[None]])
             else:
-                sources[k] = (sources[k][0], sources[k][1] + G)
-        return NeighbourState(vehicle, llh, e.cov + G, age, e.v_ned, tuple(sources))
+                split = split.copy()
+                split[k] += G
+        return NeighbourState(vehicle, llh, e.cov + G, age, e.v_ned, labels, split)
 
     def newest_time(self, vehicle: str) -> float | None:
         """Time [s] of the newest beacon of ``vehicle``, or None."""

@@ -178,6 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also run the fleet scaling benchmark with these agent counts (e.g. 10,25,50,75)")
     bn.add_argument("--fleet-duration", type=float, default=40.0, help="scenario length of each fleet point [s] (default 40)")
     bn.add_argument("--fleet-method", default="SL-CP", help="the one method each agent runs (default SL-CP)")
+    bn.add_argument("--fleet-fusion", choices=FUSION_RULES, default=DEFAULT_FUSION,
+                    help=f"how the fleet's CP methods fuse ranges (as slcp run --fusion; default {DEFAULT_FUSION})")
     bn.add_argument("--fleet-zenoh-mode", choices=("client", "peer"), default="client",
                     help="how the fleet's processes join the router (as slcp run --zenoh-mode; default client)")
     bn.add_argument("--fleet-imu-batch", type=int, choices=range(1, 101), default=20, metavar="1-100",
@@ -566,7 +568,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
             out["fleet"].append(run_fleet_point(n, args.fleet_duration, args.fleet_method,
                                                     zenoh_mode=args.fleet_zenoh_mode,
-                                                    imu_batch=args.fleet_imu_batch))
+                                                    imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion))
     if args.json:
         print(json.dumps(out))
         return 0

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agent.methods import DEFAULT_FUSION
 from hw_emulation.grid import grid_scenario_toml
 from transport import keys
 
@@ -194,9 +195,10 @@ class FleetMonitor:
 
 def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign: bool = True,
                     out: Path | None = None, agent_nice: int = 5, zenoh_mode: str = "client",
-                    imu_batch: int = 20) -> dict:
+                    imu_batch: int = 20, fusion: str = DEFAULT_FUSION) -> dict:
     """One benchmark point: ``n`` agents on the grid at 1× with ``imu_batch`` IMU samples per
-    message (20: 5 messages a second at 100 Hz); returns :meth:`FleetMonitor.result`."""
+    message (20: 5 messages a second at 100 Hz), CP methods fusing by ``fusion``; returns
+    :meth:`FleetMonitor.result`."""
     from .launcher import run_fleet
 
     with tempfile.TemporaryDirectory(prefix=f"slcp-bench-{n}-") as tmp:
@@ -208,9 +210,10 @@ def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign:
         wall0 = time.monotonic()
         stats = run_fleet(str(scn), methods=(method,), speed=1.0, seed=0, out=base / "run", sign=sign,
                           monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n), agent_nice=agent_nice,
-                          zenoh_mode=zenoh_mode)
+                          zenoh_mode=zenoh_mode, fusion=fusion)
         res = mon.result()
         res["method"] = method
+        res["fusion"] = fusion
         res["agent_nice"] = agent_nice
         res["zenoh_mode"] = zenoh_mode
         res["imu_batch"] = imu_batch

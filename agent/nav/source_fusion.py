@@ -42,11 +42,11 @@ Pure numpy; no I/O.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from .fusion import OMEGA_MAX, OMEGA_MIN, fminbound, naive_gain
+from .fusion import OMEGA_MAX, OMEGA_MIN, fminbound
 from .kalman import Measurement, UpdateResult, chi2_gate
 
 #: the source of the GNSS error every vehicle shares (not a vehicle id: those are [A-Za-z0-9_.-])
@@ -65,8 +65,7 @@ def overlaps(a: frozenset[str], b: frozenset[str]) -> bool:
     return bool(a & b) or (ANY in a and bool(b)) or (ANY in b and bool(a))
 
 
-@dataclass(frozen=True)
-class SourcePart:
+class SourcePart(NamedTuple):
     """A neighbour's covariance part of known sources, projected on a measurement.
 
     ``labels`` the sources; ``variance`` [unit²] of the measurement error it causes;
@@ -95,93 +94,134 @@ class SourceSplit:
         :meth:`agent.nav.ins_filter.InsFilter.track_independent`).
     shared_process : array of int
         States whose process noise belongs to :data:`COMMON_MODE`.
+
+    Notes
+    -----
+    The stored components are one array, shape (k, n, n), so that propagation and the
+    own-sensor transform are a few stacked matrix products whatever k; ``labels[i]`` names
+    ``parts[i]``.
     """
 
     def __init__(self, me: str, n: int, unshared=(), shared_process=()) -> None:
         self.n = n
         self.own_labels: frozenset[str] = frozenset({me})
         self.labels: list[frozenset[str]] = []
-        self.parts: list[np.ndarray] = []
+        self._C = np.zeros((0, n, n))
         self._unshared = np.asarray(unshared, int)
-        self._shared_process = np.asarray(shared_process, int)
+        s = np.asarray(shared_process, int)
+        self._shared_process = np.ix_(s, s) if s.size else None
+        self._group_memo: dict[tuple, list[tuple[list[int], list[int]]]] = {}
+
+    def copy(self) -> "SourceSplit":
+        """An independent copy (e.g. to restore a filter's state)."""
+        out = SourceSplit.__new__(SourceSplit)
+        out.__dict__.update(self.__dict__)
+        out.labels = list(self.labels)
+        out._C = self._C.copy()
+        return out
+
+    @property
+    def parts(self) -> np.ndarray:
+        """The stored components, shape (k, n, n) [state units²]; read them, do not write."""
+        return self._C
 
     # ------------------------------------------------------------------ bookkeeping
     def own(self, P: np.ndarray) -> np.ndarray:
         """The own component, ``P`` minus the stored ones, shape (n, n)."""
-        own = P.copy()
-        for C in self.parts:
-            own -= C
-        return own
+        return P - self._C.sum(axis=0) if self.labels else P.copy()
 
     def add(self, labels: frozenset[str], M: np.ndarray | None) -> None:
         """Add covariance ``M`` (n, n) (None: nothing, only the labels) from the sources
         ``labels``. Components that share a source with it are merged with it; if the own
         component does, it takes them all (``M`` is then part of ``P`` already)."""
-        hit = [k for k, lab in enumerate(self.labels) if overlaps(lab, labels)]
-        if overlaps(self.own_labels, labels):
-            merged = set(self.own_labels) | set(labels)
-            for k in sorted(hit, reverse=True):
-                merged |= self.labels.pop(k)
-                self.parts.pop(k)
-            self.own_labels = frozenset(merged)
-            return
-        total = np.zeros((self.n, self.n)) if M is None else M.copy()
-        merged = set(labels)
-        for k in sorted(hit, reverse=True):
-            merged |= self.labels.pop(k)
-            total += self.parts.pop(k)
-        self.labels.append(frozenset(merged))
-        self.parts.append(total)
-        self._cap()
+        if not overlaps(self.own_labels, labels):
+            hit = [k for k, lab in enumerate(self.labels) if overlaps(lab, labels)]
+            if len(hit) == 1 and labels <= self.labels[hit[0]]:  # e.g. the common mode, every step
+                if M is not None:
+                    self._C[hit[0]] += M
+                return
+        self.add_many([(labels, 1.0)], np.zeros((self.n, self.n)) if M is None else M)
+
+    def add_many(self, items: list[tuple[frozenset[str], float]], M: np.ndarray) -> None:
+        """Add ``w M`` from the sources ``labels`` for every ``(labels, w)`` of ``items``
+        (``M`` (n, n), ``w`` ≥ 0), merging as :meth:`add` one item after the other would: the
+        items and components that share a source become one component, and whatever shares one
+        with the own component joins it."""
+        mine = [self.own_labels] + self.labels
+        keep = np.ones(len(self.labels), bool)
+        new_labels: list[frozenset[str]] = []
+        new_parts: list[np.ndarray] = []
+        for gm, gp in _group(mine, [lab for lab, _ in items]):
+            if not gp:
+                continue
+            merged = frozenset().union(*(mine[k] for k in gm), *(items[j][0] for j in gp))
+            w = sum(items[j][1] for j in gp)
+            if 0 in gm:  # the own component: M is part of P already
+                self.own_labels = merged
+            elif len(gm) == 1 and merged == mine[gm[0]]:
+                self._C[gm[0] - 1] += w * M
+                continue
+            else:
+                new_labels.append(merged)
+                new_parts.append(w * M + sum(self._C[k - 1] for k in gm))
+            keep[[k - 1 for k in gm if k > 0]] = False
+        if not keep.all() or new_labels:
+            self.labels = [lab for lab, k in zip(self.labels, keep) if k] + new_labels
+            self._C = np.concatenate([self._C[keep], np.reshape(new_parts, (-1, self.n, self.n))])
+            self._cap()
 
     def _cap(self) -> None:
-        while len(self.parts) > MAX_COMPONENTS:
-            size = [float(np.trace(C)) for C in self.parts]
-            i, j = sorted(np.argsort(size)[:2])
-            self.labels[i] = self.labels[i] | self.labels.pop(j)
-            self.parts[i] = self.parts[i] + self.parts.pop(j)
+        """Merge the two smallest components (by trace) until at most :data:`MAX_COMPONENTS`."""
+        if len(self.labels) <= MAX_COMPONENTS:
+            return
+        size = np.trace(self._C, axis1=1, axis2=2).tolist()
+        parts = list(self._C)
+        labels = list(self.labels)
+        while len(labels) > MAX_COMPONENTS:
+            i, j = sorted(sorted(range(len(size)), key=size.__getitem__)[:2])
+            labels[i] = labels[i] | labels.pop(j)
+            parts[i] = parts[i] + parts.pop(j)
+            size[i] += size.pop(j)
+        self.labels = labels
+        self._C = np.array(parts)
 
     def propagate(self, phi: np.ndarray, qd: np.ndarray) -> None:
         """``P_s ← Φ P_s Φᵀ``; the process noise of the shared states (in ``qd``) goes to
         :data:`COMMON_MODE`, the rest to the own component (implicitly)."""
-        for k, C in enumerate(self.parts):
-            C = phi @ C @ phi.T
-            self.parts[k] = 0.5 * (C + C.T)
-        if self._shared_process.size:
-            s = self._shared_process
+        if self.labels:
+            C = phi @ self._C @ phi.T
+            self._C = 0.5 * (C + C.transpose(0, 2, 1))
+        if self._shared_process is not None:
             Q = np.zeros((self.n, self.n))
-            Q[np.ix_(s, s)] = qd[np.ix_(s, s)]
+            Q[self._shared_process] = qd[self._shared_process]
             self.add(frozenset({COMMON_MODE}), Q)
 
     def transform(self, K: np.ndarray, H: np.ndarray) -> None:
         """Carry every stored component through an own-sensor update with gain ``K`` (n, m) and
         Jacobian ``H`` (m, n): ``(I - K H) P_s (I - K H)ᵀ``; the measurement noise ``K R Kᵀ``
         is the own component's."""
+        if not self.labels:
+            return
         if H.shape[0] == 1:
-            k, h = K[:, 0], H[0]
-            kk = np.outer(k, k)
-            self.parts = [_rank_one_transform(C, k, h, kk) for C in self.parts]
+            self._C = _rank_one_transform(self._C, K[:, 0], H[0])
             return
         A = -(K @ H)
         A.flat[:: self.n + 1] += 1.0
-        for k, C in enumerate(self.parts):
-            C = A @ C @ A.T
-            self.parts[k] = 0.5 * (C + C.T)
+        C = A @ self._C @ A.T
+        self._C = 0.5 * (C + C.transpose(0, 2, 1))
 
     def clear_states(self, idx) -> None:
         """Zero the rows and columns ``idx`` of every stored component: a reset gives those states
         a fresh prior of the own kind."""
-        for C in self.parts:
-            C[idx, :] = 0.0
-            C[:, idx] = 0.0
+        self._C[:, idx, :] = 0.0
+        self._C[:, :, idx] = 0.0
 
     def decorrelate(self, i: int) -> None:
         """Zero state ``i``'s correlations (not its variance) in every stored component."""
-        for C in self.parts:
-            d = C[i, i]
-            C[i, :] = 0.0
-            C[:, i] = 0.0
-            C[i, i] = d
+        d = self._C[:, i, i].copy()
+        self._C[:, i, :] = 0.0
+        self._C[:, :, i] = 0.0
+        self._C[:, i, i] = d
 
     def blocks(self, P: np.ndarray, idx: slice) -> list[tuple[tuple[str, ...], np.ndarray]]:
         """Every component's ``idx`` block (e.g. the NED position), own first, with its sorted
@@ -192,11 +232,22 @@ class SourceSplit:
 
         own = P[idx, idx].copy()
         out = []
-        for lab, C in zip(self.labels, self.parts):
+        for lab, C in zip(self.labels, self._C):
             b = C[idx, idx].copy()
             own -= b
             out.append((named(lab), b))
         return [(named(self.own_labels), own)] + out
+
+    def _groups(self, mine: list[frozenset[str]], theirs: list[frozenset[str]]) -> list[tuple[list[int], list[int]]]:
+        """:func:`_group`, remembered: the same neighbour's beacon meets the same components at
+        every range until either changes."""
+        key = (tuple(mine), tuple(theirs))
+        g = self._group_memo.get(key)
+        if g is None:
+            if len(self._group_memo) >= 256:
+                self._group_memo.clear()
+            g = self._group_memo[key] = _group(mine, theirs)
+        return g
 
     # ------------------------------------------------------------------ the update
     def update(self, P: np.ndarray, meas: Measurement, parts: list[SourcePart], idx: np.ndarray,
@@ -236,16 +287,23 @@ class SourceSplit:
         n = self.n
         h = meas.H[0]
         r_ind = float(meas.R[0, 0])
-        own = self.own(P)
-        mine = [(self.own_labels, own)] + list(zip(self.labels, self.parts))
-        groups = _group([lab for lab, _ in mine], [p.labels for p in parts])
-        shared = np.ones(n, bool)
-        if self._unshared.size:
-            shared[self._unshared] = False
-        # per group: my side (components) and the measurement side (variance b); projections
-        # first (O(n²) per component), the group's matrices only once the weights are chosen
-        Ch = [C @ h for _, C in mine]
         i0, i1 = int(idx[0]), int(idx[1])
+        # The weights depend on the states the measurement and idx touch only (for a range, the
+        # horizontal position): they are chosen on those blocks of the components, and the
+        # whole matrices are formed only for an update that is made (a few % of ranges).
+        J = sorted(set(np.flatnonzero(h).tolist()) | {i0, i1})
+        j0, j1 = J.index(i0), J.index(i1)
+        Jx = np.array(J)
+        hJ = h[Jx]
+        PJ = P[np.ix_(Jx, Jx)]
+        CJ = self._C[:, Jx[:, None], Jx[None, :]]
+        mineJ = np.concatenate([(PJ - CJ.sum(axis=0))[None], CJ])  # own first, (k+1, m, m)
+        ChJ = mineJ @ hJ
+        a_k = (ChJ @ hJ).tolist()
+        T_k = (mineJ[:, j0, j0] + mineJ[:, j1, j1]).tolist()
+        c0_k, c1_k = ChJ[:, j0].tolist(), ChJ[:, j1].tolist()
+        groups = self._groups([self.own_labels] + self.labels, [p.labels for p in parts])
+        # per group: my side (components) and the measurement side (variance b)
         dep: list[tuple[list[int], list[int], float]] = []
         terms: list[tuple[float, ...]] = []
         # a part's share of its group's variance (more than its own when it may correlate)
@@ -258,15 +316,15 @@ class SourceSplit:
             if not gm or b <= 0.0:
                 r_ind += b
                 continue
-            Ah = sum(Ch[k] for k in gm)
-            a = float(h @ Ah)
-            T = sum(float(mine[k][1][i0, i0] + mine[k][1][i1, i1]) for k in gm)
+            a = sum(a_k[k] for k in gm)
+            T = sum(T_k[k] for k in gm)
             dep.append((gm, gp, b))
-            terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b, float(Ah[i0]), float(Ah[i1])))
-        Ph = P @ h
-        hPh = float(h @ Ph)
-        tr0 = float(P[i0, i0] + P[i1, i1])
-        ph0, ph1 = float(Ph[i0]), float(Ph[i1])
+            terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b,
+                          sum(c0_k[k] for k in gm), sum(c1_k[k] for k in gm)))
+        Ph = PJ @ hJ
+        hPh = float(hJ @ Ph)
+        tr0 = float(PJ[j0, j0] + PJ[j1, j1])
+        ph0, ph1 = float(Ph[j0]), float(Ph[j1])
 
         def weights(s: float) -> list[float]:
             return [min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX)
@@ -287,20 +345,27 @@ class SourceSplit:
 
         skip = UpdateResult(np.zeros(n), float("nan"), 1, False, meas.name, None, float("nan"), skipped=True)
         if min_gain > 0.0:
+            # the plain Kalman gain, an upper bound (as :func:`agent.nav.fusion.naive_gain`)
             r_all = r_ind + sum(t[4] for t in terms)
-            if naive_gain(P, meas.H, np.array([[r_all]]), idx) < min_gain * tr0:
+            if hPh + r_all <= 0.0 or (ph0 * ph0 + ph1 * ph1) / (hPh + r_all) < min_gain * tr0:
                 return np.zeros(n), P, skip
         s = float(fminbound(posterior_trace, OMEGA_MIN, OMEGA_MAX, xatol=1e-3)) if terms else 0.5
         if min_gain > 0.0 and tr0 - posterior_trace(s) < min_gain * tr0:
             return np.zeros(n), P, skip
         w = weights(s)
-        mask = np.outer(shared, shared) if self._unshared.size else None
-        P1 = P.copy()
-        r1 = r_ind
-        for wg, (gm, _, b) in zip(w, dep):
-            A = sum(mine[k][1] for k in gm)
-            P1 += (1.0 / wg - 1.0) * (A if mask is None else A * mask)
-            r1 += b / (1.0 - wg)
+        # the update, with whole matrices: my side of each group inflated by 1/ω_g
+        infl = np.ones(len(self.labels) + 1)  # own first
+        for wg, (gm, _, _) in zip(w, dep):
+            infl[gm] = 1.0 / wg
+        mask = None
+        if self._unshared.size:
+            shared = np.ones(n, bool)
+            shared[self._unshared] = False
+            mask = np.outer(shared, shared)
+        own = self.own(P)
+        D = (infl[0] - 1.0) * own + np.tensordot(infl[1:] - 1.0, self._C, axes=1)
+        P1 = P + (D if mask is None else D * mask)
+        r1 = r_ind + sum(b / (1.0 - wg) for wg, (_, _, b) in zip(w, dep))
         P1h = P1 @ h
         S = float(h @ P1h) + r1
         z = float(meas.z[0])
@@ -310,36 +375,33 @@ class SourceSplit:
             return np.zeros(n), P, UpdateResult(np.zeros(n), nis, 1, False, meas.name, None, omega)
         K = P1h / S
         dx = K * z
-        P_post = P1 - np.outer(K, K) * S
-        P_post = 0.5 * (P_post + P_post.T)
-        # the components: carried through the update, mine inflated in their groups
-        scale = {}
-        for wg, (gm, gp, _) in zip(w, dep):
-            for k in gm:
-                scale[k] = 1.0 / wg
-            for j in gp:
-                scale[("p", j)] = 1.0 / (1.0 - wg)
         KK = np.outer(K, K)
-        for k in range(1, len(mine)):
-            C = self.parts[k - 1]
-            if k in scale:
-                C = C + (scale[k] - 1.0) * (C if mask is None else C * mask)
-            self.parts[k - 1] = _rank_one_transform(C, K, h, KK)
-        for j, p in enumerate(parts):
-            var = share[j] * scale.get(("p", j), 1.0)
-            if var > 0.0:
-                self.add(p.labels, KK * var)
-        self.add(noise_labels, KK * float(meas.R[0, 0]))
+        P_post = P1 - KK * S
+        P_post = 0.5 * (P_post + P_post.T)
+        # the components: carried through the update, mine inflated in their groups, the
+        # neighbour's parts and the noise added under their sources
+        if self.labels:
+            g = (infl[1:] - 1.0)[:, None, None]
+            C = self._C + g * (self._C if mask is None else self._C * mask)
+            self._C = _rank_one_transform(C, K, h, KK)
+        scale_p = [1.0] * len(parts)
+        for wg, (_, gp, _) in zip(w, dep):
+            for j in gp:
+                scale_p[j] = 1.0 / (1.0 - wg)
+        self.add_many([(p.labels, share[j] * scale_p[j]) for j, p in enumerate(parts) if share[j] > 0.0]
+                      + [(noise_labels, float(meas.R[0, 0]))], KK)
         return dx, P_post, UpdateResult(dx, nis, 1, True, meas.name, K[:, None], omega)
 
 
-def _rank_one_transform(C: np.ndarray, k: np.ndarray, h: np.ndarray, kk: np.ndarray) -> np.ndarray:
-    """``(I - k hᵀ) C (I - k hᵀ)ᵀ`` for a symmetric ``C`` (n, n), gain ``k`` (n,) and
-    Jacobian row ``h`` (n,), in O(n²); ``kk`` is ``k kᵀ``."""
-    c = C @ h
-    kc = np.outer(k, c)
-    out = C - kc - kc.T + float(h @ c) * kk
-    return 0.5 * (out + out.T)
+def _rank_one_transform(C: np.ndarray, k: np.ndarray, h: np.ndarray, kk: np.ndarray | None = None) -> np.ndarray:
+    """``(I - k hᵀ) C (I - k hᵀ)ᵀ`` for symmetric ``C`` (..., n, n), gain ``k`` (n,) and
+    Jacobian row ``h`` (n,), in O(n²) per matrix; ``kk`` is ``k kᵀ`` if already formed."""
+    if kk is None:
+        kk = np.outer(k, k)
+    c = C @ h  # (..., n)
+    kc = k[:, None] * c[..., None, :]  # k cᵀ
+    out = C - kc - np.swapaxes(kc, -1, -2) + (c @ h)[..., None, None] * kk
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
 def _combine(parts: list[SourcePart]) -> float:
