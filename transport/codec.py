@@ -113,6 +113,28 @@ def _check_peers(name: str, fname: str, val: Any) -> tuple[str, ...]:
     return tuple(_check_str(name, fname, v) for v in val)
 
 
+#: label tuples already found valid: a beacon's labels recur at every beacon (bounded)
+_VALID_LABELS: set[tuple[str, ...]] = set()
+
+
+def _check_labels(name: str, labels: Any) -> tuple[str, ...]:
+    if isinstance(labels, list | tuple):
+        key = tuple(labels)
+        try:
+            if key in _VALID_LABELS:
+                return key
+        except TypeError:  # an unhashable element: not a label anyway
+            pass
+    if not isinstance(labels, list | tuple) or not 0 < len(labels) <= MAX_SOURCES:
+        raise CodecError(f"{name}.sources: labels must be a list of 1-{MAX_SOURCES} strings")
+    if not all(isinstance(lab, str) and 0 < len(lab) <= 2 * MAX_STR + 1 for lab in labels):
+        # a link's label joins two ids: "V0|V1"
+        raise CodecError(f"{name}.sources: a label must be a string of 1-{2 * MAX_STR + 1} characters")
+    if len(_VALID_LABELS) < 4096:
+        _VALID_LABELS.add(key)
+    return key
+
+
 def _check_sources(name: str, fname: str, val: Any) -> tuple:
     if not isinstance(val, (list, tuple)) or len(val) > MAX_SOURCES:
         raise CodecError(f"{name}.sources: must be a list of at most {MAX_SOURCES} components")
@@ -122,26 +144,20 @@ def _check_sources(name: str, fname: str, val: Any) -> tuple:
         if not isinstance(item, (list, tuple)) or len(item) != 2:
             raise CodecError(f"{name}.sources: each component must be [labels, covariance]")
         labels, cov = item
-        if not isinstance(labels, (list, tuple)) or not 0 < len(labels) <= MAX_SOURCES:
-            raise CodecError(f"{name}.sources: labels must be a list of 1-{MAX_SOURCES} strings")
-        if not all(isinstance(lab, str) and 0 < len(lab) <= 2 * MAX_STR + 1 for lab in labels):
-            # a link's label joins two ids: "V0|V1"
-            raise CodecError(f"{name}.sources: a label must be a string of 1-{2 * MAX_STR + 1} characters")
+        out.append(_check_labels(name, labels))
         if not isinstance(cov, bytes) or len(cov) != 72:
             raise CodecError(f"{name}.sources: expected 9 values of float64 bytes")
-        out.append(tuple(labels))
         covs.append(cov)
     if not out:
         return ()
     # every component checked at once: a beacon may carry a dozen
-    v = np.frombuffer(b"".join(covs), "<f8").reshape(-1, 3, 3).astype(float)
-    if not np.isfinite(v).all():
+    f = np.frombuffer(b"".join(covs), "<f8").reshape(-1, 9).astype(float)
+    if not np.isfinite(f).all():
         raise CodecError(f"{name}.sources: non-finite values")
-    scale = 1e-12 + 1e-9 * np.abs(v).max(axis=(1, 2))
-    asym = np.abs(v - v.transpose(0, 2, 1)).max(axis=(1, 2))
-    if (np.diagonal(v, axis1=1, axis2=2) < 0.0).any() or (asym > scale).any():
+    scale = 1e-12 + 1e-9 * np.abs(f).max(axis=1)
+    if (f[:, ::4] < 0.0).any() or (np.abs(f[:, (1, 2, 5)] - f[:, (3, 6, 7)]).max(axis=1) > scale).any():
         raise CodecError(f"{name}.sources: a covariance must be symmetric with a non-negative diagonal")
-    return tuple(zip(out, v))
+    return tuple(zip(out, f.reshape(-1, 3, 3)))
 
 
 _VALIDATORS = {"auth": _check_auth, "sources": _check_sources, "peers": _check_peers, "first_stopped": _check_bool, "counters": _check_counters,

@@ -41,6 +41,7 @@ Pure numpy; no I/O.
 
 from __future__ import annotations
 
+import bisect
 import math
 from typing import NamedTuple
 
@@ -293,10 +294,13 @@ class SourceSplit:
         # whole matrices are formed only for an update that is made (a few % of ranges).
         J = sorted(set(np.flatnonzero(h).tolist()) | {i0, i1})
         j0, j1 = J.index(i0), J.index(i1)
-        Jx = np.array(J)
+        if J[-1] - J[0] == len(J) - 1:  # contiguous (a range: the position): views
+            Jx = slice(J[0], J[-1] + 1)
+            PJ, CJ = P[Jx, Jx], self._C[:, Jx, Jx]
+        else:
+            Jx = np.array(J)
+            PJ, CJ = P[np.ix_(Jx, Jx)], self._C[:, Jx[:, None], Jx[None, :]]
         hJ = h[Jx]
-        PJ = P[np.ix_(Jx, Jx)]
-        CJ = self._C[:, Jx[:, None], Jx[None, :]]
         mineJ = np.concatenate([(PJ - CJ.sum(axis=0))[None], CJ])  # own first, (k+1, m, m)
         ChJ = mineJ @ hJ
         a_k = (ChJ @ hJ).tolist()
@@ -307,20 +311,26 @@ class SourceSplit:
         dep: list[tuple[list[int], list[int], float]] = []
         terms: list[tuple[float, ...]] = []
         # a part's share of its group's variance (more than its own when it may correlate)
-        share = [0.0] * len(parts)
+        share = [p.variance for p in parts]
         for gm, gp in groups:
-            b = _combine([parts[j] for j in gp])
-            tot = sum(parts[j].variance for j in gp)
-            for j in gp:
-                share[j] = parts[j].variance * (b / tot if tot > 0.0 else 0.0)
+            if len(gp) == 1:  # the usual case: one part, its own variance
+                b = share[gp[0]]
+            else:
+                b = _combine([parts[j] for j in gp])
+                tot = sum(share[j] for j in gp)
+                for j in gp:
+                    share[j] *= b / tot if tot > 0.0 else 0.0
             if not gm or b <= 0.0:
                 r_ind += b
                 continue
-            a = sum(a_k[k] for k in gm)
-            T = sum(T_k[k] for k in gm)
+            if len(gm) == 1:
+                k = gm[0]
+                a, T, c0, c1 = a_k[k], T_k[k], c0_k[k], c1_k[k]
+            else:
+                a, T = sum(a_k[k] for k in gm), sum(T_k[k] for k in gm)
+                c0, c1 = sum(c0_k[k] for k in gm), sum(c1_k[k] for k in gm)
             dep.append((gm, gp, b))
-            terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b,
-                          sum(c0_k[k] for k in gm), sum(c1_k[k] for k in gm)))
+            terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b, c0, c1))
         Ph = PJ @ hJ
         hPh = float(hJ @ Ph)
         tr0 = float(PJ[j0, j0] + PJ[j1, j1])
@@ -330,18 +340,7 @@ class SourceSplit:
             return [min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX)
                     for sa, sb, *_ in terms]
 
-        def posterior_trace(s: float) -> float:
-            tr, hph, r, v0, v1 = tr0, hPh, r_ind, ph0, ph1
-            for sa, sb, T, a, b, c0, c1 in terms:
-                w = s * sa / (s * sa + (1.0 - s) * sb)
-                w = OMEGA_MIN if w < OMEGA_MIN else OMEGA_MAX if w > OMEGA_MAX else w
-                x = 1.0 / w - 1.0
-                tr += x * T
-                hph += x * a
-                v0 += x * c0
-                v1 += x * c1
-                r += b / (1.0 - w)
-            return tr - (v0 * v0 + v1 * v1) / (hph + r)
+        posterior_trace = _PosteriorTrace(terms, tr0, hPh, r_ind, ph0, ph1)
 
         skip = UpdateResult(np.zeros(n), float("nan"), 1, False, meas.name, None, float("nan"), skipped=True)
         if min_gain > 0.0:
@@ -391,6 +390,56 @@ class SourceSplit:
         self.add_many([(p.labels, share[j] * scale_p[j]) for j, p in enumerate(parts) if share[j] > 0.0]
                       + [(noise_labels, float(meas.R[0, 0]))], KK)
         return dx, P_post, UpdateResult(dx, nis, 1, True, meas.name, K[:, None], omega)
+
+
+class _PosteriorTrace:
+    """The posterior variance of the two minimised states [their unit²] as a function of the
+    weight parameter ``s`` (the objective of :meth:`SourceSplit.update`), in O(log G) per
+    evaluation for G groups.
+
+    Group ``g``'s weight ω_g = s√a_g/(s√a_g + (1 - s)√b_g) makes its inflation
+    x_g = 1/ω_g - 1 = ρ q_g with ρ = (1 - s)/s and q_g = √b_g/√a_g: every group's terms scale
+    with the same ρ, except those whose ω_g is clipped to [OMEGA_MIN, OMEGA_MAX], which keep
+    a constant x. With the groups sorted by q, the clipped ones are a prefix and a suffix, found
+    by bisection, and every sum is a difference of prefix sums.
+
+    ``terms``: per group (√a, √b, T, a, b, c0, c1) with T my side's variance of the two states,
+    a its variance along the measurement, b the other side's, c0/c1 my side's covariances of the
+    two states with the measurement; ``tr0``, ``hph``, ``r``, ``ph0``, ``ph1`` the same of the
+    whole prior and the independent noise.
+    """
+
+    X_LO = 1.0 / OMEGA_MAX - 1.0  #: the inflation of a group whose weight is clipped high
+    X_HI = 1.0 / OMEGA_MIN - 1.0  #: ... clipped low
+
+    def __init__(self, terms: list[tuple[float, ...]], tr0: float, hph: float, r: float, ph0: float, ph1: float):
+        self.base = (tr0, hph, r, ph0, ph1)
+        rows = sorted(((sb / sa, T, a, b, c0, c1) for sa, sb, T, a, b, c0, c1 in terms), key=lambda t: t[0])
+        self.q = [t[0] for t in rows]
+        # prefix sums of (T, a, c0, c1, b) and of q (T, a, c0, c1) and b/q
+        acc = [0.0] * 10
+        self.cum = [tuple(acc)]
+        for q, T, a, b, c0, c1 in rows:
+            for i, v in enumerate((T, a, c0, c1, b, q * T, q * a, q * c0, q * c1, b / q)):
+                acc[i] += v
+            self.cum.append(tuple(acc))
+
+    def __call__(self, s: float) -> float:
+        tr, hph, r, v0, v1 = self.base
+        if not self.q:
+            return tr - (v0 * v0 + v1 * v1) / (hph + r)
+        rho = (1.0 - s) / s
+        lo = bisect.bisect_left(self.q, self.X_LO / rho)  # ρq < X_LO: ω clipped at OMEGA_MAX
+        hi = bisect.bisect_right(self.q, self.X_HI / rho)  # ρq > X_HI: ω clipped at OMEGA_MIN
+        c, L, H = self.cum[-1], self.cum[lo], self.cum[hi]
+        x_lo, x_hi = self.X_LO, self.X_HI
+        tr += x_lo * L[0] + rho * (H[5] - L[5]) + x_hi * (c[0] - H[0])
+        hph += x_lo * L[1] + rho * (H[6] - L[6]) + x_hi * (c[1] - H[1])
+        v0 += x_lo * L[2] + rho * (H[7] - L[7]) + x_hi * (c[2] - H[2])
+        v1 += x_lo * L[3] + rho * (H[8] - L[8]) + x_hi * (c[3] - H[3])
+        # b/(1 - ω) = b (1 + 1/x)
+        r += c[4] + L[4] / x_lo + (H[9] - L[9]) / rho + (c[4] - H[4]) / x_hi
+        return tr - (v0 * v0 + v1 * v1) / (hph + r)
 
 
 def _rank_one_transform(C: np.ndarray, k: np.ndarray, h: np.ndarray, kk: np.ndarray | None = None) -> np.ndarray:
