@@ -42,6 +42,7 @@ Pure numpy; no I/O.
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from typing import NamedTuple
 
@@ -147,11 +148,13 @@ class SourceSplit:
         """Add ``w M`` from the sources ``labels`` for every ``(labels, w)`` of ``items``
         (``M`` (n, n), ``w`` ≥ 0), merging as :meth:`add` one item after the other would: the
         items and components that share a source become one component, and whatever shares one
-        with the own component joins it."""
+        with the own component joins it. Beyond :data:`MAX_COMPONENTS` the two smallest (by
+        trace) are merged, repeatedly. The merges are planned on the traces and the new
+        components formed in one product."""
         mine = [self.own_labels] + self.labels
-        keep = np.ones(len(self.labels), bool)
-        new_labels: list[frozenset[str]] = []
-        new_parts: list[np.ndarray] = []
+        k_old = len(self.labels)
+        gone: set[int] = set()  # stored components merged into others or into the own one
+        new: list[list] = []  # [labels, weight of M, stored components summed in]
         for gm, gp in _group(mine, [lab for lab, _ in items]):
             if not gp:
                 continue
@@ -163,28 +166,26 @@ class SourceSplit:
                 self._C[gm[0] - 1] += w * M
                 continue
             else:
-                new_labels.append(merged)
-                new_parts.append(w * M + sum(self._C[k - 1] for k in gm))
-            keep[[k - 1 for k in gm if k > 0]] = False
-        if not keep.all() or new_labels:
-            self.labels = [lab for lab, k in zip(self.labels, keep) if k] + new_labels
-            self._C = np.concatenate([self._C[keep], np.reshape(new_parts, (-1, self.n, self.n))])
-            self._cap()
-
-    def _cap(self) -> None:
-        """Merge the two smallest components (by trace) until at most :data:`MAX_COMPONENTS`."""
-        if len(self.labels) <= MAX_COMPONENTS:
+                new.append([merged, w, [k - 1 for k in gm]])
+            gone.update(k - 1 for k in gm if k > 0)
+        if not gone and not new:
             return
-        size = np.trace(self._C, axis1=1, axis2=2).tolist()
-        parts = list(self._C)
-        labels = list(self.labels)
-        while len(labels) > MAX_COMPONENTS:
-            i, j = sorted(sorted(range(len(size)), key=size.__getitem__)[:2])
-            labels[i] = labels[i] | labels.pop(j)
-            parts[i] = parts[i] + parts.pop(j)
-            size[i] += size.pop(j)
-        self.labels = labels
-        self._C = np.array(parts)
+        plan = [[self.labels[i], 0.0, [i]] for i in range(k_old) if i not in gone] + new
+        if len(plan) > MAX_COMPONENTS:
+            tr_old = np.trace(self._C, axis1=1, axis2=2).tolist()
+            tr_m = float(np.trace(M))
+            size = [w * tr_m + sum(tr_old[i] for i in idx) for _, w, idx in plan]
+            while len(plan) > MAX_COMPONENTS:
+                i, j = sorted(sorted(range(len(size)), key=size.__getitem__)[:2])
+                lab_j, w_j, idx_j = plan.pop(j)
+                plan[i] = [plan[i][0] | lab_j, plan[i][1] + w_j, plan[i][2] + idx_j]
+                size[i] += size.pop(j)
+        S = np.zeros((len(plan), k_old))
+        for r, (_, _, idx) in enumerate(plan):
+            S[r, idx] = 1.0
+        w = np.array([p[1] for p in plan])
+        self._C = np.tensordot(S, self._C, axes=1) + w[:, None, None] * M
+        self.labels = [p[0] for p in plan]
 
     def propagate(self, phi: np.ndarray, qd: np.ndarray) -> None:
         """``P_s ← Φ P_s Φᵀ``; the process noise of the shared states (in ``qd``) goes to
@@ -414,15 +415,11 @@ class _PosteriorTrace:
 
     def __init__(self, terms: list[tuple[float, ...]], tr0: float, hph: float, r: float, ph0: float, ph1: float):
         self.base = (tr0, hph, r, ph0, ph1)
-        rows = sorted(((sb / sa, T, a, b, c0, c1) for sa, sb, T, a, b, c0, c1 in terms), key=lambda t: t[0])
+        rows = sorted([(sb / sa, T, a, b, c0, c1) for sa, sb, T, a, b, c0, c1 in terms])
         self.q = [t[0] for t in rows]
-        # prefix sums of (T, a, c0, c1, b) and of q (T, a, c0, c1) and b/q
-        acc = [0.0] * 10
-        self.cum = [tuple(acc)]
-        for q, T, a, b, c0, c1 in rows:
-            for i, v in enumerate((T, a, c0, c1, b, q * T, q * a, q * c0, q * c1, b / q)):
-                acc[i] += v
-            self.cum.append(tuple(acc))
+        # the rows of prefix sums of (T, a, c0, c1, b) and of q (T, a, c0, c1) and b/q
+        cols = zip(*[(T, a, c0, c1, b, q * T, q * a, q * c0, q * c1, b / q) for q, T, a, b, c0, c1 in rows])
+        self.cum = list(zip(*[itertools.accumulate(col, initial=0.0) for col in cols])) if rows else []
 
     def __call__(self, s: float) -> float:
         tr, hph, r, v0, v1 = self.base
