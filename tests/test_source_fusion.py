@@ -153,6 +153,36 @@ def test_shared_process_noise_and_own_updates_keep_the_split() -> None:
         np.testing.assert_allclose(c, A @ b @ A.T, atol=1e-12)
 
 
+def test_deferred_propagation_and_updates_equal_step_by_step() -> None:
+    """Propagations and own-sensor updates are composed and applied when the components are
+    needed; a run of them (scalar and three-row updates, common-mode noise) gives the components,
+    and the blocks the weights are chosen on, of applying each at once."""
+    rng = np.random.default_rng(8)
+    n = 6
+    split = SourceSplit("V0", n, shared_process=[4, 5])
+    ref = {"V1": _spd(rng, n, 0.2), COMMON_MODE: _spd(rng, n, 0.1)}
+    for lab, C in ref.items():
+        split.add(frozenset({lab}), C)
+    for step in range(12):
+        phi = np.eye(n) + 0.1 * rng.normal(size=(n, n))
+        qd = np.diag(rng.uniform(0.0, 0.3, n))
+        split.propagate(phi, qd)
+        Q = np.zeros((n, n))
+        Q[4:, 4:] = qd[4:, 4:]
+        ref = {lab: phi @ C @ phi.T + (Q if lab == COMMON_MODE else 0.0) for lab, C in ref.items()}
+        m = 1 if step % 2 else 3
+        K, H = 0.3 * rng.normal(size=(n, m)), rng.normal(size=(m, n))
+        split.transform(K, H)
+        A = np.eye(n) - K @ H
+        ref = {lab: A @ C @ A.T for lab, C in ref.items()}
+        if step % 4 == 3:  # the blocks, without applying the pending products to the matrices
+            blocks = split._block(slice(0, 2))
+            for lab, b in zip(split.labels, blocks):
+                np.testing.assert_allclose(b, ref[next(iter(lab))][:2, :2], rtol=1e-9, atol=1e-12)
+    for lab, C in zip(split.labels, split.parts):
+        np.testing.assert_allclose(C, ref[next(iter(lab))], rtol=1e-9, atol=1e-12)
+
+
 def test_groups_join_every_label_set_that_may_share_a_source() -> None:
     from agent.nav.source_fusion import _group
 

@@ -102,6 +102,12 @@ class SourceSplit:
     The stored components are one array, shape (k, n, n), so that propagation and the
     own-sensor transform are a few stacked matrix products whatever k; ``labels[i]`` names
     ``parts[i]``.
+
+    Propagation and own-sensor updates are congruences, ``P_s ← A P_s Aᵀ`` for every stored
+    component (plus the common-mode process noise for one of them). They happen 10-25 times a
+    second and the components are needed whole far less often (a beacon, an update that is
+    made), so they are composed, ``A ← A_new A``, and applied when needed (:meth:`_sync`);
+    the choice of the weights needs only a few rows of ``A``.
     """
 
     def __init__(self, me: str, n: int, unshared=(), shared_process=()) -> None:
@@ -113,9 +119,14 @@ class SourceSplit:
         s = np.asarray(shared_process, int)
         self._shared_process = np.ix_(s, s) if s.size else None
         self._group_memo: dict[tuple, list[tuple[list[int], list[int]]]] = {}
+        # pending: the true components are A C Aᵀ, plus Q for component k_q (see the Notes)
+        self._A: np.ndarray | None = None
+        self._Q: np.ndarray | None = None
+        self._k_q = -1
 
     def copy(self) -> "SourceSplit":
         """An independent copy (e.g. to restore a filter's state)."""
+        self._sync()
         out = SourceSplit.__new__(SourceSplit)
         out.__dict__.update(self.__dict__)
         out.labels = list(self.labels)
@@ -125,17 +136,53 @@ class SourceSplit:
     @property
     def parts(self) -> np.ndarray:
         """The stored components, shape (k, n, n) [state units²]; read them, do not write."""
+        self._sync()
         return self._C
+
+    def _sync(self) -> None:
+        """Apply the pending congruence and common-mode noise to the stored components."""
+        if self._A is not None:
+            C = self._A @ self._C @ self._A.T
+            self._C = 0.5 * (C + C.transpose(0, 2, 1))
+            self._A = None
+        if self._Q is not None:
+            self._C[self._k_q] += self._Q
+            self._Q = None
+
+    def _compose(self, A: np.ndarray, rank_one: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Add the congruence ``A`` (n, n) to the pending one; ``rank_one`` ``(k, h)`` says
+        ``A = I - k hᵀ`` (then O(n²))."""
+        if rank_one is not None:
+            k, h = rank_one
+            self._A = A if self._A is None else self._A - np.outer(k, h @ self._A)
+            if self._Q is not None:
+                self._Q = _rank_one_transform(self._Q, k, h)
+            return
+        self._A = A if self._A is None else A @ self._A
+        if self._Q is not None:
+            Q = A @ self._Q @ A.T
+            self._Q = 0.5 * (Q + Q.T)
+
+    def _common_target(self) -> int | None:
+        """Where the common-mode process noise goes: -1 the own component, k a stored one that
+        names it, None if it would change the components (merge or create one)."""
+        cm = frozenset({COMMON_MODE})
+        if overlaps(self.own_labels, cm):
+            return -1
+        hit = [k for k, lab in enumerate(self.labels) if overlaps(lab, cm)]
+        return hit[0] if len(hit) == 1 and COMMON_MODE in self.labels[hit[0]] else None
 
     # ------------------------------------------------------------------ bookkeeping
     def own(self, P: np.ndarray) -> np.ndarray:
         """The own component, ``P`` minus the stored ones, shape (n, n)."""
+        self._sync()
         return P - self._C.sum(axis=0) if self.labels else P.copy()
 
     def add(self, labels: frozenset[str], M: np.ndarray | None) -> None:
         """Add covariance ``M`` (n, n) (None: nothing, only the labels) from the sources
         ``labels``. Components that share a source with it are merged with it; if the own
         component does, it takes them all (``M`` is then part of ``P`` already)."""
+        self._sync()
         if not overlaps(self.own_labels, labels):
             hit = [k for k, lab in enumerate(self.labels) if overlaps(lab, labels)]
             if len(hit) == 1 and labels <= self.labels[hit[0]]:  # e.g. the common mode, every step
@@ -151,6 +198,7 @@ class SourceSplit:
         with the own component joins it. Beyond :data:`MAX_COMPONENTS` the two smallest (by
         trace) are merged, repeatedly. The merges are planned on the traces and the new
         components formed in one product."""
+        self._sync()
         mine = [self.own_labels] + self.labels
         k_old = len(self.labels)
         gone: set[int] = set()  # stored components merged into others or into the own one
@@ -190,13 +238,22 @@ class SourceSplit:
     def propagate(self, phi: np.ndarray, qd: np.ndarray) -> None:
         """``P_s ← Φ P_s Φᵀ``; the process noise of the shared states (in ``qd``) goes to
         :data:`COMMON_MODE`, the rest to the own component (implicitly)."""
-        if self.labels:
-            C = phi @ self._C @ phi.T
-            self._C = 0.5 * (C + C.transpose(0, 2, 1))
+        Q = None
         if self._shared_process is not None:
             Q = np.zeros((self.n, self.n))
             Q[self._shared_process] = qd[self._shared_process]
+        target = -1 if Q is None else self._common_target()
+        if target is None:  # the noise makes a component: apply everything now
+            self._sync()
+            C = phi @ self._C @ phi.T
+            self._C = 0.5 * (C + C.transpose(0, 2, 1))
             self.add(frozenset({COMMON_MODE}), Q)
+            return
+        if self.labels:
+            self._compose(phi)
+            if target >= 0:
+                self._Q = Q if self._Q is None else self._Q + Q
+                self._k_q = target
 
     def transform(self, K: np.ndarray, H: np.ndarray) -> None:
         """Carry every stored component through an own-sensor update with gain ``K`` (n, m) and
@@ -204,22 +261,20 @@ class SourceSplit:
         is the own component's."""
         if not self.labels:
             return
-        if H.shape[0] == 1:
-            self._C = _rank_one_transform(self._C, K[:, 0], H[0])
-            return
         A = -(K @ H)
         A.flat[:: self.n + 1] += 1.0
-        C = A @ self._C @ A.T
-        self._C = 0.5 * (C + C.transpose(0, 2, 1))
+        self._compose(A, (K[:, 0], H[0]) if H.shape[0] == 1 else None)
 
     def clear_states(self, idx) -> None:
         """Zero the rows and columns ``idx`` of every stored component: a reset gives those states
         a fresh prior of the own kind."""
+        self._sync()
         self._C[:, idx, :] = 0.0
         self._C[:, :, idx] = 0.0
 
     def decorrelate(self, i: int) -> None:
         """Zero state ``i``'s correlations (not its variance) in every stored component."""
+        self._sync()
         d = self._C[:, i, i].copy()
         self._C[:, i, :] = 0.0
         self._C[:, :, i] = 0.0
@@ -234,11 +289,24 @@ class SourceSplit:
 
         own = P[idx, idx].copy()
         out = []
-        for lab, C in zip(self.labels, self._C):
+        for lab, C in zip(self.labels, self.parts):
             b = C[idx, idx].copy()
             own -= b
             out.append((named(lab), b))
         return [(named(self.own_labels), own)] + out
+
+    def _block(self, J: slice | np.ndarray) -> np.ndarray:
+        """Every stored component's block of the states ``J`` (a slice or an index array),
+        shape (k, m, m), without applying the pending congruence to the whole matrices."""
+        if self._A is None:
+            CJ = self._C[:, J, J] if isinstance(J, slice) else self._C[:, J[:, None], J[None, :]]
+        else:
+            rows = self._A[J]
+            CJ = rows @ self._C @ rows.T
+        if self._Q is not None:
+            CJ = CJ.copy()
+            CJ[self._k_q] += self._Q[J, J] if isinstance(J, slice) else self._Q[np.ix_(J, J)]
+        return CJ
 
     def _groups(self, mine: list[frozenset[str]], theirs: list[frozenset[str]]) -> list[tuple[list[int], list[int]]]:
         """:func:`_group`, remembered: the same neighbour's beacon meets the same components at
@@ -297,10 +365,11 @@ class SourceSplit:
         j0, j1 = J.index(i0), J.index(i1)
         if J[-1] - J[0] == len(J) - 1:  # contiguous (a range: the position): views
             Jx = slice(J[0], J[-1] + 1)
-            PJ, CJ = P[Jx, Jx], self._C[:, Jx, Jx]
+            PJ = P[Jx, Jx]
         else:
             Jx = np.array(J)
-            PJ, CJ = P[np.ix_(Jx, Jx)], self._C[:, Jx[:, None], Jx[None, :]]
+            PJ = P[np.ix_(Jx, Jx)]
+        CJ = self._block(Jx)
         hJ = h[Jx]
         mineJ = np.concatenate([(PJ - CJ.sum(axis=0))[None], CJ])  # own first, (k+1, m, m)
         ChJ = mineJ @ hJ
