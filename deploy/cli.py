@@ -588,7 +588,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             print(f"  fleet {f['agents']:3d} agents: {f['error']}")
             continue
         lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
-        print(f"  fleet {f['agents']:3d} agents ({f['method']}, Zenoh {f['zenoh_mode']}, IMU batch {f['imu_batch']}): "
+        print(f"  fleet {f['agents']:3d} agents ({f['method']}, {f['fusion']}, Zenoh {f['zenoh_mode']}, IMU batch {f['imu_batch']}): "
               f"real-time factor {f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
               f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
               f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, machine {f['machine_cpu_pct']:.0f} %, "
