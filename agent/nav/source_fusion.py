@@ -42,7 +42,6 @@ Pure numpy; no I/O.
 from __future__ import annotations
 
 import bisect
-import itertools
 import math
 from typing import NamedTuple
 
@@ -487,8 +486,12 @@ class _PosteriorTrace:
         rows = sorted([(sb / sa, T, a, b, c0, c1) for sa, sb, T, a, b, c0, c1 in terms])
         self.q = [t[0] for t in rows]
         # the rows of prefix sums of (T, a, c0, c1, b) and of q (T, a, c0, c1) and b/q
-        cols = zip(*[(T, a, c0, c1, b, q * T, q * a, q * c0, q * c1, b / q) for q, T, a, b, c0, c1 in rows])
-        self.cum = list(zip(*[itertools.accumulate(col, initial=0.0) for col in cols])) if rows else []
+        sT = sa = s0 = s1 = sb = qT = qa = q0 = q1 = bq = 0.0
+        self.cum = [(0.0,) * 10]
+        for q, T, a, b, c0, c1 in rows:
+            sT, sa, s0, s1, sb = sT + T, sa + a, s0 + c0, s1 + c1, sb + b
+            qT, qa, q0, q1, bq = qT + q * T, qa + q * a, q0 + q * c0, q1 + q * c1, bq + b / q
+            self.cum.append((sT, sa, s0, s1, sb, qT, qa, q0, q1, bq))
 
     def __call__(self, s: float) -> float:
         tr, hph, r, v0, v1 = self.base
