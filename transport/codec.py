@@ -113,6 +113,9 @@ def _check_peers(name: str, fname: str, val: Any) -> tuple[str, ...]:
     return tuple(_check_str(name, fname, v) for v in val)
 
 
+#: a flattened 3×3 matrix's elements above the diagonal and their mirror images below it
+_UPPER, _LOWER = np.array([1, 2, 5]), np.array([3, 6, 7])
+
 #: label tuples already found valid: a beacon's labels recur at every beacon (bounded)
 _VALID_LABELS: set[tuple[str, ...]] = set()
 
@@ -155,7 +158,7 @@ def _check_sources(name: str, fname: str, val: Any) -> tuple:
     if not np.isfinite(f).all():
         raise CodecError(f"{name}.sources: non-finite values")
     scale = 1e-12 + 1e-9 * np.abs(f).max(axis=1)
-    if (f[:, ::4] < 0.0).any() or (np.abs(f[:, (1, 2, 5)] - f[:, (3, 6, 7)]).max(axis=1) > scale).any():
+    if (f[:, ::4] < 0.0).any() or (np.abs(f[:, _UPPER] - f[:, _LOWER]).max(axis=1) > scale).any():
         raise CodecError(f"{name}.sources: a covariance must be symmetric with a non-negative diagonal")
     return tuple(zip(out, f.reshape(-1, 3, 3)))
 
