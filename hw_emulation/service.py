@@ -109,6 +109,12 @@ class EmulatorService:
             llh = self.truth.vehicles[vid].truth.llh
             n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], lat0, lon0, h0, deg=False)
             self._ne.append(np.stack([n, e], 1))
+        # the vehicles share one time grid (as build_truth makes them): positions stacked
+        # (n, N, 2), one search per clock value instead of one per vehicle
+        t_all = [self.truth.vehicles[vid].truth.t for vid in self.ids]
+        self._grid_t = t_all[0] if all(t.shape == t_all[0].shape and np.array_equal(t, t_all[0])
+                                       for t in t_all) else None
+        self._ne_grid = np.stack(self._ne, 1) if self._grid_t is not None else None
         self._ne_at: tuple[float, np.ndarray] | None = None
         self._pending: list[tuple[float, str, bytes]] = []  # (deliver at, receiver, payload)
         self._ge_bad: dict[tuple[str, str], bool] = {}
@@ -125,11 +131,16 @@ class EmulatorService:
         """True horizontal positions of ``self.ids`` at the radio's clock ``self.now``, shape
         (N, 2) [m] north and east of the scenario's origin (computed once per clock value)."""
         if self._ne_at is None or self._ne_at[0] != self.now:
-            rows = []
-            for vid, ne in zip(self.ids, self._ne):
-                t = self.truth.vehicles[vid].truth.t
-                rows.append(ne[min(int(np.searchsorted(t, self.now)), len(t) - 1)])
-            self._ne_at = (self.now, np.array(rows))
+            if self._ne_grid is not None:
+                t = self._grid_t
+                ne = self._ne_grid[min(int(np.searchsorted(t, self.now)), len(t) - 1)]
+            else:
+                rows = []
+                for vid, ne in zip(self.ids, self._ne):
+                    t = self.truth.vehicles[vid].truth.t
+                    rows.append(ne[min(int(np.searchsorted(t, self.now)), len(t) - 1)])
+                ne = np.array(rows)
+            self._ne_at = (self.now, ne)
         return self._ne_at[1]
 
     def _radio_send(self, payload: bytes) -> None:

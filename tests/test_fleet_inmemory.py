@@ -212,9 +212,14 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
     truth = build_truth(load_scenario("rush-hour"))
     emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0)
     ids = emu.ids
+    assert emu._ne_grid is not None  # build_truth's vehicles share one time grid: stacked
     for now in (5.0, 31.7, 60.0, 88.8):
         emu.now = now
         ne = emu._radio_positions()
+        # the same as the per-vehicle search (vehicles on different grids)
+        stacked, emu._ne_grid, emu._ne_at = emu._ne_grid, None, None
+        np.testing.assert_array_equal(emu._radio_positions(), ne)
+        emu._ne_grid = stacked
         llh = {}
         for v in ids:
             t = truth.vehicles[v].truth.t
