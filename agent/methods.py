@@ -58,6 +58,9 @@ DEFAULT_FUSION = "source-ci"
 STANDING_SPEED = 0.3
 #: σ [m/s] of a relative velocity from two inertial estimates along a known line of sight
 RATE_VELOCITY_SIGMA = 0.3
+#: the UWB antenna at the IMU (the agents' range model; read only)
+_NO_LEVER_ARM = np.zeros(3)
+_NO_LEVER_ARM.flags.writeable = False
 
 
 def lane_row_markings(window: MarkingWindow, t: float) -> tuple[int, int]:
@@ -459,25 +462,30 @@ class MethodFilter:
             # a delayed range: move the neighbour by my displacement since t, which keeps the
             # relative geometry of time t while the Jacobian acts on my current error
             nb_llh = earth.offset_llh(nb_llh, self.displacement_since(t_meas))
-        d = relative_position(self.filter.state, np.zeros(3), nb_llh)
-        # the line of sight as the range model takes it: horizontal unless the 3-D model is chosen
-        los = d if s.range_height_sigma is None else np.array([d[0], d[1], 0.0])
-        u = los / max(float(np.linalg.norm(los)), 1e-3)
-        v_rel = self.filter.state.v - neighbour.v_ned
-        rate = float(u @ v_rel)
+        d = relative_position(self.filter.state, _NO_LEVER_ARM, nb_llh)
+        # the line of sight as the range model takes it: horizontal unless the 3-D model is
+        # chosen (Python floats: a dozen numpy calls on 3-vectors cost more than the arithmetic)
+        d0, d1, d2 = d.tolist()
+        l2 = 0.0 if s.range_height_sigma is not None else d2
+        norm = max(math.sqrt(d0 * d0 + d1 * d1 + l2 * l2), 1e-3)
+        u = (d0 / norm, d1 / norm, l2 / norm)
+        vi, vj = self.filter.state.v.tolist(), neighbour.v_ned.tolist()
+        v_rel = (vi[0] - vj[0], vi[1] - vj[1], vi[2] - vj[2])
+        rate = u[0] * v_rel[0] + u[1] * v_rel[1] + u[2] * v_rel[2]
         if not self.rate_gate.check(neighbour.vehicle, t_meas, measured, rate):
             return self._count_range("gate_rate")
         own_cov = self.filter.position_cov
+        own_rows, nb_rows = own_cov.tolist(), neighbour.cov_ned.tolist()
         link = None
         if self.nlos_tracker is not None:
-            speed2 = float(v_rel[0] ** 2 + v_rel[1] ** 2)
+            speed2 = v_rel[0] ** 2 + v_rel[1] ** 2
             link = self.nlos_tracker.belief(
                 neighbour.vehicle, t_meas, measured, rate, speed2,
-                standing=_standing(self.filter.state.v) and _standing(neighbour.v_ned),
-                rate_var=_rate_variance(u, d, own_cov, neighbour.cov_ned, speed2))
+                standing=vi[0] ** 2 + vi[1] ** 2 < STANDING_SPEED**2 and vj[0] ** 2 + vj[1] ** 2 < STANDING_SPEED**2,
+                rate_var=_rate_variance(u, (d0, d1, d2), own_rows, nb_rows, speed2))
             if link.outlier:
                 return self._count_range("gate_rate")
-        if s.range_min_sigmas > 0.0 and _too_near(d, own_cov, neighbour.cov_ned, s.range_min_sigmas):
+        if s.range_min_sigmas > 0.0 and _too_near((d0, d1, d2), own_rows, nb_rows, s.range_min_sigmas):
             return self._count_range("skipped_near")
         m = range_measurement(self.filter.state, measured, s.sigma_uwb, nb_llh, neighbour.cov_ned,
                               own_cov_ned=own_cov, second_order=s.second_order_ranges,
@@ -486,7 +494,11 @@ class MethodFilter:
         if s.fusion == "paper":
             res = self.filter.update(m, s.range_gate)
         else:
-            nu, var = self._range_innovation(m)
+            # innovation and its variance HPHᵀ + R: the model's row acts on the position only
+            nu = -float(m.z[0])
+            hp = m.H[0, POS].tolist()
+            var = sum(hp[i] * (own_rows[i][0] * hp[0] + own_rows[i][1] * hp[1] + own_rows[i][2] * hp[2])
+                      for i in range(3)) + float(m.R[0, 0])
             if s.uwb_nlos is not None and s.uwb_nlos.classify(nu, var, s.nlos_reject_probability,
                                                               None if link is None else link.p_nlos):
                 return self._count_range("gate_nlos")
@@ -502,7 +514,8 @@ class MethodFilter:
             # its own-sensor errors (multipath) persist from one range to the next; so does an
             # NLOS bias. The UWB white noise (and the second-order term) is independent.
             h = m.H[0, POS]  # the line of sight as the model uses it (horizontal or 3-D)
-            r_nb = max(float(h @ neighbour.cov_ned @ h), 0.0)
+            r_nb = max(sum(hp[i] * (nb_rows[i][0] * hp[0] + nb_rows[i][1] * hp[1] + nb_rows[i][2] * hp[2])
+                           for i in range(3)), 0.0)
             m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
             if s.fusion == "source-ci":
                 res = self._range_source_ci(m_ind, h, neighbour, r_nb, r_bias)
@@ -535,15 +548,6 @@ class MethodFilter:
             m = Measurement(m.z, m.H, np.zeros((1, 1)), m.name)
         s = self.settings
         return self.filter.update_source_ci(m, parts, link, s.range_gate, s.min_gain)
-
-    def _range_innovation(self, m: Measurement) -> tuple[float, float]:
-        """The range's innovation, measured minus predicted [m] (the model's ``z`` is predicted
-        minus measured), and its variance HPHᵀ + R [m²] (both positions along the line of sight
-        and the UWB noise; no NLOS bias)."""
-        f = self.filter
-        f.flush_covariance()
-        h = f.full_jacobian(m.H)[0]
-        return -float(m.z[0]), float(h @ f.P @ h) + float(m.R[0, 0])
 
     def lane_due(self) -> bool:
         """Whether :meth:`lane_line` wants a lane now (``lane_interval`` after its last call)."""
@@ -648,32 +652,33 @@ class MethodFilter:
         return tuple(f.sources.blocks(f.P, POS))
 
 
-def _rate_variance(u: np.ndarray, d: np.ndarray, own_cov: np.ndarray, nb_cov: np.ndarray, speed2: float) -> float:
+def _rate_variance(u: tuple[float, ...], d: tuple[float, ...], own_cov: list, nb_cov: list, speed2: float) -> float:
     """Variance [m²/s²] of the range rate u·(v_i − v_j) from two estimates: the velocities'
     (``RATE_VELOCITY_SIGMA``) and the line of sight's, whose direction is off by the two
     positions' combined σ across it over the distance (``u`` horizontal unit (3,), ``d`` the
-    relative position (3,) [m], ``own_cov``/``nb_cov`` (3, 3) [m²], ``speed2`` the squared
-    horizontal relative speed)."""
-    across = np.array([-u[1], u[0]])
-    c = own_cov[:2, :2] + nb_cov[:2, :2]
-    r2 = max(float(d[0] ** 2 + d[1] ** 2), 1.0)
-    return RATE_VELOCITY_SIGMA**2 + speed2 * min(float(across @ c @ across) / r2, 1.0)
+    relative position (3,) [m], ``own_cov``/``nb_cov`` (3, 3) [m²] as rows of floats,
+    ``speed2`` the squared horizontal relative speed)."""
+    r2 = max(d[0] ** 2 + d[1] ** 2, 1.0)
+    return RATE_VELOCITY_SIGMA**2 + speed2 * min(_across(u[0], u[1], own_cov, nb_cov) / r2, 1.0)
 
 
-def _standing(v_ned: np.ndarray) -> bool:
-    """Whether a horizontal velocity [m/s] is that of a standing vehicle (for the range track)."""
-    return float(v_ned[0] ** 2 + v_ned[1] ** 2) < STANDING_SPEED**2
+def _across(u0: float, u1: float, own_cov: list, nb_cov: list) -> float:
+    """The two horizontal covariances' sum (3x3 rows of floats [m²]) across the horizontal
+    direction (u0, u1): a·(P_i + P_j)·a with a = (-u1, u0)."""
+    c00 = own_cov[0][0] + nb_cov[0][0]
+    c01 = own_cov[0][1] + nb_cov[0][1]
+    c11 = own_cov[1][1] + nb_cov[1][1]
+    return c00 * u1 * u1 - 2.0 * c01 * u0 * u1 + c11 * u0 * u0
 
 
-def _too_near(d: np.ndarray, own_cov: np.ndarray, nb_cov: np.ndarray, k: float) -> bool:
+def _too_near(d: tuple[float, ...], own_cov: list, nb_cov: list, k: float) -> bool:
     """Whether the horizontal distance ``d[:2]`` [m] is below ``k`` σ of the horizontal position
-    uncertainty across the line of sight (own plus the neighbour's covariance, (3, 3) m²)."""
+    uncertainty across the line of sight (own plus the neighbour's covariance, (3, 3) m² as rows
+    of floats)."""
     rho = math.hypot(d[0], d[1])
     if rho <= 0.0:
         return True
-    v = np.array([-d[1], d[0]]) / rho  # across the line of sight
-    q = np.asarray(own_cov, float)[:2, :2] + np.asarray(nb_cov, float)[:2, :2]
-    return rho * rho < k * k * float(v @ q @ v)
+    return rho * rho < k * k * _across(d[0] / rho, d[1] / rho, own_cov, nb_cov)
 
 
 def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTable,

@@ -18,6 +18,8 @@ vertical σ at 30 m is +1.7 m) nor drain its information.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .. import earth
@@ -75,47 +77,53 @@ def range_measurement(
         estimated heights (a 3-D range).
     """
     d = relative_position(state, lever_arm_b, neighbour_llh) if relative is None else relative
-    Pj = np.asarray(neighbour_cov_ned, float)
-    Pi = None if own_cov_ned is None else np.asarray(own_cov_ned, float)
+    # 3-vectors and 3x3 matrices as Python floats: a range is fused up to 80 times a second
+    # per vehicle, and a dozen numpy calls on such small arrays cost more than the arithmetic
+    d0, d1, d2 = float(d[0]), float(d[1]), float(d[2])
+    pj = np.asarray(neighbour_cov_ned, float).tolist()
+    pi = None if own_cov_ned is None else np.asarray(own_cov_ned, float).tolist()
     r = sigma_range**2
     if height_offset is not None:
         dh, sdh = height_offset
-        d = np.array([d[0], d[1], -float(dh)])  # NED: down = minus the height difference
-        Pj = _horizontal(Pj)
-        Pi = None if Pi is None else _horizontal(Pi)
-    rho = float(np.linalg.norm(d))
+        d2 = -float(dh)  # NED: down = minus the height difference
+        pj = _horizontal_rows(pj)
+        pi = None if pi is None else _horizontal_rows(pi)
+    rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     if rho < 1e-3:
         raise ValueError("vehicles coincide: range direction undefined")
-    u = d / rho
+    u = (d0 / rho, d1 / rho, d2 / rho)
     if height_offset is not None:
         r += (u[2] * sdh) ** 2
-    r += float(u @ Pj @ u)
+    r += _quadratic(pj, u)
     predicted = rho
     if second_order:
-        if Pi is None:
+        if pi is None:
             raise ValueError("second_order range model needs own_cov_ned")
         # with M = Π/ρ, Π = I - u uᵀ and Q = P_i + P_j (symmetric): tr(MQ) = (tr Q - uᵀQu)/ρ,
         # tr((MQ)²) = (tr(Q²) - 2 |Qu|² + (uᵀQu)²)/ρ² (Π² = Π)
-        Q = Pj + Pi
+        Q = [[a + b for a, b in zip(ra, rb)] for ra, rb in zip(pj, pi)]
         if height_offset is not None:
-            Q[2, 2] += sdh**2
-        Qu = Q @ u
-        uQu = float(u @ Qu)
-        predicted += 0.5 * (float(Q.trace()) - uQu) / rho
-        r += 0.5 * (float((Q * Q).sum()) - 2.0 * float(Qu @ Qu) + uQu * uQu) / (rho * rho)
+            Q[2][2] += sdh**2
+        Qu = [row[0] * u[0] + row[1] * u[1] + row[2] * u[2] for row in Q]
+        uQu = Qu[0] * u[0] + Qu[1] * u[1] + Qu[2] * u[2]
+        predicted += 0.5 * (Q[0][0] + Q[1][1] + Q[2][2] - uQu) / rho
+        r += 0.5 * (sum(q * q for row in Q for q in row) - 2.0 * (Qu[0] ** 2 + Qu[1] ** 2 + Qu[2] ** 2)
+                    + uQu * uQu) / (rho * rho)
     if height_offset is not None:
-        u = np.array([u[0], u[1], 0.0])  # the vertical offset comes from the road, not the state
+        u = (u[0], u[1], 0.0)  # the vertical offset comes from the road, not the state
     if lever_arm_b.any():
-        H = u @ point_position_jacobian(state, lever_arm_b)
+        H = np.array(u) @ point_position_jacobian(state, lever_arm_b)
     else:  # only the position columns
         H = np.zeros(N_STATES)
         H[POS] = u
     return Measurement(np.array([predicted - measured_range]), H[None, :], np.array([[r]]), "v2v_range")
 
 
-def _horizontal(P: np.ndarray) -> np.ndarray:
-    """``P`` (3, 3) with its vertical row and column zeroed (a copy)."""
-    out = np.array(P, float)
-    out[2, :] = 0.0
-    out[:, 2] = 0.0
-    return out
+def _quadratic(P: list[list[float]], u: tuple[float, float, float]) -> float:
+    """``uᵀ P u`` for a 3x3 ``P`` given as rows of floats."""
+    return sum(u[i] * (P[i][0] * u[0] + P[i][1] * u[1] + P[i][2] * u[2]) for i in range(3))
+
+
+def _horizontal_rows(P: list[list[float]]) -> list[list[float]]:
+    """``P`` (3x3 rows of floats) with its vertical row and column zeroed (a copy)."""
+    return [[P[0][0], P[0][1], 0.0], [P[1][0], P[1][1], 0.0], [0.0, 0.0, 0.0]]
