@@ -594,6 +594,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
               f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, machine {f['machine_cpu_pct']:.0f} %, "
               f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "
               f"beacon latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms, sensor drops {f['sensor_dropped']}")
+        if f.get("windows"):
+            worst = f["beacon_p99_ms_worst_window"]
+            print(f"    by {f['windows'][0]['wall_s']:.0f} s window: machine CPU {f['machine_cpu_pct_peak']:.0f} % at the "
+                  f"busiest, beacon p99 {'–' if worst is None else f'{worst:.1f} ms'} in the worst; "
+                  + ", ".join(f"{w['machine_cpu_pct']:.0f} %/" + ("–" if w["beacon_p99_ms"] is None else f"{w['beacon_p99_ms']:.0f} ms")
+                              for w in f["windows"]))
     return 0
 
 

@@ -22,7 +22,12 @@ staggered (:mod:`hw_emulation.grid`). Measured:
   each receiver by the emulated radio (whose own emulated latency is 0 in this scenario), both
   seen by a tap of the launcher's Zenoh router at arrival;
 * ``sensor_dropped``: sensor messages lost in the agents' queues or dropped as too late by
-  their sequencers (``queue_dropped_imu|gnss|uwb`` + ``seq_late_dropped``), summed.
+  their sequencers (``queue_dropped_imu|gnss|uwb`` + ``seq_late_dropped``), summed;
+* ``windows``: the steady part in consecutive ``WINDOW_S`` windows, each with its machine CPU
+  and beacon latency p99 (by publication time), and their worst, ``machine_cpu_pct_peak`` and
+  ``beacon_p99_ms_worst_window``: the load is not even over the grid's run (its vehicles
+  start near each other, up to 60 ranges an agent a second, and drive apart), and a fleet that
+  keeps up on average may saturate the machine in its busiest window.
 """
 
 from __future__ import annotations
@@ -44,6 +49,8 @@ from transport import keys
 log = logging.getLogger(__name__)
 
 _TICK = os.sysconf("SC_CLK_TCK")
+#: length of the windows of ``FleetMonitor.result()["windows"]`` [s]
+WINDOW_S = 5.0
 
 
 def _proc_cpu_s(pid: int) -> float | None:
@@ -86,6 +93,8 @@ class FleetMonitor:
         self._tx: dict[int, float] = {}  # hash of a beacon payload -> arrival time (monotonic)
         self._rx: list[tuple[float, int]] = []
         self.latencies: list[float] = []
+        self.latency_t: list[float] = []  # publication times (monotonic) of ``latencies``
+        self.points: list[tuple[float, dict]] = []  # (wall, CPU per process) of the steady part
         self.unmatched = 0
         self.steady: tuple[float, dict, float] | None = None  # (wall, cpu per process, median t)
         self.last: tuple[float, dict, float] | None = None
@@ -119,6 +128,7 @@ class FleetMonitor:
                     self.unmatched += 1
                 else:
                     self.latencies.append(t_rx - t_tx)
+                    self.latency_t.append(t_tx)
             cutoff = time.monotonic() - 10.0
             if len(self._tx) > 200_000:
                 self._tx = {h: t for h, t in self._tx.items() if t > cutoff}
@@ -152,7 +162,31 @@ class FleetMonitor:
             self.steady = point
             self.emulator_t0 = now - point[2]  # the emulator's clock at 1x: sensor t at wall now
         self.last = point
+        self.points.append(point[:2])
         self.lag_end = [(now - self.emulator_t0) - t for t in ts]
+
+    def _windows(self, lat_ms: np.ndarray) -> dict:
+        """Machine CPU [%] and beacon latency p99 [ms] per ``WINDOW_S`` of the steady part."""
+        rows = []
+        t_pub = np.array(self.latency_t)
+        k = 0
+        pts = self.points
+        while k + 1 < len(pts):
+            j = k + 1  # the window runs from sample k to the first sample WINDOW_S later
+            while j + 1 < len(pts) and pts[j][0] - pts[k][0] < WINDOW_S - 1e-6:
+                j += 1
+            (w0, c0), (w1, c1) = pts[k], pts[j]
+            if w1 - w0 < 0.5 * WINDOW_S:
+                break  # a short tail
+            cpu = 100.0 * sum(c1[n] - c0[n] for n in c1 if n in c0) / (w1 - w0)
+            sel = lat_ms[(t_pub >= w0) & (t_pub < w1)] if len(lat_ms) == len(t_pub) else lat_ms[:0]
+            rows.append({"t_s": w0 - pts[0][0], "wall_s": w1 - w0, "machine_cpu_pct": cpu,
+                         "beacon_p99_ms": float(np.percentile(sel, 99)) if len(sel) else None, "n": int(len(sel))})
+            k = j
+        p99 = [r["beacon_p99_ms"] for r in rows if r["beacon_p99_ms"] is not None]
+        return {"windows": rows,
+                "machine_cpu_pct_peak": max((r["machine_cpu_pct"] for r in rows), default=None),
+                "beacon_p99_ms_worst_window": max(p99, default=None)}
 
     def result(self) -> dict:
         self._match()
@@ -187,6 +221,7 @@ class FleetMonitor:
             "beacon_latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                                    "n": int(len(lat))} if len(lat) else None),
             "beacons_unmatched": self.unmatched,
+            **self._windows(lat),
             "sensor_dropped": int(sum(v for k, v in dropped.items() if k != "queue_dropped_beacon")),
             "dropped_by_kind": dropped,
         })

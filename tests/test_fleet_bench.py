@@ -99,3 +99,28 @@ def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None
     assert res["rss_mb_per_agent"]["max"] > 10 and res["cpu_pct_per_agent"]["max"] > 0
     assert res["launcher_cpu_pct"] > 0 and res["threads_per_agent"] >= 1  # the "agent" is this process
     assert _proc_cpu_s(2**22 + 12345) is None and _proc_peak_rss_mb(2**22 + 12345) is None
+
+
+def test_the_monitor_reports_each_window_of_the_steady_part() -> None:
+    """Machine CPU and beacon p99 per WINDOW_S: a busy middle window stands out of the average."""
+    from deploy.fleet_bench import WINDOW_S
+
+    mon = FleetMonitor(["G0"])
+    # 1 s samples over 16 s: two processes, the agent busy (1.9 cores in all) from 5 to 10 s
+    cpu = {"agent-G0": 0.0, "emulator": 0.0}
+    for k in range(17):
+        mon.points.append((100.0 + k, dict(cpu)))
+        busy = 5 <= k < 10
+        cpu = {"agent-G0": cpu["agent-G0"] + (1.8 if busy else 0.5), "emulator": cpu["emulator"] + 0.1}
+    rng = np.random.default_rng(0)
+    t_pub = 100.0 + np.sort(rng.uniform(0.0, 16.0, 3000))
+    lat = np.where((t_pub >= 105.0) & (t_pub < 110.0), 0.2, 0.002) * rng.uniform(0.5, 1.0, t_pub.size)
+    mon.latency_t, mon.latencies = list(t_pub), list(lat)
+    w = mon._windows(np.array(mon.latencies) * 1e3)
+    rows = w["windows"]
+    assert [r["t_s"] for r in rows] == [0.0, WINDOW_S, 2 * WINDOW_S]  # the 1 s tail is left out
+    assert [round(r["machine_cpu_pct"]) for r in rows] == [60, 190, 60]
+    assert sum(r["n"] for r in rows) == np.count_nonzero(t_pub < 115.0)
+    assert rows[1]["beacon_p99_ms"] > 150 and rows[0]["beacon_p99_ms"] < 2.5 and rows[2]["beacon_p99_ms"] < 2.5
+    assert w["machine_cpu_pct_peak"] == rows[1]["machine_cpu_pct"]
+    assert w["beacon_p99_ms_worst_window"] == rows[1]["beacon_p99_ms"]
