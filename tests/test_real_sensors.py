@@ -384,11 +384,20 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     port, port2 = free_port(), free_port()
     agent = _agent(_drive_agent_config(), tmp_path, port)
 
-    async def collect(drv: subprocess.Popen):
+    async def collect(start):
         from transport.zenoh_bus import ZenohBus, ZenohConfig
 
+        # the driver starts once this session is subscribed and the agent is (its liveliness
+        # token follows its subscriptions): at 8x, a session opened after the driver started
+        # missed the first seconds of estimates (17 of 320 epochs, on a busy machine)
         bus = ZenohBus(ZenohConfig(connect=(f"tcp/127.0.0.1:{port}",)))
         est = bus.subscribe(f"{keys.ROOT}/estimate/V0/*", 4096)
+        ready = asyncio.Event()
+        bus.watch_alive(keys.alive("agent", "V0"), lambda key, alive: alive and ready.set())
+        await asyncio.wait_for(ready.wait(), 30.0)
+        await asyncio.sleep(0.2)  # this subscription reaches the agent (declared before the watch)
+        drv = start()
+        procs.append(drv)
         rows = []
         try:
             while drv.poll() is None or len(est):
@@ -402,14 +411,22 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
             await bus.close()
         return rows
 
+    procs: list[subprocess.Popen] = []
+
+    def start() -> subprocess.Popen:
+        return subprocess.Popen([*CLI, "sensors", "--vehicle", "V0", "--gnss", f"nmea:{nmea}", "--imu", f"csv:{csv}",
+                                 "--imu-units", "g,deg/s", "--imu-mount", "180,-6.79,185.35", "--imu-time-offset", "-0.125",
+                                 "--speed", "8", "--connect", f"tcp/127.0.0.1:{port}", "--listen", f"tcp/127.0.0.1:{port2}"],
+                                start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
     try:
-        drv = subprocess.Popen([*CLI, "sensors", "--vehicle", "V0", "--gnss", f"nmea:{nmea}", "--imu", f"csv:{csv}",
-                                "--imu-units", "g,deg/s", "--imu-mount", "180,-6.79,185.35", "--imu-time-offset", "-0.125",
-                                "--speed", "8", "--connect", f"tcp/127.0.0.1:{port}", "--listen", f"tcp/127.0.0.1:{port2}"],
-                               start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        rows = asyncio.run(collect(drv))
+        rows = asyncio.run(collect(start))
+        drv = procs[0]
         out, err = drv.communicate(timeout=30)
     finally:
+        for p in procs:
+            if p.poll() is None:
+                _stop(p)
         _stop(agent)
     assert drv.returncode == 0, err[-2000:]
     counters = json.loads(out.strip().splitlines()[-1])
