@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import gc
 import logging
 import os
 import signal
@@ -216,6 +217,20 @@ async def _stop_when_orphaned(supervisor: int, stop: asyncio.Event, period: floa
         await asyncio.sleep(period)
 
 
+#: the collector's young-generation threshold in the long-running processes (CPython's default
+#: 700): the filters allocate many short-lived containers, which reference counting frees
+GC_GEN0_THRESHOLD = 10_000
+
+
+def settle_gc() -> None:
+    """Once a long-running process is set up: its objects so far (modules, configuration, the
+    scenario's truth) move to the collector's permanent generation, so that full collections no
+    longer walk them, and young collections run less often. In 25 agents sharing one process
+    over 40 s of the grid, the collector's time went 0.70 → 0.23 s (of 18 s of CPU)."""
+    gc.freeze()
+    gc.set_threshold(GC_GEN0_THRESHOLD, 10, 10)
+
+
 async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> int:
     from agent.runtime import Agent
     from transport.zenoh_bus import ZenohBus
@@ -230,6 +245,7 @@ async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> i
     _install_signals(stop)
     bus = ZenohBus(zcfg)
     agent = Agent(cfg, bus)
+    settle_gc()
     try:
         await agent.run(stop)
     finally:
@@ -297,6 +313,7 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
     try:
         emu = EmulatorService(truth, bus, seed=seed, speed=speed, faults=faults, start_at=start_at)
         emu.prepare()  # subscribed before the agents start publishing
+        settle_gc()
         alive: set[str] = set()
 
         def on_alive(key: str, up: bool) -> None:
