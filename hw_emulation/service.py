@@ -115,6 +115,8 @@ class EmulatorService:
         self._grid_t = t_all[0] if all(t.shape == t_all[0].shape and np.array_equal(t, t_all[0])
                                        for t in t_all) else None
         self._ne_grid = np.stack(self._ne, 1) if self._grid_t is not None else None
+        if self._ne_grid is not None:  # one copy: the per-vehicle rows as views of the stack
+            self._ne = [self._ne_grid[:, k] for k in range(len(self.ids))]
         self._ne_at: tuple[float, np.ndarray] | None = None
         self._pending: list[tuple[float, str, bytes]] = []  # (deliver at, receiver, payload)
         self._ge_bad: dict[tuple[str, str], bool] = {}
