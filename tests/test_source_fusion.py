@@ -183,6 +183,64 @@ def test_deferred_propagation_and_updates_equal_step_by_step() -> None:
         np.testing.assert_allclose(C, ref[next(iter(lab))], rtol=1e-9, atol=1e-12)
 
 
+
+def test_the_remembered_blocks_follow_every_change_of_the_components() -> None:
+    """The position blocks are kept between updates until the components change: after each of
+    a random sequence of every kind of change (propagation with common-mode noise, own-sensor
+    transforms, additions, merges, resets, decorrelation, updates made and declined, reads of
+    the whole components), the remembered blocks are those computed afresh."""
+    from agent.nav.kalman import Measurement
+
+    rng = np.random.default_rng(11)
+    n = 6
+    split = SourceSplit("V0", n, shared_process=[4, 5])
+    P = _spd(rng, n, 4.0)
+    J = slice(0, 3)
+
+    def fresh() -> np.ndarray:
+        memo, split._block_memo = split._block_memo, None
+        try:
+            return split._block(J).copy()
+        finally:
+            split._block_memo = memo
+
+    hits = 0
+    for step in range(300):
+        kind = int(rng.integers(8))
+        if kind == 0:
+            split.propagate(np.eye(n) + 0.05 * rng.normal(size=(n, n)), np.diag(rng.uniform(0.0, 0.1, n)))
+        elif kind == 1:
+            m = int(rng.integers(1, 3))
+            split.transform(0.2 * rng.normal(size=(n, m)), rng.normal(size=(m, n)))
+        elif kind == 2:
+            split.add(frozenset({f"V{rng.integers(1, 6)}"}), _spd(rng, n, 0.05))
+        elif kind == 3:
+            split.add_many([(frozenset({f"V{rng.integers(1, 6)}|V0"}), 0.5), (frozenset({COMMON_MODE}), 0.2)],
+                           _spd(rng, n, 0.05))
+        elif kind == 4:
+            split.clear_states([int(rng.integers(n))])
+        elif kind == 5:
+            split.decorrelate(int(rng.integers(n)))
+        elif kind == 6:
+            split.parts[...]  # a read of the whole components (they are applied)
+        else:
+            h = np.zeros(n)
+            h[:3] = rng.normal(size=3)
+            meas = Measurement(np.array([rng.normal()]), h[None, :], np.array([[0.1]]), "range")
+            parts = [SourcePart(frozenset({f"V{rng.integers(1, 6)}"}), float(rng.uniform(0.01, 2.0)))]
+            _, P1, res = split.update(P, meas, parts, np.array([0, 1]), frozenset({"V0|V9"}),
+                                      min_gain=float(rng.choice([0.0, 0.5])))
+            if not res.skipped:
+                P = P1
+        if split.labels:
+            before = split._block_memo is not None and split._block_memo[0] == split._version
+            got = split._block(J)
+            hits += before
+            np.testing.assert_array_equal(got, fresh())
+            assert not got.flags.writeable
+    assert hits > 10  # some blocks did come from the memory (after declined updates)
+
+
 def test_groups_join_every_label_set_that_may_share_a_source() -> None:
     from agent.nav.source_fusion import _group
 

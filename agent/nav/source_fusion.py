@@ -122,6 +122,15 @@ class SourceSplit:
         self._A: np.ndarray | None = None
         self._Q: np.ndarray | None = None
         self._k_q = -1
+        # every change of the components bumps the version (:meth:`_touch`); the position
+        # blocks of the last version are kept: a ranging round weighs several neighbours'
+        # ranges against the same components, and declined ones change nothing
+        self._version = 0
+        self._block_memo: tuple | None = None
+
+    def _touch(self) -> None:
+        """The components (or their pending congruence) are about to change."""
+        self._version += 1
 
     def copy(self) -> "SourceSplit":
         """An independent copy (e.g. to restore a filter's state)."""
@@ -136,10 +145,13 @@ class SourceSplit:
     def parts(self) -> np.ndarray:
         """The stored components, shape (k, n, n) [state units²]; read them, do not write."""
         self._sync()
+        self._touch()  # the caller holds the array
         return self._C
 
     def _sync(self) -> None:
         """Apply the pending congruence and common-mode noise to the stored components."""
+        if self._A is not None or self._Q is not None:
+            self._touch()
         if self._A is not None:
             C = self._A @ self._C @ self._A.T
             self._C = 0.5 * (C + C.transpose(0, 2, 1))
@@ -151,6 +163,7 @@ class SourceSplit:
     def _compose(self, A: np.ndarray, rank_one: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Add the congruence ``A`` (n, n) to the pending one; ``rank_one`` ``(k, h)`` says
         ``A = I - k hᵀ`` (then O(n²))."""
+        self._touch()
         if rank_one is not None:
             k, h = rank_one
             self._A = A if self._A is None else self._A - np.outer(k, h @ self._A)
@@ -182,6 +195,7 @@ class SourceSplit:
         ``labels``. Components that share a source with it are merged with it; if the own
         component does, it takes them all (``M`` is then part of ``P`` already)."""
         self._sync()
+        self._touch()
         if not overlaps(self.own_labels, labels):
             hit = [k for k, lab in enumerate(self.labels) if overlaps(lab, labels)]
             if len(hit) == 1 and labels <= self.labels[hit[0]]:  # e.g. the common mode, every step
@@ -198,6 +212,7 @@ class SourceSplit:
         trace) are merged, repeatedly. The merges are planned on the traces and the new
         components formed in one product."""
         self._sync()
+        self._touch()
         mine = [self.own_labels] + self.labels
         k_old = len(self.labels)
         gone: set[int] = set()  # stored components merged into others or into the own one
@@ -237,6 +252,7 @@ class SourceSplit:
     def propagate(self, phi: np.ndarray, qd: np.ndarray) -> None:
         """``P_s ← Φ P_s Φᵀ``; the process noise of the shared states (in ``qd``) goes to
         :data:`COMMON_MODE`, the rest to the own component (implicitly)."""
+        self._touch()
         Q = None
         if self._shared_process is not None:
             Q = np.zeros((self.n, self.n))
@@ -268,12 +284,14 @@ class SourceSplit:
         """Zero the rows and columns ``idx`` of every stored component: a reset gives those states
         a fresh prior of the own kind."""
         self._sync()
+        self._touch()
         self._C[:, idx, :] = 0.0
         self._C[:, :, idx] = 0.0
 
     def decorrelate(self, i: int) -> None:
         """Zero state ``i``'s correlations (not its variance) in every stored component."""
         self._sync()
+        self._touch()
         d = self._C[:, i, i].copy()
         self._C[:, i, :] = 0.0
         self._C[:, :, i] = 0.0
@@ -296,7 +314,12 @@ class SourceSplit:
 
     def _block(self, J: slice | np.ndarray) -> np.ndarray:
         """Every stored component's block of the states ``J`` (a slice or an index array),
-        shape (k, m, m), without applying the pending congruence to the whole matrices."""
+        shape (k, m, m), without applying the pending congruence to the whole matrices; read
+        only (remembered until the components change)."""
+        key = (J.start, J.stop) if isinstance(J, slice) else tuple(J.tolist())
+        memo = self._block_memo
+        if memo is not None and memo[0] == self._version and memo[1] == key:
+            return memo[2]
         if self._A is None:
             CJ = self._C[:, J, J] if isinstance(J, slice) else self._C[:, J[:, None], J[None, :]]
         else:
@@ -305,6 +328,8 @@ class SourceSplit:
         if self._Q is not None:
             CJ = CJ.copy()
             CJ[self._k_q] += self._Q[J, J] if isinstance(J, slice) else self._Q[np.ix_(J, J)]
+        CJ.flags.writeable = False
+        self._block_memo = (self._version, key, CJ)
         return CJ
 
     def _groups(self, mine: list[frozenset[str]], theirs: list[frozenset[str]]) -> list[tuple[list[int], list[int]]]:
@@ -448,6 +473,7 @@ class SourceSplit:
         P_post = 0.5 * (P_post + P_post.T)
         # the components: carried through the update, mine inflated in their groups, the
         # neighbour's parts and the noise added under their sources
+        self._touch()
         if self.labels:
             g = (infl[1:] - 1.0)[:, None, None]
             C = self._C + g * (self._C if mask is None else self._C * mask)
