@@ -239,6 +239,14 @@ def test_the_remembered_blocks_follow_every_change_of_the_components() -> None:
             np.testing.assert_array_equal(got, fresh())
             assert not got.flags.writeable
     assert hits > 10  # some blocks did come from the memory (after declined updates)
+    # a copy's blocks stay its own when the original's components change in place
+    split._sync()
+    split._block(J)
+    twin = split.copy()
+    expected = twin._block(J).copy()
+    split.add(split.labels[0], _spd(rng, n, 0.05))  # added into that component in place
+    np.testing.assert_array_equal(twin._block(J), expected)
+    assert not np.array_equal(split._block(J), expected)
 
 
 def test_groups_join_every_label_set_that_may_share_a_source() -> None:

@@ -139,6 +139,7 @@ class SourceSplit:
         out.__dict__.update(self.__dict__)
         out.labels = list(self.labels)
         out._C = self._C.copy()
+        out._block_memo = None  # it may view this object's components
         return out
 
     @property
