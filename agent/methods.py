@@ -32,7 +32,7 @@ from .nav.kalman import Measurement, UpdateResult, chi2_gate
 from .nav.measurements.gnss import gnss_position, gnss_velocity
 from .nav.measurements.lane_line import lane_line_measurement
 from .nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement
-from .nav.measurements.v2v_range import range_measurement, relative_position
+from .nav.measurements.v2v_range import quadratic_rows, range_measurement, relative_position
 from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
 from .nav.source_fusion import ANY, SourcePart
@@ -497,8 +497,7 @@ class MethodFilter:
             # innovation and its variance HPHᵀ + R: the model's row acts on the position only
             nu = -float(m.z[0])
             hp = m.H[0, POS].tolist()
-            var = sum(hp[i] * (own_rows[i][0] * hp[0] + own_rows[i][1] * hp[1] + own_rows[i][2] * hp[2])
-                      for i in range(3)) + float(m.R[0, 0])
+            var = quadratic_rows(own_rows, hp) + float(m.R[0, 0])
             if s.uwb_nlos is not None and s.uwb_nlos.classify(nu, var, s.nlos_reject_probability,
                                                               None if link is None else link.p_nlos):
                 return self._count_range("gate_nlos")
@@ -514,8 +513,7 @@ class MethodFilter:
             # its own-sensor errors (multipath) persist from one range to the next; so does an
             # NLOS bias. The UWB white noise (and the second-order term) is independent.
             h = m.H[0, POS]  # the line of sight as the model uses it (horizontal or 3-D)
-            r_nb = max(sum(hp[i] * (nb_rows[i][0] * hp[0] + nb_rows[i][1] * hp[1] + nb_rows[i][2] * hp[2])
-                           for i in range(3)), 0.0)
+            r_nb = max(quadratic_rows(nb_rows, hp), 0.0)
             m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
             if s.fusion == "source-ci":
                 res = self._range_source_ci(m_ind, h, neighbour, r_nb, r_bias)

@@ -179,7 +179,7 @@ class FleetMonitor:
             if w1 - w0 < 0.5 * WINDOW_S:
                 break  # a short tail
             cpu = 100.0 * sum(c1[n] - c0[n] for n in c1 if n in c0) / (w1 - w0)
-            sel = lat_ms[(t_pub >= w0) & (t_pub < w1)] if len(lat_ms) == len(t_pub) else lat_ms[:0]
+            sel = lat_ms[(t_pub >= w0) & (t_pub < w1)]
             rows.append({"t_s": w0 - pts[0][0], "wall_s": w1 - w0, "machine_cpu_pct": cpu,
                          "beacon_p99_ms": float(np.percentile(sel, 99)) if len(sel) else None, "n": int(len(sel))})
             k = j

@@ -94,7 +94,7 @@ def range_measurement(
     u = (d0 / rho, d1 / rho, d2 / rho)
     if height_offset is not None:
         r += (u[2] * sdh) ** 2
-    r += _quadratic(pj, u)
+    r += quadratic_rows(pj, u)
     predicted = rho
     if second_order:
         if pi is None:
@@ -119,8 +119,9 @@ def range_measurement(
     return Measurement(np.array([predicted - measured_range]), H[None, :], np.array([[r]]), "v2v_range")
 
 
-def _quadratic(P: list[list[float]], u: tuple[float, float, float]) -> float:
-    """``uᵀ P u`` for a 3x3 ``P`` given as rows of floats."""
+def quadratic_rows(P: list[list[float]], u) -> float:
+    """``uᵀ P u`` for a 3x3 ``P`` given as rows of floats and a 3-vector ``u`` (a sequence of
+    floats): without numpy, for the per-range arithmetic."""
     return sum(u[i] * (P[i][0] * u[0] + P[i][1] * u[1] + P[i][2] * u[2]) for i in range(3))
 
 
