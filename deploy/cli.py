@@ -574,7 +574,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     print(f"slcp bench on {out['machine']['cpus']} CPUs, Python {out['machine']['python']}")
     for k, v in out["steps"].items():
-        unit = "" if k.endswith(("_bytes", "_share")) else " µs"
+        unit = " µs" if k.endswith("_us") else ""
         print(f"  {k:28s} {v:10.2f}{unit}")
     r = out["replay"]
     if r is None:
