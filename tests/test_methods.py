@@ -249,3 +249,57 @@ def test_a_gross_range_outlier_is_gated_on_the_uninflated_spread() -> None:
     assert f.range(nb, 44.0) == "fused"
     f, nb = shared_filter()
     assert f.range(nb, 31.0) == "fused"
+
+
+def _stand(f: MethodFilter, seconds: float, rate: float = 100.0) -> None:
+    """Propagate a standing filter (specific force straight up) for ``seconds``."""
+    dt = 1.0 / rate
+    for _ in range(int(round(seconds * rate))):
+        f.propagate(np.zeros(3), np.array([0.0, 0.0, -9.80]) * dt, dt)
+
+
+def test_a_declined_neighbour_is_weighed_again_only_when_its_decision_may_change() -> None:
+    """``selection_hold``: after node selection declines a neighbour, its ranges are declined
+    without weighing for ``selection_hold`` seconds, unless the neighbour's variance shrank, the
+    own one grew, or the line of sight turned; the gates still see every range."""
+    rm, rn = earth.radii(ORIGIN[0])
+    ce = (rn + 50) * math.cos(ORIGIN[0])
+
+    def neighbour(llh, bearing_deg: float, dist: float, var: float) -> NeighbourState:
+        b = math.radians(bearing_deg)
+        return NeighbourState("V2", llh + np.array([dist * math.cos(b) / (rm + 50), dist * math.sin(b) / ce, 0.0]),
+                              np.eye(3) * var, 0.05)
+
+    f, _, _, true_llh = _stopped_filter("CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
+    useless = neighbour(true_llh, 180.0, 30.0, 1e6)  # σ 1 km: nothing to gain
+    assert f.range(useless, 30.0) == "skipped" and f.counters["ranges_skipped_held"] == 0
+    _stand(f, 0.1)
+    assert f.range(useless, 30.0) == "skipped" and f.counters["ranges_skipped_held"] == 1
+    _stand(f, 0.1)
+    assert f.range(useless, 70.0) == "gate_rate"  # the gates come first: a 40 m jump
+    _stand(f, 0.1)
+    turned = neighbour(true_llh, 270.0, 30.0, 1e6)  # the line of sight turned by 90°: weighed
+    assert f.range(turned, 30.0) == "skipped" and f.counters["ranges_skipped_held"] == 1
+    _stand(f, 0.1)
+    assert f.range(turned, 30.0) == "skipped" and f.counters["ranges_skipped_held"] == 2
+    _stand(f, 0.1)
+    # a beacon that knows far more: weighed at once, and fused
+    assert f.range(neighbour(true_llh, 270.0, 30.0, 0.01), 30.0) == "fused"
+    assert f.counters["ranges_skipped_held"] == 2 and f.counters["ranges_skipped"] == 4
+
+    late, _, _, _ = _stopped_filter("CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
+    assert late.range(useless, 30.0) == "skipped"
+    _stand(late, 0.6)  # longer than the hold: weighed again
+    assert late.range(useless, 30.0) == "skipped" and late.counters["ranges_skipped_held"] == 0
+
+    grown, _, _, _ = _stopped_filter("CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0)
+    assert grown.range(useless, 30.0) == "skipped"
+    grown.filter.P[6:8, 6:8] *= 1.2  # the own horizontal variance grew by 20 %: weighed again
+    _stand(grown, 0.1)
+    assert grown.range(useless, 30.0) == "skipped" and grown.counters["ranges_skipped_held"] == 0
+
+    every, _, _, _ = _stopped_filter("CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0, selection_hold=0.0)
+    for _ in range(3):
+        assert every.range(useless, 30.0) == "skipped"
+        _stand(every, 0.1)
+    assert every.counters["ranges_skipped_held"] == 0 and every.counters["ranges_skipped"] == 3
