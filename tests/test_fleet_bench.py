@@ -4,6 +4,7 @@ itself prints figures and is not a test)."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import os
 import time
 
@@ -14,6 +15,8 @@ from deploy.fleet_bench import FleetMonitor, _proc_cpu_s, _proc_peak_rss_mb
 from hw_emulation.grid import grid_scenario_toml
 from hw_emulation.scenario import load_scenario
 from transport import keys
+from transport.codec import encode
+from transport.messages import GnssFix
 from transport.bus import InMemoryNetwork
 
 
@@ -67,7 +70,7 @@ def test_staggered_imu_batches_end_at_evenly_spread_phases(tmp_path, stagger, ba
 
 def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None:
     class Rec:
-        latest_t = {"G0": 1.0, "G1": 1.0}
+        latest_t = {"G0": -4.0, "G1": -4.0}  # 4 s behind the clock when sampled first
         diag = {"G0": (0.0, {"seq_late_dropped": 3, "queue_dropped_imu": 1}, {}), "G1": (0.0, {}, {})}
 
     class Proc:
@@ -78,6 +81,12 @@ def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None
         bus = net.bus()
         mon = FleetMonitor(["G0", "G1"])
         mon.attach(bus, {"agent-G0": Proc()})
+        # the 1x clock, from G0's fixes: sensor time 0 now (a late fix and junk do not move it)
+        fix = GnssFix("G0", 0, 0.0, np.zeros(3), np.zeros(3), np.ones(3), 0.1)
+        await bus.publish(keys.gnss("G0"), encode(fix))
+        await asyncio.sleep(0.01)
+        await bus.publish(keys.gnss("G0"), encode(dataclasses.replace(fix, t=-1.0)))
+        await bus.publish(keys.gnss("G0"), b"junk")
         await bus.publish(keys.radio_tx("G0"), b"beacon-1")
         await asyncio.sleep(0.02)
         await bus.publish(keys.radio_rx("G1"), b"beacon-1")
@@ -96,6 +105,8 @@ def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None
     assert res["beacons_unmatched"] == 1
     assert res["sensor_dropped"] == 4
     assert 0.5 < res["realtime_factor"] < 2.0
+    # at the end (about 2.3 s of wall time) the agents' newest estimates are at -1.0 s
+    assert 3.0 < res["lag_p99_s"] < 4.5
     assert res["rss_mb_per_agent"]["max"] > 10 and res["cpu_pct_per_agent"]["max"] > 0
     assert res["launcher_cpu_pct"] > 0 and res["threads_per_agent"] >= 1  # the "agent" is this process
     assert _proc_cpu_s(2**22 + 12345) is None and _proc_peak_rss_mb(2**22 + 12345) is None
