@@ -15,9 +15,9 @@ from deploy.fleet_bench import FleetMonitor, _proc_cpu_s, _proc_peak_rss_mb
 from hw_emulation.grid import grid_scenario_toml
 from hw_emulation.scenario import load_scenario
 from transport import keys
+from transport.bus import InMemoryNetwork
 from transport.codec import encode
 from transport.messages import GnssFix
-from transport.bus import InMemoryNetwork
 
 
 def test_the_grid_has_the_vehicles_and_at_most_seven_neighbours_each(tmp_path) -> None:
