@@ -89,7 +89,11 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
         rm, rn = earth.radii(o[0])
         pos[vid] = np.column_stack([(llh[:, 0] - o[0]) * (rm + o[2]), (llh[:, 1] - o[1]) * (rn + o[2]) * np.cos(o[0])])
         moving[vid] = ~tr.stopped[k]
-        first[vid] = tr.first_stopped[k]
+        # first stopped at any instant of the step's interval [t_k, t_k+1): the bound at step k
+        # stands for the whole interval (``Bound.at``), and a detector may claim (and fix) as
+        # soon as the vehicle stops within it; more information only lowers a lower bound
+        k_end = np.r_[k[1:], len(tr.truth.t)]
+        first[vid] = np.array([tr.first_stopped[i:max(j, i + 1)].any() for i, j in zip(k, k_end)])
         lane[vid] = tr.segment[k]
     lanes = approach_lanes(scn)
     lmap = lane_map(scn) if lane_constraint else None

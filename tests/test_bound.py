@@ -72,3 +72,22 @@ def test_methods_are_ordered_and_the_cli_prints_them(capsys) -> None:
         assert r["SL-CP"] <= r["SL-SP"] + 1e-9 <= r["SP"] + 2e-9
     v1 = next(r for r in rows if r["vehicle"] == "V1")
     assert v1["SL-SP"] < 0.5 < v1["SP"]  # the first stopped vehicle's stop line
+
+
+def test_the_stop_line_information_counts_from_the_step_in_which_the_vehicle_stops() -> None:
+    """The bound at step k stands for [t_k, t_k+1) (``Bound.at``); a detector may claim, and fix,
+    as soon as the vehicle stops inside it, so the stop line's information is in from that step
+    (paper-2 seed 0: V0 stops at 21.46 s, between the 5 Hz steps 21.4 and 21.6 s)."""
+    from deploy.bound import posterior_crlb
+    from hw_emulation.scenario import load_scenario
+    from hw_emulation.truth import build_truth
+
+    truth = build_truth(load_scenario("paper-2"), stop_seed=0)
+    tr = truth.vehicles["V0"]
+    t_on = float(tr.truth.t[np.flatnonzero(tr.first_stopped)[0]])
+    b = posterior_crlb(truth, ("SL-SP",))
+    k = int(np.searchsorted(b.t, t_on, side="right")) - 1
+    assert b.t[k] < t_on < b.t[k + 1]  # the stop falls inside a step, not on it
+    sl = b.sigma_h("SL-SP", "V0")
+    assert sl[k] < 0.5 * sl[k - 1]  # the fix's information from step k on
+    assert b.at("SL-SP", "V0", np.array([t_on]))[0] == sl[k]
