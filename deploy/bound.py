@@ -16,8 +16,9 @@ scenario's true trajectories:
 Information, at the GNSS rate: GNSS position (white noise on top of multipath + common mode) and
 velocity; for a vehicle that is truly first stopped, the stop-line fix (its error is the stop
 gap error state, so repeated fixes share it), from the step in whose interval it stops (the
-bound at a step stands for the whole interval, :meth:`Bound.at`); for the SL methods with lane keeping, wherever a
-vehicle truly drives in a lane of the map, its distance right of the left lane line (on the
+bound at a step stands for the whole interval, :meth:`Bound.at`); for the SL methods with lane
+keeping, wherever a vehicle truly drives in a lane of the map, its distance right of the left
+lane line (on the
 offset state, to the map's error); for every pair, UWB ranges at the UWB rate with
 information ``(p/σ²) [uuᵀ, −uuᵀ; −uuᵀ, uuᵀ]``, where ``p`` is the probability that the range
 is measured *and* the neighbour's beacon arrives. Everything the bound leaves out (IMU biases and
