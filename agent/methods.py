@@ -35,7 +35,7 @@ from .nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, 
 from .nav.measurements.v2v_range import quadratic_rows, range_measurement, relative_position
 from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
-from .nav.source_fusion import ANY, SourcePart
+from .nav.source_fusion import ANY, CONSTANT_MARK, SourcePart
 from .nav.state import POS, VEL, NavState
 from .neighbours import NeighbourState, NeighbourTable
 from .range_gate import NlosLinkTracker, NlosModel, RangeRateGate
@@ -136,6 +136,15 @@ class FilterSettings:
     #: zero-velocity updates while the IMU shows rest and GNSS is absent (all methods alike) [m/s];
     #: None switches them off
     zupt_sigma: float | None = 0.02
+    #: source CI tracks the random constants of the SL methods (this stop's gap, this lane's
+    #: offset) exactly: their sensitivities travel in the beacons and the parts of two
+    #: vehicles' errors that come from one such constant are correlated as they are, not by CI
+    #: (:mod:`agent.nav.source_fusion`); False leaves them in the own component
+    exact_constants: bool = True
+    #: with ``exact_constants``, the stop-gap and lane-offset states are *consider* states
+    #: (Schmidt-Kalman): never estimated, their errors stay the constants themselves, wholly in
+    #: the exact part, so that covariance intersection has nothing of theirs to inflate
+    consider_constants: bool = False
     #: node selection for the CI rules: fuse a range only if it is expected to reduce the
     #: horizontal position variance by at least this fraction
     min_gain: float = 1e-4
@@ -291,6 +300,15 @@ class MethodFilter:
         self._disp = [0.0, 0.0, 0.0]
         self._disp_hist: deque[tuple[float, float, float, float]] = deque(maxlen=64)
         self._disp_hist.append((t, 0.0, 0.0, 0.0))
+        self._n_constants = 0  #: constants named so far (:meth:`_track_constant`)
+        if s.consider_constants and self.filter.sources is not None and s.exact_constants:
+            k = [self.filter.extra_offset + i for sl in (self._sl, self._lane) if sl is not None
+                 for i in range(sl.start, sl.stop)]
+            self.filter.consider = np.array(k, int)
+        if self._sl is not None:
+            self._track_constant(self._sl, np.array([gap.sigma_xb, gap.sigma_yb]))
+        if self._lane is not None:
+            self._track_constant(self._lane, np.array([gap.sigma_yb]))
 
     def _init_from_fix_errors(self) -> None:
         """The initial position comes from a GNSS fix, so its error *is* that fix's error:
@@ -587,7 +605,9 @@ class MethodFilter:
             parts.append(SourcePart(link, white, correlated=True))
             m = Measurement(m.z, m.H, np.zeros((1, 1)), m.name)
         s = self.settings
-        return self.filter.update_source_ci(m, parts, link, s.range_gate, s.min_gain)
+        # the neighbour's position error enters the range opposite to mine: -h
+        constants = [(lab, -float(g @ h)) for lab, g in neighbour.constants]
+        return self.filter.update_source_ci(m, parts, link, s.range_gate, s.min_gain, constants)
 
     def lane_due(self) -> bool:
         """Whether :meth:`lane_line` wants a lane now (``lane_interval`` after its last call)."""
@@ -617,7 +637,14 @@ class MethodFilter:
         m = Measurement(m.z + hx @ f.extra, f.full_jacobian(m.H, hx), m.R, m.name)
         res = f.update(m, self.settings.range_gate)
         self.counters["lane_line" if res.accepted else "lane_line_rejected"] += 1
+        if not res.accepted:  # the estimate and the lane disagree: the lane is not kept
+            self._leave_lane()
         return res
+
+    @property
+    def lane(self) -> str | None:
+        """The lane whose offset state the vehicle keeps now (lane keeping), or None."""
+        return self._lane_id
 
     def _enter_lane(self, lane: str) -> None:
         if lane != self._lane_id or self.t - self._lane_seen > self.settings.lane_memory:
@@ -659,6 +686,21 @@ class MethodFilter:
         if f.sources is not None:
             f.sources.clear_states(k)
         f.extra[states] = 0.0
+        self._track_constant(states, sigma)
+
+    def _track_constant(self, states: slice, sigma: np.ndarray) -> None:
+        """Extra ``states``, just at their prior σ ``sigma`` [(k,)], are new random constants:
+        under source CI with ``exact_constants``, tracked exactly (one name per state, unique
+        to this vehicle, also across restarts: the sensor time is in it)."""
+        f = self.filter
+        if f.sources is None or not self.settings.exact_constants:
+            return
+        k = np.arange(f.extra_offset + states.start, f.extra_offset + states.stop)
+        names = []
+        for _ in k:
+            self._n_constants += 1
+            names.append(f"{self.vehicle}{CONSTANT_MARK}{self._n_constants}.{self.t:.3f}")
+        f.sources.new_constants(names, k, sigma)
 
     def _count_range(self, outcome: str) -> str:
         self.counters["ranges" if outcome == "fused" else f"ranges_{outcome}"] += 1
@@ -684,12 +726,21 @@ class MethodFilter:
 
     def beacon_sources(self) -> tuple[tuple[tuple[str, ...], np.ndarray], ...]:
         """The broadcast position covariance by information source: ``(labels, (3, 3) [m²])``
-        pairs, own first, summing to :meth:`beacon`'s; empty unless the rule is source CI."""
+        pairs, own first; with :meth:`beacon_constants`' outer products they sum to
+        :meth:`beacon`'s; empty unless the rule is source CI."""
         f = self.filter
         if f.sources is None:
             return ()
         f.flush_covariance()
         return tuple(f.sources.blocks(f.P, POS))
+
+    def beacon_constants(self) -> tuple[tuple[str, np.ndarray], ...]:
+        """The position error's sensitivity to each exactly tracked constant: ``(name, (3,)
+        [m per σ])`` pairs; empty unless the rule is source CI with ``exact_constants``."""
+        f = self.filter
+        if f.sources is None:
+            return ()
+        return tuple(f.sources.constant_rows(POS))
 
 
 def _rate_variance(u: tuple[float, ...], d: tuple[float, ...], own_cov: list, nb_cov: list, speed2: float) -> float:
@@ -766,6 +817,6 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
         st = f.filter.state
         ne_now = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
         hit = lane_map.locate(ne_now, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
-                              lane_row_markings(tracker.markings, t), f.yaw_sigma)
+                              lane_row_markings(tracker.markings, t), f.yaw_sigma, current=f.lane)
         f.lane_line(hit.lane if hit else None, hit.left_line if hit else None)
     return dec, changed

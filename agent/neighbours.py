@@ -32,6 +32,10 @@ class NeighbourState:
     #: had no breakdown
     source_labels: tuple[frozenset[str], ...] = ()
     source_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    #: the position error's sensitivity to exactly tracked random constants: ``(name, (3,)
+    #: [m per σ])`` pairs; their outer products are the part of ``cov_ned`` the breakdown
+    #: leaves out
+    constants: tuple[tuple[str, np.ndarray], ...] = ()
 
     @property
     def sources(self) -> tuple[tuple[frozenset[str], np.ndarray], ...]:
@@ -50,6 +54,7 @@ class _Entry:
     received_at: float
     source_labels: tuple[frozenset[str], ...] = ()
     source_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    constants: tuple[tuple[str, np.ndarray], ...] = ()
 
 
 @dataclass
@@ -79,10 +84,12 @@ class NeighbourTable:
         "beacons": 0, "duplicate_or_old": 0, "stale": 0, "timed_out": 0, "sources_dropped": 0})
 
     def update(self, vehicle: str, seq: int, t: float, llh: np.ndarray, v_ned: np.ndarray,
-               cov_pos: np.ndarray, method: str, now: float, sources=()) -> bool:
+               cov_pos: np.ndarray, method: str, now: float, sources=(), constants=()) -> bool:
         """Store a beacon; returns False (and counts) for a duplicate, replayed or out-of-order one
         (generation time ``t`` not newer than the last stored). ``sources``: the covariance by
-        information source, ``(labels, (3, 3) [m²])`` pairs (labels: a sequence of str)."""
+        information source, ``(labels, (3, 3) [m²])`` pairs (labels: a sequence of str);
+        ``constants``: the sensitivities to exactly tracked constants, ``(name, (3,) [m])``
+        pairs, whose outer products complete the sources' sum to ``cov_pos``."""
         old = self.entries.get(vehicle)
         if old is not None and t <= old.t:  # by generation time: a restarted sender restarts seq
             self.counters["duplicate_or_old"] += 1
@@ -90,13 +97,17 @@ class NeighbourTable:
         cov_pos = np.asarray(cov_pos, float)
         labels = tuple(frozenset(lab) for lab, _ in sources)
         split = np.array([c for _, c in sources], float).reshape(-1, 3, 3)
-        if labels and float(np.abs(split.sum(axis=0) - cov_pos).max()) > 1e-9 + 1e-6 * float(np.abs(cov_pos).max()):
+        consts = tuple((str(lab), np.asarray(g, float).reshape(3)) for lab, g in constants) if labels else ()
+        total = split.sum(axis=0)
+        for _, g in consts:
+            total = total + np.outer(g, g)
+        if labels and float(np.abs(total - cov_pos).max()) > 1e-9 + 1e-6 * float(np.abs(cov_pos).max()):
             # a breakdown that does not add up is not used: the estimate counts as of unknown
             # composition (plain CI)
             self.counters["sources_dropped"] += 1
-            labels, split = (), split[:0]
+            labels, split, consts = (), split[:0], ()
         e = _Entry(seq, float(t), np.asarray(llh, float), np.asarray(v_ned, float),
-                   cov_pos, method, float(now), labels, split)
+                   cov_pos, method, float(now), labels, split, consts)
         self.entries[vehicle] = e
         self._past.setdefault(vehicle, deque(maxlen=self.history)).append(e)
         self.counters["beacons"] += 1
@@ -140,7 +151,7 @@ class NeighbourTable:
             else:
                 split = split.copy()
                 split[k] += G
-        return NeighbourState(vehicle, llh, e.cov + G, age, e.v_ned, labels, split)
+        return NeighbourState(vehicle, llh, e.cov + G, age, e.v_ned, labels, split, e.constants)
 
     def newest_time(self, vehicle: str) -> float | None:
         """Time [s] of the newest beacon of ``vehicle``, or None."""

@@ -306,7 +306,7 @@ class Agent:
                 return
             now = self.seq.t if self.seq.t is not None else msg.t
             tab.update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos, msg.method, now,
-                       msg.sources)
+                       msg.sources, msg.constants)
             if self._deferred:
                 self._fuse_ranges()
             if msg.method in self.trackers:
@@ -537,7 +537,8 @@ class Agent:
                 if f.spec.ranges or f.spec.stop_line:
                     llh, v, cov = f.beacon()
                     b = Beacon(self.cfg.vehicle, self._beacon_seq, m, t, llh, v, cov,
-                               first_stopped=self.claim(m), sources=f.beacon_sources())
+                               first_stopped=self.claim(m), sources=f.beacon_sources(),
+                               constants=f.beacon_constants())
                     if self.cfg.signer is not None:
                         b = self.cfg.signer.sign(b)
                     await self.bus.publish(keys.radio_tx(self.cfg.vehicle), encode(b))

@@ -145,7 +145,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                     if not (spec.ranges or spec.stop_line):  # SL methods need beacons to detect "first"
                         continue
                     llh, v, cov = filters[(a, m)].beacon()
-                    src = filters[(a, m)].beacon_sources()
+                    src = (filters[(a, m)].beacon_sources(), filters[(a, m)].beacon_constants())
                     for b in ids:
                         if b != a and fates[(a, b)].delivered[j]:
                             pending.append((float(fates[(a, b)].t_arrive[j]), a, b, m,
@@ -155,7 +155,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
             for item in pending:
                 arrive, a, b, m, (seq, tb, llh, v, cov, claim_at_send, src) = item
                 if arrive <= tk:
-                    if tables[(b, m)].update(a, seq, tb, llh, v, cov, m, tk, src) and (b, m) in trackers:
+                    if tables[(b, m)].update(a, seq, tb, llh, v, cov, m, tk, *src) and (b, m) in trackers:
                         trackers[(b, m)].observe_neighbour(a, tb, float(np.hypot(v[0], v[1])), claim_at_send)
                 else:
                     still.append(item)

@@ -52,6 +52,20 @@ def test_side_by_side_lanes_need_the_camera() -> None:
     assert SITE.locate(np.array([-5.3, -80.0]), np.eye(2) * 0.2**2, math.pi / 2).lane == "EB_in_R"
 
 
+def test_the_lane_a_vehicle_keeps_stays_its_lane_while_it_still_matches() -> None:
+    """Eastbound, two lanes, no markings seen: an estimate metres wide matches both and names
+    neither, unless the vehicle keeps one of them already; a lane it does not match any more,
+    or whose markings the camera contradicts, is not kept."""
+    ne, wide = np.array([-2.5, -80.0]), np.eye(2) * 2.0**2
+    assert SITE.locate(ne, wide, math.pi / 2) is None
+    assert SITE.locate(ne, wide, math.pi / 2, current="EB_in_L").lane == "EB_in_L"
+    assert SITE.locate(ne, wide, math.pi / 2, current="EB_in_R").lane == "EB_in_R"
+    assert SITE.locate(ne, wide, math.pi / 2, (DIVIDER, BOUNDARY), current="EB_in_L").lane == "EB_in_R"
+    assert SITE.locate(ne, wide, math.pi / 2, current="NB_in") is None  # not a match here
+    # far into the left lane with a good estimate: the right lane does not match any more
+    assert SITE.locate(np.array([-1.0, -80.0]), np.eye(2) * 0.2**2, math.pi / 2, current="EB_in_R").lane == "EB_in_L"
+
+
 def test_the_lane_end_is_widened_by_the_along_track_sigma() -> None:
     """NB_in ends at the stop line (north -11): a queue head estimated 3 m past it is still in
     its lane when its along-track σ is metres, not when it is decimetres."""
@@ -139,6 +153,17 @@ def test_the_offset_is_redrawn_in_a_new_lane_and_after_losing_the_lane(fusion: s
     f.lane_line("NB_in", APPROACH.left_lane_line)
     f.lane_line("other", APPROACH.left_lane_line)  # a new lane: redrawn before its row
     assert f.counters["lane_line"] == 3
+
+
+def test_a_lane_row_the_estimate_disagrees_with_releases_the_lane() -> None:
+    """The lane a vehicle keeps (which :meth:`LaneMap.locate` then prefers) is let go when its
+    row fails the χ² gate, here a lane line 10 m off: the next lane starts afresh."""
+    f = _filter()
+    assert f.lane_line("NB_in", APPROACH.left_lane_line).accepted and f.lane == "NB_in"
+    far = Line2D((0.0, -11.75), (1.0, 0.0))
+    res = f.lane_line("NB_in", far)
+    assert not res.accepted and f.lane is None and f.counters["lane_line_rejected"] == 1
+    assert f.lane_line("NB_in", APPROACH.left_lane_line).accepted and f.lane == "NB_in"
 
 
 def test_only_sl_methods_with_the_constraint_keep_to_the_lane() -> None:

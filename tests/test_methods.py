@@ -163,6 +163,43 @@ def test_ranges_to_a_vague_neighbour_do_not_sharpen_a_stop_line_fix() -> None:
     assert s_cp >= 0.995 * s_sp, (s_cp, s_sp)
 
 
+def test_in_a_range_to_a_vehicle_that_carries_my_own_stop_gap_error_it_cancels() -> None:
+    """A follower placed from my stop-line fix carries my stop gap's error as its own: its
+    beacon's sensitivity to my constants equals mine. In a range between us that error cancels,
+    so the range tells me nothing about it and my sensitivity to it stays as it was (counted with
+    the wrong sign, the two would add and the range would shrink it)."""
+    f, approach, _, true_llh = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), range_min_sigmas=0.0,
+                                               selection_hold=0.0, min_gain=0.0)
+    assert f.stop_line(approach, stop_id=0.0).accepted
+    mine = f.beacon_constants()
+    g = np.array([c for _, c in mine])
+    assert len(mine) >= 2 and np.abs(g[:, :2]).max() > 0.1  # the gap's constants move my position
+    rm, _ = earth.radii(ORIGIN[0])
+    cov = g.T @ g + 0.01 * np.eye(3)
+    nb = NeighbourState("V2", true_llh + np.array([-7.0 / (rm + 50), 0.0, 0.0]), cov, 0.05,
+                        source_labels=(frozenset({"V2"}),), source_cov=0.01 * np.eye(3)[None], constants=mine)
+    before = f.filter.sources.constants[:, : len(mine)].copy()
+    assert f.range(nb, 7.0) == "fused"
+    np.testing.assert_allclose(f.filter.sources.constants[:, : len(mine)], before, atol=1e-9)
+
+
+def test_as_consider_states_the_stop_gap_states_are_never_estimated() -> None:
+    """``consider_constants``: the stop-line fix moves the position, not the gap states, whose
+    error stays the stop's draw, wholly in the exact part (no own or CI share to inflate)."""
+    f, approach, gap, true_llh = _stopped_filter("SL-CP", offset_ne=(1.0, -0.5), consider_constants=True)
+    for _ in range(3):
+        f.last_stop_line = -math.inf
+        assert f.stop_line(approach, stop_id=0.0).accepted
+    flt = f.filter
+    k = np.arange(flt.extra_offset + f._sl.start, flt.extra_offset + f._sl.stop)
+    assert np.all(flt.extra[f._sl] == 0.0)
+    np.testing.assert_allclose(np.diag(flt.P)[k], [gap.sigma_xb**2, gap.sigma_yb**2])
+    own = flt.sources.own(flt.P)
+    assert np.abs(own[k]).max() < 1e-12 and all(np.abs(C[k]).max() < 1e-12 for C in flt.sources.parts)
+    e = earth.ned_offset(*flt.state.llh, *true_llh)
+    assert math.hypot(e[0], e[1]) < 0.1 and math.sqrt(flt.position_cov[0, 0]) == pytest.approx(gap.sigma_xb, rel=0.05)
+
+
 @pytest.mark.parametrize("fusion", ["source-ci", "split-ci"])
 def test_the_stop_gap_states_are_forgotten_when_the_stop_ends(fusion: str) -> None:
     """After a stop-line fix the gap states are correlated with the position; when the vehicle

@@ -37,6 +37,15 @@ def test_the_breakdown_by_source_grows_with_the_sender_and_must_add_up() -> None
     assert np.allclose(sum(c for _, c in s.sources), s.cov_ned)
     tab.update("V2", 2, 10.1, LLH, np.zeros(3), 2.0 * np.eye(3), "SL-CP", now=10.1, sources=split)
     assert tab.counters["sources_dropped"] == 1 and tab.at("V2", 10.1).sources == ()
+    # exactly tracked constants complete the sum; without them it does not add up
+    g = np.array([0.6, 0.0, 0.0])
+    cov = np.eye(3) + np.outer(g, g)
+    tab.update("V2", 3, 10.2, LLH, np.zeros(3), cov, "SL-CP", now=10.2, sources=split, constants=(("V2~1.0", g),))
+    s = tab.at("V2", 10.2)
+    assert tab.counters["sources_dropped"] == 1 and len(s.sources) == 2
+    assert [lab for lab, _ in s.constants] == ["V2~1.0"] and np.allclose(s.constants[0][1], g)
+    tab.update("V2", 4, 10.3, LLH, np.zeros(3), cov, "SL-CP", now=10.3, sources=split)
+    assert tab.counters["sources_dropped"] == 2 and tab.at("V2", 10.3).constants == ()
 
 
 def test_stale_duplicate_and_timeout() -> None:

@@ -9,7 +9,7 @@ import pytest
 
 from agent.nav.fusion import OMEGA_MAX, OMEGA_MIN, split_ci_update
 from agent.nav.kalman import Measurement, kalman_update
-from agent.nav.source_fusion import (ANY, COMMON_MODE, MAX_COMPONENTS, MAX_LABELS, SourcePart, SourceSplit, _combine, _group,
+from agent.nav.source_fusion import (ANY, COMMON_MODE, MAX_COMPONENTS, MAX_CONSTANTS, MAX_LABELS, SourcePart, SourceSplit, _combine, _group,
                                       _PosteriorTrace)
 
 IDX = np.array([0, 1])
@@ -338,3 +338,139 @@ def test_the_update_chooses_the_best_weights_of_the_whole_matrices() -> None:
         excess.append((got - best) / best)
     # as good as the scan, to the search's tolerance (s to 1e-3): 18 of 20 within 1e-7
     assert all(-1e-6 < e < 1e-4 for e in excess)
+
+
+def test_a_constant_tracked_exactly_makes_the_updates_the_joint_kalman_updates() -> None:
+    """An anchor whose error is a random constant (its stop gap, g θ with θ ~ N(0, 1)) and a
+    vehicle that ranges to it five times from changing directions: with the constant tracked
+    exactly, the vehicle's covariance and its sensitivity to θ equal those of the Schmidt-Kalman
+    filter on the joint state (x, θ), θ a consider parameter (the anchor's estimate, which the
+    range is predicted from, does not learn θ from my ranges), after every update; nothing is
+    intersected, however many ranges share the anchor's error. Folded into a CI component of
+    the anchor instead, the same ranges leave the vehicle less certain."""
+    rng = np.random.default_rng(11)
+    n = 4
+    P0 = _spd(rng, n, 2.0)
+    g = np.array([0.25, -0.1])  # the anchor's position error per unit θ [m]
+    r = 0.01
+    exact, folded = SourceSplit("B", n), SourceSplit("B", n)
+    P_e, P_f = P0.copy(), P0.copy()
+    Pj = np.zeros((n + 1, n + 1))  # joint (x, θ)
+    Pj[:n, :n] = P0
+    Pj[n, n] = 1.0
+    for k in range(5):
+        ang = rng.uniform(0.0, 2.0 * np.pi)
+        u = np.array([np.cos(ang), np.sin(ang)])
+        h = np.zeros(n)
+        h[:2] = -u  # my position error enters the range as -u, the anchor's as +u
+        b = float(u @ g)
+        m = Measurement(np.array([0.1]), h[None], np.array([[r]]), "range")
+        _, P_e, res = exact.update(P_e, m, [], IDX, frozenset({"A|B"}), constants=[("A~1", b)])
+        _, P_f, _ = folded.update(P_f, m, [SourcePart(frozenset({"A"}), b * b)], IDX, frozenset({"A|B"}))
+        hj = np.append(h, b)
+        _, Pj, _ = kalman_update(Pj, Measurement(m.z, hj[None], np.array([[r]]), "range"), consider=np.array([n]))
+        assert res.accepted
+        np.testing.assert_allclose(P_e, Pj[:n, :n], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(exact.constants[:, 0], Pj[:n, n], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(exact.own(P_e) + sum(exact.parts) + exact.constants @ exact.constants.T, P_e,
+                                   atol=1e-12)
+    assert exact.const_labels == ["A~1"]
+    assert np.trace(P_f[:2, :2]) > 1.05 * np.trace(P_e[:2, :2])
+
+
+def test_a_chain_ranging_around_an_anchor_stays_consistent() -> None:
+    """Monte-Carlo (200 runs): an anchor fixes itself on its stop line (a stop-gap state,
+    random constant) and two followers range with it and each other 60 times in random pairs;
+    both ends fuse each range (the same white noise), every estimate a mix of every source by
+    then. Every vehicle's horizontal NEES stays below the upper end of the two-sided 95 % band
+    of the mean of n = 2 over the runs (and above half its lower end), with the constants
+    tracked exactly and as CI parts alike (the followers are conservative, 1.3-1.4: CI on the
+    rest). A wrong sign of the neighbour's sensitivity makes them overconfident."""
+    lo, hi = _nees_band(200)
+    for exact in (True, False):
+        nees = _chain_nees(200, exact, seed=3)
+        assert all(lo / 2.0 < x < hi for x in nees.values()), (exact, nees)
+
+
+def _nees_band(runs: int, dim: int = 2) -> tuple[float, float]:
+    from scipy.stats import chi2
+    return chi2.ppf(0.025, dim * runs) / runs, chi2.ppf(0.975, dim * runs) / runs
+
+
+def _chain_nees(trials: int, exact: bool, seed: int, steps: int = 60, star: bool = False) -> dict[str, float]:
+    """Mean horizontal NEES of an anchor A and followers B, C at the end (see the test above);
+    ``star``: the followers range to the anchor only, and only they fuse."""
+    rng = np.random.default_rng(seed)
+    names = ("A", "B", "C")
+    pos = {"A": np.array([0.0, 0.0]), "B": np.array([-8.0, 0.5]), "C": np.array([-16.0, -0.3])}
+    sig_gap, r_uwb, r_fix = 1.0, 0.1**2, 0.03**2
+    out: dict[str, list[float]] = {v: [] for v in names}
+    for _ in range(trials):
+        X, P, S = {}, {}, {}
+        for v in names:  # state: north, east, the stop gap (used by A only); X = estimate - truth
+            P[v] = np.diag([4.0, 4.0, sig_gap**2])
+            S[v] = SourceSplit(v, 3)
+            X[v] = np.array([*(rng.normal(size=2) * 2.0), 0.0])
+        theta = rng.normal()
+        X["A"][2] = -sig_gap * theta  # the gap state's error: the stop's draw
+        if exact:
+            S["A"].new_constants(["A~1"], [2], sig_gap)
+        else:
+            S["A"].add(frozenset({"A~1"}), np.diag([0.0, 0.0, sig_gap**2]))
+        H = np.array([[1.0, 0.0, -1.0]])  # the fix sees the position less the gap state
+        for _ in range(3):
+            z = -(H[0] @ X["A"]) + rng.normal() * np.sqrt(r_fix)
+            dx, P["A"], res = kalman_update(P["A"], Measurement(np.array([z]), H, np.array([[r_fix]]), "fix"))
+            S["A"].transform(res.gain, H)
+            X["A"] = X["A"] + dx
+        for _ in range(steps):
+            i, j = (int(rng.integers(1, 3)), 0) if star else rng.choice(3, size=2, replace=False)
+            a, b = names[i], names[j]
+            u = (pos[b] - pos[a]) / np.linalg.norm(pos[b] - pos[a])
+            w = rng.normal() * np.sqrt(r_uwb)
+            link = frozenset({"|".join(sorted((a, b)))})
+            before = {a: X[a].copy(), b: X[b].copy()}
+            for me, nb, s in ((a, b, 1.0),) if star else ((a, b, 1.0), (b, a, -1.0)):
+                h = np.array([-s * u[0], -s * u[1], 0.0])
+                z = -(h @ before[me] - h[:2] @ before[nb][:2]) + w
+                parts = [SourcePart(frozenset(lab), float(h[:2] @ C[:2, :2] @ h[:2]))
+                         for lab, C in S[nb].blocks(P[nb], slice(0, 3))]
+                parts.append(SourcePart(link, r_uwb, correlated=True))
+                consts = [(lab, -float(h[:2] @ gg[:2])) for lab, gg in S[nb].constant_rows(slice(0, 3))]
+                m = Measurement(np.array([z]), h[None], np.zeros((1, 1)), "range")
+                dx, P_new, res = S[me].update(P[me], m, parts, IDX, link, constants=consts)
+                if res.accepted:
+                    X[me], P[me] = X[me] + dx, P_new
+        for v in names:
+            e = X[v][:2]
+            out[v].append(float(e @ np.linalg.solve(P[v][:2, :2], e)))
+    return {v: float(np.mean(x)) for v, x in out.items()}
+
+
+def test_constants_beyond_the_cap_or_too_small_are_folded_into_components_of_their_names() -> None:
+    """Columns of G beyond :data:`MAX_CONSTANTS` (the smallest) and those below the floor move
+    into CI components named after the constants; the total covariance is unchanged. A
+    constant that one side tracks exactly and the other holds in a component is intersected."""
+    n = 4
+    split = SourceSplit("V0", n)
+    P = np.diag([1.0, 1.0, 1.0, 100.0])
+    for k in range(MAX_CONSTANTS + 2):  # growing sizes: "V0~0" and "V1~1" are the smallest
+        split.new_constants([f"V{k}~{k}", f"V9~tiny{k}"], [3, 3], [0.1 * (k + 1), 1e-4])
+    total = split.own(P) + sum(split.parts) + split.constants @ split.constants.T
+    np.testing.assert_allclose(total, P, atol=1e-12)
+    assert len(split.const_labels) == MAX_CONSTANTS
+    assert not any("tiny" in lab for lab in split.const_labels)  # below the floor
+    assert "V0~0" not in split.const_labels and "V1~1" not in split.const_labels  # the smallest
+    named = set().union(*split.labels)
+    assert {"V0~0", "V1~1", "V9~tiny0"} <= named and "V0" not in named
+    # a neighbour that folded "V5~5" names it in a part: my column is folded before the update
+    # and intersected with it; its exact "V1~1" meets my component of that name: intersected too
+    h = np.array([[1.0, 0.0, 0.0, 0.0]])
+    m = Measurement(np.array([0.0]), h, np.array([[0.01]]), "range")
+    kept = list(split.const_labels)
+    _, P, res = split.update(P, m, [SourcePart(frozenset({"V5~5"}), 0.3)], IDX, frozenset({"L"}),
+                             constants=[("V1~1", 0.2), ("V7~7", 0.1)])
+    assert res.accepted and res.omega < 1.0
+    assert "V5~5" not in split.const_labels and "V1~1" not in split.const_labels
+    assert set(split.const_labels) == set(kept) - {"V5~5"} | {"V7~7"}  # V7~7 exact, new to me
+    np.testing.assert_allclose(split.own(P) + sum(split.parts) + split.constants @ split.constants.T, P, atol=1e-12)

@@ -50,7 +50,8 @@ messages = st.one_of(
     st.builds(LaneMarkings, names, seqs, finite, st.integers(0, 2), st.integers(0, 2)),
     st.builds(Beacon, names, seqs, names, finite, arr((3,)), arr((3,)), arr((3, 3)), st.binary(max_size=100),
               st.booleans(), st.lists(st.tuples(st.lists(names, min_size=1, max_size=3).map(tuple),
-                                                 st.just(np.diag([0.5, 0.25, 2.0]))), max_size=4).map(tuple)),
+                                                 st.just(np.diag([0.5, 0.25, 2.0]))), max_size=4).map(tuple),
+              st.lists(st.tuples(names, arr((3,))), max_size=4).map(tuple)),
     st.builds(Estimate, names, names, finite, arr((3,)), arr((3,)), arr((3,)), arr((3, 3)), st.booleans()),
     st.builds(Diagnostics, names, finite, st.dictionaries(names, st.integers(0, 2**40), max_size=5),
               st.dictionaries(names, st.one_of(st.integers(0, 100), names, finite), max_size=5)),
@@ -111,6 +112,16 @@ def test_truncated_and_wrong_version_and_types() -> None:
     ]:
         with pytest.raises(CodecError, match=match):
             decode(msgpack.packb(dict(obj, sources=sources), use_bin_type=True))
+    for constants, match in [
+        (3, "list of at most"),
+        ([["V0~1", np.ones(3).tobytes()]] * 65, "list of at most"),
+        ([["V0~1"]], r"\[name, sensitivity\]"),
+        ([[7, np.ones(3).tobytes()]], "name must be a string"),
+        ([["V0~1", np.ones(2).tobytes()]], "expected 3 values"),
+        ([["V0~1", np.array([0.0, np.nan, 0.0]).tobytes()]], "non-finite"),
+    ]:
+        with pytest.raises(CodecError, match=match):
+            decode(msgpack.packb(dict(obj, constants=constants), use_bin_type=True))
     del obj["llh"]
     with pytest.raises(CodecError, match="missing field 'llh'"):
         decode(msgpack.packb(obj, use_bin_type=True))

@@ -57,6 +57,9 @@ def encode(msg: Message) -> bytes:
         elif f.name == "sources":
             if val:  # absent when empty: beacons without the breakdown stay as they were
                 out[f.name] = [[list(lab), np.ascontiguousarray(c, dtype="<f8").tobytes()] for lab, c in val]
+        elif f.name == "constants":
+            if val:
+                out[f.name] = [[lab, np.ascontiguousarray(g, dtype="<f8").tobytes()] for lab, g in val]
         elif isinstance(val, (np.floating, np.integer)):
             out[f.name] = val.item()
         else:
@@ -163,7 +166,26 @@ def _check_sources(name: str, fname: str, val: Any) -> tuple:
     return tuple(zip(out, f.reshape(-1, 3, 3)))
 
 
-_VALIDATORS = {"auth": _check_auth, "sources": _check_sources, "peers": _check_peers, "first_stopped": _check_bool, "counters": _check_counters,
+def _check_constants(name: str, fname: str, val: Any) -> tuple:
+    if not isinstance(val, (list, tuple)) or len(val) > MAX_SOURCES:
+        raise CodecError(f"{name}.constants: must be a list of at most {MAX_SOURCES} entries")
+    out = []
+    for item in val:
+        if not isinstance(item, (list, tuple)) or len(item) != 2:
+            raise CodecError(f"{name}.constants: each entry must be [name, sensitivity]")
+        lab, g = item
+        if not isinstance(lab, str) or not 0 < len(lab) <= 2 * MAX_STR + 1:
+            raise CodecError(f"{name}.constants: a name must be a string of 1-{2 * MAX_STR + 1} characters")
+        if not isinstance(g, bytes) or len(g) != 24:
+            raise CodecError(f"{name}.constants: expected 3 values of float64 bytes")
+        arr = np.frombuffer(g, "<f8").astype(float)
+        if not np.isfinite(arr).all():
+            raise CodecError(f"{name}.constants: non-finite values")
+        out.append((lab, arr))
+    return tuple(out)
+
+
+_VALIDATORS = {"auth": _check_auth, "sources": _check_sources, "constants": _check_constants, "peers": _check_peers, "first_stopped": _check_bool, "counters": _check_counters,
                "status": _check_status}
 
 

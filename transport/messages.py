@@ -23,7 +23,7 @@ class Message:
             if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
                 if not np.array_equal(np.asarray(a), np.asarray(b)):
                     return False
-            elif f.name == "sources":  # (labels, array) pairs
+            elif f.name in ("sources", "constants"):  # (labels, array) pairs
                 if len(a) != len(b) or any(tuple(la) != tuple(lb) or not np.array_equal(ca, cb)
                                            for (la, ca), (lb, cb) in zip(a, b)):
                     return False
@@ -106,7 +106,9 @@ class Beacon(Message):
 
     ``cov_pos`` is the NED position covariance [m²] (3, 3). ``first_stopped`` is the sender's
     claim to be the first stopped vehicle of its lane (used by the receivers' detectors).
-    ``sources`` splits ``cov_pos`` by the source of the information (:mod:`agent.nav.source_fusion`).
+    ``sources`` splits ``cov_pos`` by the source of the information (:mod:`agent.nav.source_fusion`);
+    ``constants`` carries the position error's sensitivity to random constants tracked exactly,
+    whose outer products complete the sum.
     ``auth`` carries an optional signature block (key id + signature), opaque to the codec.
     """
 
@@ -122,6 +124,9 @@ class Beacon(Message):
     #: ``cov_pos`` by information source (source CI): ``(labels, (3, 3) [m²])`` pairs, the
     #: sender's own first; empty when the sender does not split its covariance
     sources: tuple[tuple[tuple[str, ...], np.ndarray], ...] = ()
+    #: the position error's sensitivity to each exactly tracked random constant: ``(name, (3,)
+    #: [m per σ of the constant])`` pairs; ``cov_pos`` = Σ sources + Σ g gᵀ
+    constants: tuple[tuple[str, np.ndarray], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)

@@ -121,6 +121,9 @@ class InsFilter:
         self.yaw_free = False
         self._shared = np.zeros(0, int)
         self._unshared = np.zeros(0, int)
+        #: *consider* states (Schmidt-Kalman): updates never change their estimates, and their
+        #: covariances follow exactly (:func:`agent.nav.kalman.kalman_update`)
+        self.consider = np.zeros(0, int)
 
     def set_gauss_markov(self, k: int, sigma: float, tau: float) -> None:
         """Change the steady-state σ and correlation time τ [s] of Gauss-Markov extra state ``k``
@@ -299,7 +302,7 @@ class InsFilter:
     def update(self, meas: Measurement, gate_probability: float | None = None) -> UpdateResult:
         """Kalman update with one measurement, closed-loop feedback, and reset."""
         meas = self._prepare(meas)
-        dx, P, result = kalman_update(self.P, meas, gate_probability)
+        dx, P, result = kalman_update(self.P, meas, gate_probability, self.consider)
         if result.accepted:
             if self.P_ind is not None:  # an own-sensor measurement: independent information
                 self.P_ind = joseph(self.P_ind, result.gain, meas.H, meas.R)
@@ -338,18 +341,20 @@ class InsFilter:
         return result
 
     def update_source_ci(self, meas: Measurement, parts: list[SourcePart], noise_labels: frozenset[str],
-                         gate_probability: float | None = None, min_gain: float = 0.0) -> UpdateResult:
+                         gate_probability: float | None = None, min_gain: float = 0.0,
+                         constants: list[tuple[str, float]] | tuple = ()) -> UpdateResult:
         """Source-CI update (:mod:`agent.nav.source_fusion`) with closed-loop feedback.
 
         ``meas.R`` is the measurement's white noise, kept under ``noise_labels``; ``parts`` the
-        rest of its error by source (e.g. the neighbour's components). The weights minimise the
-        horizontal position variance; ``min_gain`` as :meth:`update_split_ci`.
+        rest of its error by source (e.g. the neighbour's components), ``constants`` its
+        sensitivity to exactly tracked random constants. The weights minimise the horizontal
+        position variance; ``min_gain`` as :meth:`update_split_ci`.
         """
         if self.sources is None:
             raise RuntimeError("source CI needs track_sources() first")
         meas = self._prepare(meas)
         dx, P, result = self.sources.update(self.P, meas, parts, _HORIZONTAL, noise_labels,
-                                            gate_probability, min_gain)
+                                            gate_probability, min_gain, constants, self.consider)
         if result.accepted:
             self._feedback(dx)
             self.P = P

@@ -112,7 +112,7 @@ def stack(measurements: list[Measurement], name: str = "stacked") -> Measurement
 
 
 def kalman_update(
-    P: np.ndarray, meas: Measurement, gate_probability: float | None = None
+    P: np.ndarray, meas: Measurement, gate_probability: float | None = None, consider: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
     """Joseph-form Kalman update of the error covariance.
 
@@ -125,6 +125,10 @@ def kalman_update(
     gate_probability : float, optional
         If given, reject the update when NIS exceeds the chi-square quantile of this
         probability (e.g. 0.999).
+    consider : ndarray of int, optional
+        *Consider* states (Schmidt-Kalman): their rows of the gain are zero, so their
+        estimates never change while their covariances with the rest stay exact (the Joseph
+        form holds for any gain).
 
     Returns
     -------
@@ -151,6 +155,8 @@ def kalman_update(
     if gate_probability is not None and nis > chi2_gate(meas.dim, gate_probability):
         return np.zeros(n), P, UpdateResult(np.zeros(n), nis, meas.dim, False, meas.name)
     K = PHt @ Sinv
+    if consider is not None and consider.size:
+        K[consider] = 0.0
     dx = K @ z
     return dx, joseph(P, K, H, R), UpdateResult(dx, nis, meas.dim, True, meas.name, K)
 

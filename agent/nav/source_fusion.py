@@ -36,6 +36,20 @@ A component may name several sources (a *merged* one, when the number of compone
 or when a beacon's component names several); it is then paired with every component that names
 any of them. :data:`ANY` names every source (a beacon without the breakdown): that is plain CI.
 
+**Random constants are tracked exactly.** Some errors are one random draw that stays: a driver's
+stop gap at a stop, its offset in a lane. For such a constant θ (scaled to unit variance) every
+vehicle keeps the sensitivity of its error to it, a column ``g`` of ``G`` (n, m): the error is
+``G θ`` plus the rest, and ``G Gᵀ`` is that part of ``P``. Propagation and updates are linear in
+the error, so ``G`` follows them exactly (``G ← A G``); beacons carry the position rows of ``G``.
+Two vehicles' parts of the same constant are then correlated by ``g_i g_jᵀ``, known, instead of
+"in any way": a follower whose error is its anchor's stop gap moved by a range sees that error
+cancel in the next range to the anchor, where CI must let the two add. The update is the Kalman
+update with correlated noise on that part (:meth:`SourceSplit.update`). Columns beyond
+:data:`MAX_CONSTANTS`, or too small to matter, are folded into a CI component named after the
+constant (conservative). A constant one side tracks exactly and the other holds in a component
+is intersected for that update: the exact side folds its column, or the other side's column
+joins the measurement's CI parts.
+
 Pure numpy; no I/O.
 """
 
@@ -59,6 +73,12 @@ ANY = "*"
 MAX_COMPONENTS = 12
 #: a component naming more sources than this is broadcast as :data:`ANY` (the codec's limit)
 MAX_LABELS = 64
+#: random constants tracked exactly (columns of ``G``); beyond, the smallest are folded
+MAX_CONSTANTS = 16
+#: a constant whose part of the position variance is below this [m²] is folded
+CONSTANT_FLOOR = 1e-6
+#: separates a constant's vehicle from the rest of its name (``"V1~3.21.500"``)
+CONSTANT_MARK = "~"
 
 
 def overlaps(a: frozenset[str], b: frozenset[str]) -> bool:
@@ -114,6 +134,10 @@ class SourceSplit:
         self.own_labels: frozenset[str] = frozenset({me})
         self.labels: list[frozenset[str]] = []
         self._C = np.zeros((0, n, n))
+        #: exactly tracked random constants: names, and the error's sensitivity to each (unit
+        #: variance), shape (n, m) [state units]
+        self.const_labels: list[str] = []
+        self._G = np.zeros((n, 0))
         self._unshared = np.asarray(unshared, int)
         s = np.asarray(shared_process, int)
         self._shared_process = np.ix_(s, s) if s.size else None
@@ -139,6 +163,8 @@ class SourceSplit:
         out.__dict__.update(self.__dict__)
         out.labels = list(self.labels)
         out._C = self._C.copy()
+        out.const_labels = list(self.const_labels)
+        out._G = self._G.copy()
         out._block_memo = None  # it may view this object's components
         return out
 
@@ -156,6 +182,8 @@ class SourceSplit:
         if self._A is not None:
             C = self._A @ self._C @ self._A.T
             self._C = 0.5 * (C + C.transpose(0, 2, 1))
+            if self.const_labels:
+                self._G = self._A @ self._G
             self._A = None
         if self._Q is not None:
             self._C[self._k_q] += self._Q
@@ -185,11 +213,64 @@ class SourceSplit:
         hit = [k for k, lab in enumerate(self.labels) if overlaps(lab, cm)]
         return hit[0] if len(hit) == 1 and COMMON_MODE in self.labels[hit[0]] else None
 
+    @property
+    def tracked(self) -> bool:
+        """Whether anything but the own component is stored (components or constants)."""
+        return bool(self.labels) or bool(self.const_labels)
+
+    @property
+    def constants(self) -> np.ndarray:
+        """The sensitivities to the exactly tracked constants, shape (n, m); read only."""
+        self._sync()
+        self._touch()
+        return self._G
+
     # ------------------------------------------------------------------ bookkeeping
     def own(self, P: np.ndarray) -> np.ndarray:
-        """The own component, ``P`` minus the stored ones, shape (n, n)."""
+        """The own component, ``P`` minus the stored ones and the constants', shape (n, n)."""
         self._sync()
-        return P - self._C.sum(axis=0) if self.labels else P.copy()
+        out = P - self._C.sum(axis=0) if self.labels else P.copy()
+        if self.const_labels:
+            out -= self._G @ self._G.T
+        return out
+
+    def new_constants(self, labels: list[str], idx, sigma) -> None:
+        """States ``idx`` were just reset to a fresh prior of σ ``sigma`` (each its own random
+        constant, uncorrelated with the rest): track them exactly under ``labels``."""
+        self._sync()
+        self._touch()
+        idx = np.atleast_1d(np.asarray(idx, int))
+        sigma = np.broadcast_to(np.asarray(sigma, float), idx.shape)
+        cols = np.zeros((self.n, len(idx)))
+        cols[idx, np.arange(len(idx))] = sigma
+        self._G = np.concatenate([self._G, cols], axis=1)
+        self.const_labels = self.const_labels + list(labels)
+        self._fold_constants()
+
+    def _fold_constants(self, names: set[str] | None = None) -> None:
+        """Fold constants into CI components, each under its own name (the total covariance is
+        unchanged): those in ``names`` (:data:`ANY` in it: all), those whose variance is below
+        :data:`CONSTANT_FLOOR`, and the smallest beyond :data:`MAX_CONSTANTS`."""
+        if not self.const_labels:
+            return
+        G = self._G
+        size = (G**2).sum(axis=0)
+        order = np.argsort(size)
+        drop = {int(k) for k in order if size[k] < CONSTANT_FLOOR}
+        if names:
+            drop |= {k for k, lab in enumerate(self.const_labels) if ANY in names or lab in names}
+        excess = len(self.const_labels) - MAX_CONSTANTS - len(drop)
+        if excess > 0:
+            drop |= set([int(k) for k in order if int(k) not in drop][:excess])
+        if not drop:
+            return
+        keep = [k for k in range(len(self.const_labels)) if k not in drop]
+        folded = [(self.const_labels[k], G[:, k]) for k in sorted(drop)]
+        self._G = G[:, keep]
+        self.const_labels = [self.const_labels[k] for k in keep]
+        self.add_many([(frozenset({lab}), 1.0) for lab, _ in folded], np.zeros((self.n, self.n)))
+        for lab, g in folded:
+            self.add(frozenset({lab}), np.outer(g, g))
 
     def add(self, labels: frozenset[str], M: np.ndarray | None) -> None:
         """Add covariance ``M`` (n, n) (None: nothing, only the labels) from the sources
@@ -263,9 +344,11 @@ class SourceSplit:
             self._sync()
             C = phi @ self._C @ phi.T
             self._C = 0.5 * (C + C.transpose(0, 2, 1))
+            if self.const_labels:
+                self._G = phi @ self._G
             self.add(frozenset({COMMON_MODE}), Q)
             return
-        if self.labels:
+        if self.tracked:
             self._compose(phi)
             if target >= 0:
                 self._Q = Q if self._Q is None else self._Q + Q
@@ -275,7 +358,7 @@ class SourceSplit:
         """Carry every stored component through an own-sensor update with gain ``K`` (n, m) and
         Jacobian ``H`` (m, n): ``(I - K H) P_s (I - K H)ᵀ``; the measurement noise ``K R Kᵀ``
         is the own component's."""
-        if not self.labels:
+        if not self.tracked:
             return
         A = -(K @ H)
         A.flat[:: self.n + 1] += 1.0
@@ -288,6 +371,7 @@ class SourceSplit:
         self._touch()
         self._C[:, idx, :] = 0.0
         self._C[:, :, idx] = 0.0
+        self._G[idx, :] = 0.0
 
     def decorrelate(self, i: int) -> None:
         """Zero state ``i``'s correlations (not its variance) in every stored component."""
@@ -297,6 +381,7 @@ class SourceSplit:
         self._C[:, i, :] = 0.0
         self._C[:, :, i] = 0.0
         self._C[:, i, i] = d
+        self._G[i, :] = 0.0  # its part of the constants joins the own component
 
     def blocks(self, P: np.ndarray, idx: slice) -> list[tuple[tuple[str, ...], np.ndarray]]:
         """Every component's ``idx`` block (e.g. the NED position), own first, with its sorted
@@ -306,12 +391,29 @@ class SourceSplit:
             return tuple(sorted(lab)) if len(lab) <= MAX_LABELS else (ANY,)
 
         own = P[idx, idx].copy()
+        if self.const_labels:
+            g = self.constants[idx]
+            own -= g @ g.T
         out = []
         for lab, C in zip(self.labels, self.parts):
             b = C[idx, idx].copy()
             own -= b
             out.append((named(lab), b))
         return [(named(self.own_labels), own)] + out
+
+    def constant_rows(self, idx: slice) -> list[tuple[str, np.ndarray]]:
+        """Every constant's sensitivity on the states ``idx`` (e.g. the NED position), with its
+        name: what a beacon carries beside :meth:`blocks` (whose own part excludes them)."""
+        if not self.const_labels:
+            return []
+        g = self.constants[idx]
+        return [(lab, g[:, k].copy()) for k, lab in enumerate(self.const_labels)]
+
+    def _const_rows(self, J: slice | np.ndarray) -> np.ndarray:
+        """Rows ``J`` of ``G`` without applying the pending congruence, shape (m_J, m)."""
+        if self._A is None:
+            return self._G[J]
+        return self._A[J] @ self._G
 
     def _block(self, J: slice | np.ndarray) -> np.ndarray:
         """Every stored component's block of the states ``J`` (a slice or an index array),
@@ -347,7 +449,8 @@ class SourceSplit:
     # ------------------------------------------------------------------ the update
     def update(self, P: np.ndarray, meas: Measurement, parts: list[SourcePart], idx: np.ndarray,
                noise_labels: frozenset[str], gate_probability: float | None = None,
-               min_gain: float = 0.0) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
+               min_gain: float = 0.0, constants: list[tuple[str, float]] | tuple = (),
+               consider: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
         """One source-CI update with a scalar measurement.
 
         Parameters
@@ -360,8 +463,9 @@ class SourceSplit:
         parts : list of SourcePart
             The rest of the measurement error, by source (the neighbour's components projected
             on the measurement, an NLOS bias).
-        idx : ndarray of int
-            States whose posterior variance chooses the weights (the horizontal position).
+        idx : ndarray of int, shape (2,), or ndarray, shape (2, n)
+            States whose posterior covariance chooses the weights (the horizontal position), or
+            two rows of a linear map of the state (e.g. the position predicted a moment ahead).
         noise_labels : frozenset of str
             The source under which ``meas.R``'s share of the posterior is kept (for a range, the
             same at both ends of the link).
@@ -370,6 +474,13 @@ class SourceSplit:
         min_gain : float
             Node selection: skip the update (``result.skipped``) unless it reduces the variance
             of ``idx`` by at least this fraction.
+        constants : sequence of (str, float)
+            The measurement error's sensitivity to exactly tracked constants [unit per unit
+            σ of the constant], by name (for a range, the neighbour's position rows of its
+            ``G`` projected on its side of the line of sight); the parts of ``parts`` exclude
+            them.
+        consider : ndarray of int, optional
+            Consider states (as :func:`agent.nav.kalman.kalman_update`): zero rows of the gain.
 
         Returns
         -------
@@ -383,6 +494,8 @@ class SourceSplit:
         h = meas.H[0]
         r_ind = float(meas.R[0, 0])
         i0, i1 = int(idx[0]), int(idx[1])
+        if constants or self.const_labels:
+            parts, constants = self._split_constants(parts, constants)
         # The weights depend on the states the measurement and idx touch only (for a range, the
         # horizontal position): they are chosen on those blocks of the components, and the
         # whole matrices are formed only for an update that is made (a few % of ranges).
@@ -396,7 +509,26 @@ class SourceSplit:
             PJ = P[np.ix_(Jx, Jx)]
         CJ = self._block(Jx)
         hJ = h[Jx]
-        mineJ = np.concatenate([(PJ - CJ.sum(axis=0))[None], CJ])  # own first, (k+1, m, m)
+        ownJ = PJ - CJ.sum(axis=0)
+        # the exactly tracked constants: my sensitivities G, the measurement's b; they add the
+        # known cross-covariance G b and variance b·b, and are never inflated
+        m_c = len(self.const_labels)
+        b_mine, new_labels, b_new, bb = None, [], [], 0.0
+        if m_c or constants:
+            at = {lab: k for k, lab in enumerate(self.const_labels)}
+            b_mine = np.zeros(m_c)
+            for lab, b in constants:
+                k = at.get(lab)
+                if k is None:
+                    new_labels.append(lab)
+                    b_new.append(float(b))
+                else:
+                    b_mine[k] += b
+            bb = float(b_mine @ b_mine) + sum(b * b for b in b_new)
+            GJ = self._const_rows(Jx)
+            gbJ = GJ @ b_mine
+            ownJ = ownJ - GJ @ GJ.T
+        mineJ = np.concatenate([ownJ[None], CJ])  # own first, (k+1, m, m)
         ChJ = mineJ @ hJ
         a_k = (ChJ @ hJ).tolist()
         T_k = (mineJ[:, j0, j0] + mineJ[:, j1, j1]).tolist()
@@ -430,6 +562,10 @@ class SourceSplit:
         hPh = float(hJ @ Ph)
         tr0 = float(PJ[j0, j0] + PJ[j1, j1])
         ph0, ph1 = float(Ph[j0]), float(Ph[j1])
+        if b_mine is not None:  # the innovation's variance and cross-covariance, exact part
+            hPh += 2.0 * float(hJ @ gbJ) + bb
+            ph0 += float(gbJ[j0])
+            ph1 += float(gbJ[j1])
 
         def weights(s: float) -> list[float]:
             return [min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX)
@@ -462,15 +598,27 @@ class SourceSplit:
         r1 = r_ind + sum(b / (1.0 - wg) for wg, (_, _, b) in zip(w, dep))
         P1h = P1 @ h
         S = float(h @ P1h) + r1
+        if b_mine is not None:
+            gb = self._G @ b_mine  # (own() above applied the pending congruence)
+            S += 2.0 * float(h @ gb) + bb
+            P1h = P1h + gb
         z = float(meas.z[0])
         nis = z * z / S
         omega = min(w) if w else 1.0
         if gate_probability is not None and nis > chi2_gate(1, gate_probability):
             return np.zeros(n), P, UpdateResult(np.zeros(n), nis, 1, False, meas.name, None, omega)
         K = P1h / S
+        if consider is not None and consider.size:
+            # any gain: P1 - K cᵀ - c Kᵀ + S K Kᵀ with c = P1h the cross-covariance
+            K = K.copy()
+            K[consider] = 0.0
+            KK = np.outer(K, K)
+            Kc = np.outer(K, P1h)
+            P_post = P1 - Kc - Kc.T + KK * S
+        else:
+            KK = np.outer(K, K)
+            P_post = P1 - KK * S
         dx = K * z
-        KK = np.outer(K, K)
-        P_post = P1 - KK * S
         P_post = 0.5 * (P_post + P_post.T)
         # the components: carried through the update, mine inflated in their groups, the
         # neighbour's parts and the noise added under their sources
@@ -479,13 +627,39 @@ class SourceSplit:
             g = (infl[1:] - 1.0)[:, None, None]
             C = self._C + g * (self._C if mask is None else self._C * mask)
             self._C = _rank_one_transform(C, K, h, KK)
+        if b_mine is not None:
+            # G ← (I - K h)G - K b (the constants reach me through the measurement's error)
+            self._G = self._G - np.outer(K, h @ self._G + b_mine)
+            if new_labels:
+                self._G = np.concatenate([self._G, -np.outer(K, b_new)], axis=1)
+                self.const_labels = self.const_labels + new_labels
         scale_p = [1.0] * len(parts)
         for wg, (_, gp, _) in zip(w, dep):
             for j in gp:
                 scale_p[j] = 1.0 / (1.0 - wg)
         self.add_many([(p.labels, share[j] * scale_p[j]) for j, p in enumerate(parts) if share[j] > 0.0]
                       + [(noise_labels, float(meas.R[0, 0]))], KK)
+        if b_mine is not None:
+            self._fold_constants()
         return dx, P_post, UpdateResult(dx, nis, 1, True, meas.name, K[:, None], omega)
+
+
+    def _split_constants(self, parts: list[SourcePart], constants) -> tuple[list[SourcePart], list]:
+        """A constant is exact in an update only if both sides track it exactly: my columns
+        that the measurement's parts name (or that :data:`ANY` may hold) are folded first, and
+        the measurement's constants that my components name join its parts (variance b²)."""
+        theirs: set[str] = set()
+        for p in parts:
+            theirs |= p.labels
+        if self.const_labels and theirs and (ANY in theirs or not theirs.isdisjoint(self.const_labels)):
+            self._fold_constants(theirs)
+        if constants:
+            mine = set(self.own_labels).union(*self.labels)
+            if ANY in mine or any(lab in mine for lab, _ in constants):
+                parts = parts + [SourcePart(frozenset({lab}), b * b) for lab, b in constants
+                                 if ANY in mine or lab in mine]
+                constants = [(lab, b) for lab, b in constants if not (ANY in mine or lab in mine)]
+        return parts, constants
 
 
 class _PosteriorTrace:
