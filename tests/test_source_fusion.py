@@ -380,7 +380,7 @@ def test_a_constant_tracked_exactly_makes_the_updates_the_joint_kalman_updates()
 
 def test_a_chain_ranging_around_an_anchor_stays_consistent() -> None:
     """Monte-Carlo (200 runs): an anchor fixes itself on its stop line (a stop-gap state,
-    random constant) and two followers range with it and each other 60 times in random pairs;
+    random constant) and two followers range with it and each other 40 times in random pairs;
     both ends fuse each range (the same white noise), every estimate a mix of every source by
     then. Every vehicle's horizontal NEES stays below the upper end of the two-sided 95 % band
     of the mean of n = 2 over the runs (and above half its lower end), with the constants
@@ -397,7 +397,7 @@ def _nees_band(runs: int, dim: int = 2) -> tuple[float, float]:
     return chi2.ppf(0.025, dim * runs) / runs, chi2.ppf(0.975, dim * runs) / runs
 
 
-def _chain_nees(trials: int, exact: bool, seed: int, steps: int = 60, star: bool = False) -> dict[str, float]:
+def _chain_nees(trials: int, exact: bool, seed: int, steps: int = 40, star: bool = False) -> dict[str, float]:
     """Mean horizontal NEES of an anchor A and followers B, C at the end (see the test above);
     ``star``: the followers range to the anchor only, and only they fuse."""
     rng = np.random.default_rng(seed)

@@ -268,7 +268,6 @@ class SourceSplit:
         folded = [(self.const_labels[k], G[:, k]) for k in sorted(drop)]
         self._G = G[:, keep]
         self.const_labels = [self.const_labels[k] for k in keep]
-        self.add_many([(frozenset({lab}), 1.0) for lab, _ in folded], np.zeros((self.n, self.n)))
         for lab, g in folded:
             self.add(frozenset({lab}), np.outer(g, g))
 
@@ -463,9 +462,8 @@ class SourceSplit:
         parts : list of SourcePart
             The rest of the measurement error, by source (the neighbour's components projected
             on the measurement, an NLOS bias).
-        idx : ndarray of int, shape (2,), or ndarray, shape (2, n)
-            States whose posterior covariance chooses the weights (the horizontal position), or
-            two rows of a linear map of the state (e.g. the position predicted a moment ahead).
+        idx : ndarray of int
+            States whose posterior variance chooses the weights (the horizontal position).
         noise_labels : frozenset of str
             The source under which ``meas.R``'s share of the posterior is kept (for a range, the
             same at both ends of the link).
