@@ -138,7 +138,9 @@ def _source_ci_cost(cfg, st0, t: float, nb, n: int) -> float:
     """One source-CI range update [µs] of SL-CP, from the same prior each time, with as many
     components as the fleet's agents hold (the grid of ``--fleet``: 10-12 stored, beacons of
     12-15): eleven stored (the common-mode GNSS error, seven vehicles, three links) against a
-    beacon of thirteen, most of whose sources the vehicle also holds."""
+    beacon of thirteen, most of whose sources the vehicle also holds; and exactly tracked
+    constants: the vehicle's own three (stop gap, lane offset) and five of others, the beacon
+    eight (the same five, three others)."""
     from agent.methods import MethodFilter, MethodSpec
     from agent.nav.source_fusion import COMMON_MODE
     from agent.neighbours import NeighbourState
@@ -153,9 +155,15 @@ def _source_ci_cost(cfg, st0, t: float, nb, n: int) -> float:
         ff.sources.add(frozenset({lab}), 0.02 * ff.P)
     theirs = (("V2",), (COMMON_MODE,), ("V0",), ("V1",), ("V3",), ("V4",), ("V5",), ("V6",), ("V9",),
               ("V1|V2",), ("V0|V2",), ("V2|V3",), ("V2|V9",))
-    cov = nb.cov_ned / len(theirs)
+    rng = np.random.default_rng(0)
+    shared = [f"V{k}~1.0.000" for k in (0, 3, 4, 5, 6)]
+    ff.sources.new_constants(shared, [ff.extra_offset + f._sl.start] * len(shared), 0.05)
+    ff.P[ff.extra_offset + f._sl.start, ff.extra_offset + f._sl.start] += 5 * 0.05**2
+    consts = tuple((lab, 0.05 * rng.normal(size=3)) for lab in shared + ["V2~1.0.000", "V2~2.0.000", "V9~1.0.000"])
+    g = sum(np.outer(c, c) for _, c in consts)
+    cov = (nb.cov_ned - g) / len(theirs)
     nb = NeighbourState(nb.vehicle, nb.llh, nb.cov_ned, nb.age, nb.v_ned,
-                        tuple(frozenset(lab) for lab in theirs), np.array([cov] * len(theirs)))
+                        tuple(frozenset(lab) for lab in theirs), np.array([cov] * len(theirs)), consts)
     saved = (ff.state.copy(), ff.P.copy(), ff.sources.copy())
 
     def step():

@@ -474,3 +474,20 @@ def test_constants_beyond_the_cap_or_too_small_are_folded_into_components_of_the
     assert "V5~5" not in split.const_labels and "V1~1" not in split.const_labels
     assert set(split.const_labels) == set(kept) - {"V5~5"} | {"V7~7"}  # V7~7 exact, new to me
     np.testing.assert_allclose(split.own(P) + sum(split.parts) + split.constants @ split.constants.T, P, atol=1e-12)
+
+
+def test_a_constant_is_folded_as_it_is_now_not_as_it_was() -> None:
+    """Folding a constant under a pending congruence (propagations are composed lazily) moves
+    its current sensitivity into the component: Φ g (Φ g)ᵀ, not g gᵀ (a stale column had made
+    a rush-hour agent's covariance indefinite)."""
+    rng = np.random.default_rng(8)
+    n = 4
+    split = SourceSplit("V0", n)
+    split.add(frozenset({"V1"}), _spd(rng, n, 0.1))  # something stored, so that Φ is composed
+    split.new_constants(["V2~1.0.000"], [2], 0.5)
+    g = split.constants[:, 0].copy()
+    phi = np.eye(n) + 0.3 * rng.normal(size=(n, n))
+    split.propagate(phi, np.zeros((n, n)))
+    split._fold_constants({"V2~1.0.000"})
+    k = split.labels.index(frozenset({"V2~1.0.000"}))
+    np.testing.assert_allclose(split.parts[k], np.outer(phi @ g, phi @ g), atol=1e-12)

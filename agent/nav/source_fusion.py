@@ -253,6 +253,7 @@ class SourceSplit:
         :data:`CONSTANT_FLOOR`, and the smallest beyond :data:`MAX_CONSTANTS`."""
         if not self.const_labels:
             return
+        self._sync()  # G must be current: its columns go into the components as they are
         G = self._G
         size = (G**2).sum(axis=0)
         order = np.argsort(size)
