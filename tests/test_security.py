@@ -151,10 +151,12 @@ def test_an_agent_signs_what_it_sends(fleet) -> None:
             sent.append(payload)
 
     agent.bus = Bus()
+    g = np.array([0.3, 0.0, 0.0])  # one random constant's sensitivity, m
     agent.filters = {"CP": type("F", (), {"spec": type("S", (), {"ranges": True, "stop_line": False})(),
                                           "beacon": lambda self: (np.array([0.7, 2.0, 5.0]), np.zeros(3), np.eye(3)),
                                           "beacon_sources": lambda self: ((("V2",), 0.75 * np.eye(3)),
-                                                                          (("V0", "~common"), 0.25 * np.eye(3)))})()}
+                                                                          (("V0", "~common"), 0.25 * np.eye(3) - np.outer(g, g))),
+                                          "beacon_constants": lambda self: (("V2~1.5", g),)})()}
     agent._next["beacon"] = 10.0
     asyncio.run(agent._timers(10.0))
     store = TrustStore.from_dir(fleet)
@@ -163,6 +165,9 @@ def test_an_agent_signs_what_it_sends(fleet) -> None:
     b = decode(sent[0])
     assert [lab for lab, _ in b.sources] == [("V2",), ("V0", "~common")]
     assert store.verify(dataclasses.replace(b, sources=((("V2",), np.eye(3)),))) == "bad_signature"
+    # and so are the random constants' sensitivities
+    assert [name for name, _ in b.constants] == ["V2~1.5"]
+    assert store.verify(dataclasses.replace(b, constants=(("V2~1.5", np.zeros(3)),))) == "bad_signature"
 
 
 def test_security_section_errors_name_the_field(fleet, tmp_path) -> None:
