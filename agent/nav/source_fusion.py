@@ -642,7 +642,6 @@ class SourceSplit:
             self._fold_constants()
         return dx, P_post, UpdateResult(dx, nis, 1, True, meas.name, K[:, None], omega)
 
-
     def _split_constants(self, parts: list[SourcePart], constants) -> tuple[list[SourcePart], list]:
         """A constant is exact in an update only if both sides track it exactly: my columns
         that the measurement's parts name (or that :data:`ANY` may hold) are folded first, and
@@ -654,9 +653,9 @@ class SourceSplit:
             self._fold_constants(theirs)
         if constants:
             mine = set(self.own_labels).union(*self.labels)
-            if ANY in mine or any(lab in mine for lab, _ in constants):
-                parts = parts + [SourcePart(frozenset({lab}), b * b) for lab, b in constants
-                                 if ANY in mine or lab in mine]
+            held = [(lab, b) for lab, b in constants if ANY in mine or lab in mine]
+            if held:
+                parts = parts + [SourcePart(frozenset({lab}), b * b) for lab, b in held]
                 constants = [(lab, b) for lab, b in constants if not (ANY in mine or lab in mine)]
         return parts, constants
 
