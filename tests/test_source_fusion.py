@@ -261,29 +261,34 @@ def test_groups_join_every_label_set_that_may_share_a_source() -> None:
     assert len(groups) == 1 and sorted(groups[0][0]) == [0, 1, 2, 3]
 
 
-def _trace_by_loop(terms, tr, hph, r, v0, v1, s):
-    """The weight objective group by group: ω_g, its clip, and the inflated sums."""
-    for sa, sb, T, a, b, c0, c1 in terms:
+def _trace_by_loop(terms, tr, hph, r, *rest):
+    """The weight objective group by group: ω_g, its clip, and the inflated sums (``rest``:
+    the m prior covariances with the measurement, then ``s``)."""
+    *v, s = rest
+    v = list(v)
+    for sa, sb, T, a, b, *c in terms:
         w = min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX)
         x = 1.0 / w - 1.0
-        tr, hph, v0, v1, r = tr + x * T, hph + x * a, v0 + x * c0, v1 + x * c1, r + b / (1.0 - w)
-    return tr - (v0 * v0 + v1 * v1) / (hph + r)
+        tr, hph, r = tr + x * T, hph + x * a, r + b / (1.0 - w)
+        v = [vi + x * ci for vi, ci in zip(v, c)]
+    return tr - sum(vi * vi for vi in v) / (hph + r)
 
 
 def test_the_weight_objective_by_prefix_sums_equals_the_group_sum() -> None:
     """_PosteriorTrace (sorted groups, bisection for the clipped weights, prefix sums) gives the
     value of the plain group-by-group sum, over 0-12 groups whose variances span eight decades
-    (so that weights clip at both ends)."""
+    (so that weights clip at both ends), with 1-4 minimised states."""
     rng = np.random.default_rng(5)
     worst = 0.0
     for _ in range(500):
         terms = []
+        m = int(rng.integers(1, 5))
         for _g in range(rng.integers(0, 13)):
             a, b = 10.0 ** rng.uniform(-6, 2, size=2)
             T = a * rng.uniform(1.0, 5.0)
-            c0, c1 = rng.normal(size=2) * np.sqrt(a * T) / 2.0
-            terms.append((np.sqrt(a), np.sqrt(b), T, a, b, c0, c1))
-        base = (rng.uniform(1, 10), rng.uniform(0.5, 5), rng.uniform(0.01, 1), rng.normal(), rng.normal())
+            c = rng.normal(size=m) * np.sqrt(a * T) / m
+            terms.append((np.sqrt(a), np.sqrt(b), T, a, b, *c))
+        base = (rng.uniform(1, 10), rng.uniform(0.5, 5), rng.uniform(0.01, 1), *rng.normal(size=m))
         f = _PosteriorTrace(terms, *base)
         for s in [OMEGA_MIN, 0.5, OMEGA_MAX, *rng.uniform(OMEGA_MIN, OMEGA_MAX, 5)]:
             ref = _trace_by_loop(terms, *base, s)
@@ -292,13 +297,17 @@ def test_the_weight_objective_by_prefix_sums_equals_the_group_sum() -> None:
 
 
 def test_the_update_chooses_the_best_weights_of_the_whole_matrices() -> None:
-    """The update chooses its weights on the position blocks only; its posterior variance of the
-    minimised states is the least that any weight parameter gives when the whole matrices are
-    inflated group by group and updated (a scan of 2,000 values)."""
+    """The update chooses its weights on the blocks of the minimised states only; its posterior
+    (weighted) variance of them is the least that any weight parameter gives when the whole
+    matrices are inflated group by group and updated (a scan of 2,000 values), whether it
+    minimises the position alone or the position and, weighted, states the range does not
+    observe."""
     rng = np.random.default_rng(6)
     n = 6
     excess = []
     for trial in range(20):
+        # odd trials also weigh two states the range does not observe (a velocity, τ² = 0.5)
+        idx, wt = (IDX, np.ones(2)) if trial % 2 == 0 else (np.array([0, 1, 3, 4]), np.array([1.0, 1.0, 0.5, 0.5]))
         split = SourceSplit("V0", n)
         P = _spd(rng, n, 2.0)
         for lab in ("V1", "V2", COMMON_MODE, "V0|V3")[: 1 + trial % 4]:
@@ -312,7 +321,7 @@ def test_the_update_chooses_the_best_weights_of_the_whole_matrices() -> None:
                  for lab in ("V3", "V1", COMMON_MODE, "V0")[: 1 + trial % 4]]
         parts.append(SourcePart(frozenset({"V0|V3"}), 0.1, correlated=True))
         before = split.copy()
-        _, P_post, res = split.update(P, m, parts, IDX, frozenset({"V0|V3"}))
+        _, P_post, res = split.update(P, m, parts, idx, frozenset({"V0|V3"}), idx_weight=wt)
         assert res.accepted
         mine = [before.own_labels] + before.labels
         comps = [before.own(P)] + list(before.parts)
@@ -326,18 +335,19 @@ def test_the_update_chooses_the_best_weights_of_the_whole_matrices() -> None:
                     r1 += b
                     continue
                 A = sum(comps[k] for k in gm)
-                a = max(float(hh @ A @ hh), 1e-9 * float(A[0, 0] + A[1, 1]), 1e-300)
+                a = max(float(hh @ A @ hh), 1e-9 * float(A[idx, idx] @ wt), 1e-300)
                 w = min(max(s * np.sqrt(a) / (s * np.sqrt(a) + (1 - s) * np.sqrt(b)), OMEGA_MIN), OMEGA_MAX)
                 P1 += (1 / w - 1) * A
                 r1 += b / (1 - w)
             k = P1 @ hh / (hh @ P1 @ hh + r1)
             return P1 - np.outer(k, P1 @ hh)
 
-        best = min(float(np.trace(whole(s)[:2, :2])) for s in np.linspace(OMEGA_MIN, OMEGA_MAX, 2000))
-        got = float(np.trace(P_post[:2, :2]))
+        best = min(float(whole(s)[idx, idx] @ wt) for s in np.linspace(OMEGA_MIN, OMEGA_MAX, 2000))
+        got = float(P_post[idx, idx] @ wt)
         excess.append((got - best) / best)
-    # as good as the scan, to the search's tolerance (s to 1e-3): 18 of 20 within 1e-7
-    assert all(-1e-6 < e < 1e-4 for e in excess)
+    # as good as the scan, to the search's tolerance (s to 1e-3; the scan's step is 5e-4): 14 of
+    # 20 within 1e-7, the worst 1.0e-4 above the scan, the best 4e-6 below it
+    assert all(-1e-5 < e < 2e-4 for e in excess), " ".join(f"{e:.2e}" for e in excess)
 
 
 def test_a_constant_tracked_exactly_makes_the_updates_the_joint_kalman_updates() -> None:
@@ -448,9 +458,10 @@ def _chain_nees(trials: int, exact: bool, seed: int, steps: int = 40, star: bool
 
 
 def test_constants_beyond_the_cap_or_too_small_are_folded_into_components_of_their_names() -> None:
-    """Columns of G beyond :data:`MAX_CONSTANTS` (the smallest) and those below the floor move
-    into CI components named after the constants; the total covariance is unchanged. A
-    constant that one side tracks exactly and the other holds in a component is intersected."""
+    """Columns of G beyond :data:`MAX_CONSTANTS` (the smallest) move into CI components named
+    after the constants, those below the floor into components named after their owners; the
+    total covariance is unchanged. A constant that one side tracks exactly and the other holds
+    in a component is intersected."""
     n = 4
     split = SourceSplit("V0", n)
     P = np.diag([1.0, 1.0, 1.0, 100.0])
@@ -462,7 +473,7 @@ def test_constants_beyond_the_cap_or_too_small_are_folded_into_components_of_the
     assert not any("tiny" in lab for lab in split.const_labels)  # below the floor
     assert "V0~0" not in split.const_labels and "V1~1" not in split.const_labels  # the smallest
     named = set().union(*split.labels)
-    assert {"V0~0", "V1~1", "V9~tiny0"} <= named and "V0" not in named
+    assert {"V0~0", "V1~1", "V9"} <= named and "V0" not in named and "V9~tiny0" not in named
     # a neighbour that folded "V5~5" names it in a part: my column is folded before the update
     # and intersected with it; its exact "V1~1" meets my component of that name: intersected too
     h = np.array([[1.0, 0.0, 0.0, 0.0]])
@@ -474,6 +485,61 @@ def test_constants_beyond_the_cap_or_too_small_are_folded_into_components_of_the
     assert "V5~5" not in split.const_labels and "V1~1" not in split.const_labels
     assert set(split.const_labels) == set(kept) - {"V5~5"} | {"V7~7"}  # V7~7 exact, new to me
     np.testing.assert_allclose(split.own(P) + sum(split.parts) + split.constants @ split.constants.T, P, atol=1e-12)
+
+
+def test_weighing_the_velocity_keeps_ranges_from_inflating_it() -> None:
+    """Most of my position variance lies in a component the neighbour's parts pair with, little
+    in my own, most of my velocity variance in my own: minimising the position alone, every
+    range inflates my own component by 1/ω, cheap for the position, and the velocity (which no
+    range observes) grows range after range (paper-1 seed 0, V0: 0.12 -> 23 m/s in 3 s). With
+    the velocity in the minimised sum (τ = 1 s), the sum never grows, and node selection
+    declines what would not reduce it."""
+    def chain(weigh: bool) -> tuple[float, list[float]]:
+        rng = np.random.default_rng(3)
+        split = SourceSplit("V0", 4)  # states: east, north position [m]; east, north velocity [m/s]
+        C = np.diag([1.0, 1.0, 0.0, 0.0])
+        split.add(frozenset({"V1"}), C)
+        P = np.diag([0.01, 0.01, 0.01, 0.01]) + C
+        idx, wt = (np.arange(4), np.ones(4)) if weigh else (IDX, np.ones(2))
+        sums = [float(np.trace(P))]
+        for _ in range(30):
+            u = rng.normal(size=2)
+            h = np.concatenate([u / np.linalg.norm(u), [0.0, 0.0]])[None]
+            m = Measurement(np.array([0.0]), h, np.array([[0.01]]), "range")
+            parts = [SourcePart(frozenset({"V0"}), 0.05), SourcePart(frozenset({"V1"}), 0.05)]
+            _, P, _ = split.update(P, m, parts, idx, frozenset({"V0|V1"}), min_gain=1e-4, idx_weight=wt)
+            sums.append(float(np.trace(P)))
+        return float(P[2, 2] + P[3, 3]), sums
+
+    vel_position_only, _ = chain(False)
+    vel_weighed, sums = chain(True)
+    assert vel_position_only > 40 * 0.02  # the failure mode: the velocity variance ×40 and more
+    assert vel_weighed < vel_position_only / 4
+    assert all(b <= a * (1.0 + 1e-9) for a, b in zip(sums, sums[1:]))
+
+
+def test_a_neighbours_negligible_copy_leaves_my_constant_exact() -> None:
+    """A range's small gain leaves the neighbour a copy of my constant below the floor; it folds
+    that copy under my id, so that at our next range my constant stays exact (named by the
+    constant, my whole constant would have been folded and intersected from then on)."""
+    n = 4
+    owner, other = SourceSplit("V1", n), SourceSplit("V2", n)
+    P1, P2 = np.diag([1.0, 1.0, 1.0, 1.0]), np.diag([0.004, 0.004, 1.0, 1.0])
+    owner.new_constants(["V1~1"], [0], [0.12])
+    h = np.array([[1.0, 0.0, 0.0, 0.0]])
+    m = Measurement(np.array([0.0]), h, np.array([[0.01]]), "range")
+    # the neighbour (precise) fuses a range to me: its copy of my constant is about a millimetre
+    b = float(owner.constant_rows(slice(0, 1))[0][1][0])
+    parts = [SourcePart(frozenset({lab}), float(v)) for lab, v in [("V1", 0.9856)]]
+    _, P2, res = other.update(P2, m, parts, IDX, frozenset({"V1|V2"}), constants=[("V1~1", b)])
+    assert res.accepted and "V1~1" not in other.const_labels
+    named = set().union(*other.labels)
+    assert "V1" in named and "V1~1" not in named
+    # my next range to it: its beacon's parts name me, not my constant, which stays exact
+    theirs = [SourcePart(lab, float(C[0, 0])) for lab, C in zip(other.labels, other.parts)]
+    _, P1, res = owner.update(P1, m, theirs, IDX, frozenset({"V1|V2"}))
+    assert res.accepted and owner.const_labels == ["V1~1"]
+    np.testing.assert_allclose(owner.own(P1) + sum(owner.parts) + owner.constants @ owner.constants.T, P1, atol=1e-12)
 
 
 def test_a_constant_is_folded_as_it_is_now_not_as_it_was() -> None:

@@ -342,19 +342,26 @@ class InsFilter:
 
     def update_source_ci(self, meas: Measurement, parts: list[SourcePart], noise_labels: frozenset[str],
                          gate_probability: float | None = None, min_gain: float = 0.0,
-                         constants: list[tuple[str, float]] | tuple = ()) -> UpdateResult:
+                         constants: list[tuple[str, float]] | tuple = (),
+                         velocity_horizon: float = 0.0) -> UpdateResult:
         """Source-CI update (:mod:`agent.nav.source_fusion`) with closed-loop feedback.
 
         ``meas.R`` is the measurement's white noise, kept under ``noise_labels``; ``parts`` the
         rest of its error by source (e.g. the neighbour's components), ``constants`` its
         sensitivity to exactly tracked random constants. The weights minimise the horizontal
-        position variance; ``min_gain`` as :meth:`update_split_ci`.
+        position variance, plus τ² times the horizontal velocity variance for a
+        ``velocity_horizon`` τ > 0 [s] (the position variance τ seconds on, less the
+        covariance term); ``min_gain`` as :meth:`update_split_ci`, on the same sum.
         """
         if self.sources is None:
             raise RuntimeError("source CI needs track_sources() first")
         meas = self._prepare(meas)
-        dx, P, result = self.sources.update(self.P, meas, parts, _HORIZONTAL, noise_labels,
-                                            gate_probability, min_gain, constants, self.consider)
+        if velocity_horizon > 0.0:
+            idx, weight = _HORIZONTAL_PV, np.array([1.0, 1.0, velocity_horizon**2, velocity_horizon**2])
+        else:
+            idx, weight = _HORIZONTAL, None
+        dx, P, result = self.sources.update(self.P, meas, parts, idx, noise_labels,
+                                            gate_probability, min_gain, constants, self.consider, weight)
         if result.accepted:
             self._feedback(dx)
             self.P = P
@@ -456,6 +463,7 @@ class InsFilter:
 
 
 _HORIZONTAL = np.array([POS.start, POS.start + 1])
+_HORIZONTAL_PV = np.array([POS.start, POS.start + 1, VEL.start, VEL.start + 1])
 
 
 def level_from_accel(f_b_mean: np.ndarray) -> tuple[float, float]:

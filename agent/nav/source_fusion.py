@@ -248,16 +248,26 @@ class SourceSplit:
         self._fold_constants()
 
     def _fold_constants(self, names: set[str] | None = None) -> None:
-        """Fold constants into CI components, each under its own name (the total covariance is
-        unchanged): those in ``names`` (:data:`ANY` in it: all), those whose variance is below
-        :data:`CONSTANT_FLOOR`, and the smallest beyond :data:`MAX_CONSTANTS`."""
+        """Fold constants into CI components (the total covariance is unchanged): those in
+        ``names`` (:data:`ANY` in it: all) and the smallest beyond :data:`MAX_CONSTANTS`, each
+        under its own name, and those whose variance is below :data:`CONSTANT_FLOOR` under
+        their owner's vehicle id.
+
+        A copy below the floor is what a range's small gain left of a neighbour's constant (a
+        millimetre of the owner's 0.12 m lane offset). Named by the constant, it would make the
+        owner fold its whole constant at its next range with me (a constant is exact only where
+        both sides track it exactly), and CI would inflate it from then on: the stop-line fix
+        could no longer pin it. Named by the owner, it is information from the owner, which CI
+        pairs with the owner's own component; its correlation with the owner's exact column
+        (at most √(floor)·|g|) is neglected."""
         if not self.const_labels:
             return
         self._sync()  # G must be current: its columns go into the components as they are
         G = self._G
         size = (G**2).sum(axis=0)
         order = np.argsort(size)
-        drop = {int(k) for k in order if size[k] < CONSTANT_FLOOR}
+        floor = {int(k) for k in order if size[k] < CONSTANT_FLOOR}
+        drop = set(floor)
         if names:
             drop |= {k for k, lab in enumerate(self.const_labels) if ANY in names or lab in names}
         excess = len(self.const_labels) - MAX_CONSTANTS - len(drop)
@@ -266,11 +276,12 @@ class SourceSplit:
         if not drop:
             return
         keep = [k for k in range(len(self.const_labels)) if k not in drop]
-        folded = [(self.const_labels[k], G[:, k]) for k in sorted(drop)]
+        folded = [(self.const_labels[k], G[:, k], k in floor) for k in sorted(drop)]
         self._G = G[:, keep]
         self.const_labels = [self.const_labels[k] for k in keep]
-        for lab, g in folded:
-            self.add(frozenset({lab}), np.outer(g, g))
+        for lab, g, below in folded:
+            owner = lab.split(CONSTANT_MARK)[0] if below else lab
+            self.add(frozenset({owner or lab}), np.outer(g, g))
 
     def add(self, labels: frozenset[str], M: np.ndarray | None) -> None:
         """Add covariance ``M`` (n, n) (None: nothing, only the labels) from the sources
@@ -450,7 +461,8 @@ class SourceSplit:
     def update(self, P: np.ndarray, meas: Measurement, parts: list[SourcePart], idx: np.ndarray,
                noise_labels: frozenset[str], gate_probability: float | None = None,
                min_gain: float = 0.0, constants: list[tuple[str, float]] | tuple = (),
-               consider: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
+               consider: np.ndarray | None = None,
+               idx_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
         """One source-CI update with a scalar measurement.
 
         Parameters
@@ -463,8 +475,9 @@ class SourceSplit:
         parts : list of SourcePart
             The rest of the measurement error, by source (the neighbour's components projected
             on the measurement, an NLOS bias).
-        idx : ndarray of int
-            States whose posterior variance chooses the weights (the horizontal position).
+        idx : ndarray of int, shape (m,)
+            States whose posterior variance chooses the weights (the horizontal position, and
+            the horizontal velocity if ``idx_weight`` weighs it).
         noise_labels : frozenset of str
             The source under which ``meas.R``'s share of the posterior is kept (for a range, the
             same at both ends of the link).
@@ -480,6 +493,10 @@ class SourceSplit:
             them.
         consider : ndarray of int, optional
             Consider states (as :func:`agent.nav.kalman.kalman_update`): zero rows of the gain.
+        idx_weight : ndarray, shape (m,), optional
+            The weights w_i of the minimised sum Σ w_i P_ii (default 1) [their unit⁻² times
+            the first state's unit²], e.g. τ² for a velocity whose error τ seconds on becomes
+            position error. Node selection measures its gain on the same sum.
 
         Returns
         -------
@@ -487,24 +504,26 @@ class SourceSplit:
             As :func:`agent.nav.kalman.kalman_update`; the components are updated in place when
             the update is applied. ``result.omega`` is the smallest group weight (1 if none).
         """
-        if meas.dim != 1 or len(idx) != 2:
-            raise ValueError("source CI takes scalar measurements and two states to minimise")
+        if meas.dim != 1 or len(idx) == 0:
+            raise ValueError("source CI takes scalar measurements and at least one state to minimise")
         n = self.n
         h = meas.H[0]
         r_ind = float(meas.R[0, 0])
-        i0, i1 = int(idx[0]), int(idx[1])
         if constants or self.const_labels:
             parts, constants = self._split_constants(parts, constants)
         # The weights depend on the states the measurement and idx touch only (for a range, the
         # horizontal position): they are chosen on those blocks of the components, and the
         # whole matrices are formed only for an update that is made (a few % of ranges).
-        J = sorted(set(np.flatnonzero(h).tolist()) | {i0, i1})
-        j0, j1 = J.index(i0), J.index(i1)
-        if J[-1] - J[0] == len(J) - 1:  # contiguous (a range: the position): views
+        idx = [int(i) for i in idx]
+        sw = [1.0] * len(idx) if idx_weight is None else [math.sqrt(float(w)) for w in idx_weight]
+        J = sorted(set(np.flatnonzero(h).tolist()) | set(idx))
+        if J[-1] - J[0] < 2 * len(J):  # (nearly) contiguous (a range: the position): views
             Jx = slice(J[0], J[-1] + 1)
+            jj = [i - J[0] for i in idx]
             PJ = P[Jx, Jx]
         else:
             Jx = np.array(J)
+            jj = [J.index(i) for i in idx]
             PJ = P[np.ix_(Jx, Jx)]
         CJ = self._block(Jx)
         hJ = h[Jx]
@@ -530,8 +549,9 @@ class SourceSplit:
         mineJ = np.concatenate([ownJ[None], CJ])  # own first, (k+1, m, m)
         ChJ = mineJ @ hJ
         a_k = (ChJ @ hJ).tolist()
-        T_k = (mineJ[:, j0, j0] + mineJ[:, j1, j1]).tolist()
-        c0_k, c1_k = ChJ[:, j0].tolist(), ChJ[:, j1].tolist()
+        wd = np.square(sw)
+        T_k = (mineJ[:, jj, jj] @ wd).tolist()
+        c_k = (ChJ[:, jj] * sw).tolist()  # per component, the m scaled covariances
         groups = self._groups([self.own_labels] + self.labels, [p.labels for p in parts])
         # per group: my side (components) and the measurement side (variance b)
         dep: list[tuple[list[int], list[int], float]] = []
@@ -551,32 +571,31 @@ class SourceSplit:
                 continue
             if len(gm) == 1:
                 k = gm[0]
-                a, T, c0, c1 = a_k[k], T_k[k], c0_k[k], c1_k[k]
+                a, T, c = a_k[k], T_k[k], c_k[k]
             else:
                 a, T = sum(a_k[k] for k in gm), sum(T_k[k] for k in gm)
-                c0, c1 = sum(c0_k[k] for k in gm), sum(c1_k[k] for k in gm)
+                c = [sum(v) for v in zip(*(c_k[k] for k in gm))]
             dep.append((gm, gp, b))
-            terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b, c0, c1))
+            terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b, *c))
         Ph = PJ @ hJ
         hPh = float(hJ @ Ph)
-        tr0 = float(PJ[j0, j0] + PJ[j1, j1])
-        ph0, ph1 = float(Ph[j0]), float(Ph[j1])
+        tr0 = float(PJ[jj, jj] @ wd)
         if b_mine is not None:  # the innovation's variance and cross-covariance, exact part
             hPh += 2.0 * float(hJ @ gbJ) + bb
-            ph0 += float(gbJ[j0])
-            ph1 += float(gbJ[j1])
+            Ph = Ph + gbJ
+        ph = (Ph[jj] * sw).tolist()
 
         def weights(s: float) -> list[float]:
             return [min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX)
                     for sa, sb, *_ in terms]
 
-        posterior_trace = _PosteriorTrace(terms, tr0, hPh, r_ind, ph0, ph1)
+        posterior_trace = _PosteriorTrace(terms, tr0, hPh, r_ind, *ph)
 
         skip = UpdateResult(np.zeros(n), float("nan"), 1, False, meas.name, None, float("nan"), skipped=True)
         if min_gain > 0.0:
             # the plain Kalman gain, an upper bound (as :func:`agent.nav.fusion.naive_gain`)
             r_all = r_ind + sum(t[4] for t in terms)
-            if hPh + r_all <= 0.0 or (ph0 * ph0 + ph1 * ph1) / (hPh + r_all) < min_gain * tr0:
+            if hPh + r_all <= 0.0 or sum(v * v for v in ph) / (hPh + r_all) < min_gain * tr0:
                 return np.zeros(n), P, skip
         s = float(fminbound(posterior_trace, OMEGA_MIN, OMEGA_MAX, xatol=1e-3)) if terms else 0.5
         if min_gain > 0.0 and tr0 - posterior_trace(s) < min_gain * tr0:
@@ -661,9 +680,9 @@ class SourceSplit:
 
 
 class _PosteriorTrace:
-    """The posterior variance of the two minimised states [their unit²] as a function of the
-    weight parameter ``s`` (the objective of :meth:`SourceSplit.update`), in O(log G) per
-    evaluation for G groups.
+    """The weighted posterior variance of the minimised states [their unit²] as a function of
+    the weight parameter ``s`` (the objective of :meth:`SourceSplit.update`), in O(log G + m)
+    per evaluation for G groups and m minimised states.
 
     Group ``g``'s weight ω_g = s√a_g/(s√a_g + (1 - s)√b_g) makes its inflation
     x_g = 1/ω_g - 1 = ρ q_g with ρ = (1 - s)/s and q_g = √b_g/√a_g: every group's terms scale
@@ -671,43 +690,58 @@ class _PosteriorTrace:
     a constant x. With the groups sorted by q, the clipped ones are a prefix and a suffix, found
     by bisection, and every sum is a difference of prefix sums.
 
-    ``terms``: per group (√a, √b, T, a, b, c0, c1) with T my side's variance of the two states,
-    a its variance along the measurement, b the other side's, c0/c1 my side's covariances of the
-    two states with the measurement; ``tr0``, ``hph``, ``r``, ``ph0``, ``ph1`` the same of the
-    whole prior and the independent noise.
+    ``terms``: per group (√a, √b, T, a, b, c_1, …, c_m) with T my side's weighted variance of the
+    minimised states (Σ w_i P_ii), a its variance along the measurement, b the other side's,
+    c_i my side's covariance of state i with the measurement, times √w_i; ``tr0``, ``hph``, ``r``,
+    ``ph`` the same of the whole prior and the independent noise (``ph`` the m covariances).
     """
 
     X_LO = 1.0 / OMEGA_MAX - 1.0  #: the inflation of a group whose weight is clipped high
     X_HI = 1.0 / OMEGA_MIN - 1.0  #: ... clipped low
 
-    def __init__(self, terms: list[tuple[float, ...]], tr0: float, hph: float, r: float, ph0: float, ph1: float):
-        self.base = (tr0, hph, r, ph0, ph1)
-        rows = sorted([(sb / sa, T, a, b, c0, c1) for sa, sb, T, a, b, c0, c1 in terms])
+    def __init__(self, terms: list[tuple[float, ...]], tr0: float, hph: float, r: float, *ph: float):
+        self.base = (tr0, hph, r)
+        self.ph = ph
+        m = len(ph)
+        rows = sorted([(t[1] / t[0], *t[2:]) for t in terms])
         self.q = [t[0] for t in rows]
-        # the rows of prefix sums of (T, a, c0, c1, b) and of q (T, a, c0, c1) and b/q
-        sT = sa = s0 = s1 = sb = qT = qa = q0 = q1 = bq = 0.0
-        self.cum = [(0.0,) * 10]
-        for q, T, a, b, c0, c1 in rows:
-            sT, sa, s0, s1, sb = sT + T, sa + a, s0 + c0, s1 + c1, sb + b
-            qT, qa, q0, q1, bq = qT + q * T, qa + q * a, q0 + q * c0, q1 + q * c1, bq + b / q
-            self.cum.append((sT, sa, s0, s1, sb, qT, qa, q0, q1, bq))
+        # prefix sums of (T, a, c…, b), of q·(T, a, c…) and of b/q: one row of 2m + 6 sums
+        acc = [0.0] * (2 * m + 6)
+        self.cum = [tuple(acc)]
+        for q, T, a, b, *c in rows:
+            plain = (T, a, *c, b)
+            for k, v in enumerate(plain):
+                acc[k] += v
+            for k, v in enumerate(plain[:-1]):
+                acc[m + 3 + k] += q * v
+            acc[-1] += b / q
+            self.cum.append(tuple(acc))
 
     def __call__(self, s: float) -> float:
-        tr, hph, r, v0, v1 = self.base
+        tr, hph, r = self.base
         if not self.q:
-            return tr - (v0 * v0 + v1 * v1) / (hph + r)
+            return tr - sum(v * v for v in self.ph) / (hph + r)
+        m = len(self.ph)
         rho = (1.0 - s) / s
         lo = bisect.bisect_left(self.q, self.X_LO / rho)  # ρq < X_LO: ω clipped at OMEGA_MAX
         hi = bisect.bisect_right(self.q, self.X_HI / rho)  # ρq > X_HI: ω clipped at OMEGA_MIN
         c, L, H = self.cum[-1], self.cum[lo], self.cum[hi]
         x_lo, x_hi = self.X_LO, self.X_HI
-        tr += x_lo * L[0] + rho * (H[5] - L[5]) + x_hi * (c[0] - H[0])
-        hph += x_lo * L[1] + rho * (H[6] - L[6]) + x_hi * (c[1] - H[1])
-        v0 += x_lo * L[2] + rho * (H[7] - L[7]) + x_hi * (c[2] - H[2])
-        v1 += x_lo * L[3] + rho * (H[8] - L[8]) + x_hi * (c[3] - H[3])
+        o = m + 3  # where the q-weighted sums start
+
+        def inflated(k: int) -> float:
+            return x_lo * L[k] + rho * (H[o + k] - L[o + k]) + x_hi * (c[k] - H[k])
+
+        tr += inflated(0)
+        hph += inflated(1)
+        vv = 0.0
+        for i, v in enumerate(self.ph):
+            v += inflated(2 + i)
+            vv += v * v
         # b/(1 - ω) = b (1 + 1/x)
-        r += c[4] + L[4] / x_lo + (H[9] - L[9]) / rho + (c[4] - H[4]) / x_hi
-        return tr - (v0 * v0 + v1 * v1) / (hph + r)
+        b = m + 2
+        r += c[b] + L[b] / x_lo + (H[-1] - L[-1]) / rho + (c[b] - H[b]) / x_hi
+        return tr - vv / (hph + r)
 
 
 def _rank_one_transform(C: np.ndarray, k: np.ndarray, h: np.ndarray, kk: np.ndarray | None = None) -> np.ndarray:
