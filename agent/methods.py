@@ -152,7 +152,8 @@ class FilterSettings:
     #: velocity σ 0.12 -> 23 m/s in 3 s, its position error following)
     ci_velocity_horizon: float = 1.0
     #: node selection for the CI rules: fuse a range only if it is expected to reduce the
-    #: horizontal position variance by at least this fraction
+    #: horizontal position variance (source CI: the sum its weights minimise, with
+    #: ``ci_velocity_horizon``) by at least this fraction
     min_gain: float = 1e-4
     #: a neighbour whose range node selection declined is not weighed again for this long [s],
     #: unless something the decision rests on moved: the own horizontal position variance grew,

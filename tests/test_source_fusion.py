@@ -516,6 +516,10 @@ def test_weighing_the_velocity_keeps_ranges_from_inflating_it() -> None:
     assert vel_position_only > 40 * 0.02  # the failure mode: the velocity variance ×40 and more
     assert vel_weighed < vel_position_only / 4
     assert all(b <= a * (1.0 + 1e-9) for a, b in zip(sums, sums[1:]))
+    m = Measurement(np.array([0.0]), np.array([[1.0, 0.0, 0.0, 0.0]]), np.array([[0.01]]), "range")
+    for bad in (np.ones(3), np.array([1.0, 1.0, -1.0, 1.0])):
+        with pytest.raises(ValueError, match="idx_weight"):
+            SourceSplit("V0", 4).update(np.eye(4), m, [], np.arange(4), frozenset({"L"}), idx_weight=bad)
 
 
 def test_a_neighbours_negligible_copy_leaves_my_constant_exact() -> None:

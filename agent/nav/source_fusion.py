@@ -506,14 +506,16 @@ class SourceSplit:
         """
         if meas.dim != 1 or len(idx) == 0:
             raise ValueError("source CI takes scalar measurements and at least one state to minimise")
+        if idx_weight is not None and (len(idx_weight) != len(idx) or not np.all(np.asarray(idx_weight) >= 0.0)):
+            raise ValueError("idx_weight needs one weight >= 0 per minimised state")
         n = self.n
         h = meas.H[0]
         r_ind = float(meas.R[0, 0])
         if constants or self.const_labels:
             parts, constants = self._split_constants(parts, constants)
         # The weights depend on the states the measurement and idx touch only (for a range, the
-        # horizontal position): they are chosen on those blocks of the components, and the
-        # whole matrices are formed only for an update that is made (a few % of ranges).
+        # horizontal position and velocity): they are chosen on those blocks of the components,
+        # and the whole matrices are formed only for an update that is made (a few % of ranges).
         idx = [int(i) for i in idx]
         sw = [1.0] * len(idx) if idx_weight is None else [math.sqrt(float(w)) for w in idx_weight]
         J = sorted(set(np.flatnonzero(h).tolist()) | set(idx))
