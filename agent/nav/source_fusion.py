@@ -517,9 +517,10 @@ class SourceSplit:
         # horizontal position and velocity): they are chosen on those blocks of the components,
         # and the whole matrices are formed only for an update that is made (a few % of ranges).
         idx = [int(i) for i in idx]
-        sw = [1.0] * len(idx) if idx_weight is None else [math.sqrt(float(w)) for w in idx_weight]
+        wd = np.ones(len(idx)) if idx_weight is None else np.asarray(idx_weight, float)
+        sw = np.sqrt(wd)  # the rows of the minimised states, scaled: their covariances times √w
         J = sorted(set(np.flatnonzero(h).tolist()) | set(idx))
-        if J[-1] - J[0] < 2 * len(J):  # (nearly) contiguous (a range: the position): views
+        if J[-1] - J[0] < 2 * len(J):  # (nearly) contiguous (a range: position, velocity): views
             Jx = slice(J[0], J[-1] + 1)
             jj = [i - J[0] for i in idx]
             PJ = P[Jx, Jx]
@@ -551,7 +552,6 @@ class SourceSplit:
         mineJ = np.concatenate([ownJ[None], CJ])  # own first, (k+1, m, m)
         ChJ = mineJ @ hJ
         a_k = (ChJ @ hJ).tolist()
-        wd = np.square(sw)
         T_k = (mineJ[:, jj, jj] @ wd).tolist()
         c_k = (ChJ[:, jj] * sw).tolist()  # per component, the m scaled covariances
         groups = self._groups([self.own_labels] + self.labels, [p.labels for p in parts])
