@@ -8,6 +8,9 @@ and ``<out>/report.md``:
   along-track and cross-track means;
 - ANEES: the horizontal NEES (n = 2) averaged over every estimate of every seed, beside the
   two-sided 95 % band of a consistent filter for N runs, ``χ²_{2N}(0.025, 0.975) / N``;
+- paired RMSE differences per window and vehicle (CP − SP, SL-CP − SP, SL-CP − CP, SL-SP − SP):
+  the mean over the seeds that ran both methods, with its two-sided 95 % Student-t interval, and
+  whether the first method is significantly better, worse, or neither (``n.s.``);
 - first-stopped detection pooled over the seeds: precision, recall and latency.
 """
 
@@ -31,6 +34,39 @@ def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[fl
 
     a = (1.0 - probability) / 2.0
     return float(chi2.ppf(a, dim * n_runs) / n_runs), float(chi2.ppf(1.0 - a, dim * n_runs) / n_runs)
+
+
+#: (method, reference) pairs whose per-seed RMSE differences the study reports
+PAIRS = (("CP", "SP"), ("SL-CP", "SP"), ("SL-CP", "CP"), ("SL-SP", "SP"))
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray, probability: float = 0.95) -> dict:
+    """Paired difference of two methods' RMSE over the same seeds.
+
+    Parameters
+    ----------
+    a, b : ndarray, shape (n,)
+        Per-seed RMSE [m] of the method and of its reference, seed for seed.
+    probability : float
+        Coverage of the two-sided Student-t interval of the mean difference.
+
+    Returns
+    -------
+    dict
+        ``mean_m`` (mean of a − b), ``half_width_m`` (None for fewer than 2 seeds), ``n_seeds``,
+        and ``verdict``: ``better`` if the whole interval is below 0, ``worse`` if above, else
+        ``n.s.`` (with one seed, the sign of the difference alone decides nothing: ``n.s.``).
+    """
+    from scipy.stats import t as student_t
+
+    d = np.asarray(a, float) - np.asarray(b, float)
+    n = len(d)
+    mean = float(d.mean())
+    if n < 2:
+        return {"mean_m": mean, "half_width_m": None, "n_seeds": n, "verdict": "n.s."}
+    half = float(student_t.ppf(0.5 + probability / 2.0, n - 1) * d.std(ddof=1) / np.sqrt(n))
+    verdict = "better" if mean + half < 0.0 else "worse" if mean - half > 0.0 else "n.s."
+    return {"mean_m": mean, "half_width_m": half, "n_seeds": n, "verdict": verdict}
 
 
 def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
@@ -134,6 +170,14 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
                     cell = rmse[w][vid][m]
                     cell["bound_rms_m"] = float(np.mean([c["bound_rms_m"] for c in cells]))
                     cell["sigma_below_bound"] = float(np.mean([c["sigma_below_bound"] for c in cells]))
+    paired: dict = {}
+    for w in rmse:
+        for vid in rmse[w]:
+            for m, ref in PAIRS:
+                both = [s for s in seeds if {m, ref} <= set(per_seed[s]["rmse"].get(w, {}).get(vid, {}))]
+                if both:
+                    a, b = (np.array([per_seed[s]["rmse"][w][vid][k]["rmse_m"] for s in both]) for k in (m, ref))
+                    paired.setdefault(w, {}).setdefault(vid, {})[f"{m} - {ref}"] = paired_difference(a, b)
     nees: dict = {}
     for s in seeds:
         for path in sorted((out / f"seed-{s}" / "estimates").glob("*.csv")):
@@ -166,7 +210,8 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
         a["sl_rmse_claimed_m"] = float(np.sqrt(a["_se_claimed"] / a["covered_s"])) if a["covered_s"] else None
         for k in ("latency_s", "_se_truth", "_se_claimed"):
             del a[k]
-    return {"scenario": first["scenario"], "seeds": seeds, "rmse": rmse, "anees": anees, "first_stopped": det}
+    return {"scenario": first["scenario"], "seeds": seeds, "rmse": rmse, "paired": paired, "anees": anees,
+            "first_stopped": det}
 
 
 def study_markdown(scn, study: dict) -> str:
@@ -192,6 +237,26 @@ def study_markdown(scn, study: dict) -> str:
                               if "bound_rms_m" in c else ""))
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
+    if study.get("paired"):
+        lines += ["## Cooperation against the reference: paired RMSE differences [m]", "",
+                  "Mean over the seeds of (method − reference) ± the half-width of its 95 % Student-t "
+                  "interval; **better** / **worse**: the whole interval is below / above 0, n.s.: neither.", ""]
+        for w, table in study["paired"].items():
+            names = [f"{m} - {ref}" for m, ref in PAIRS]
+            lines += [f"### {w}", "", "| vehicle | " + " | ".join(n.replace(" - ", " − ") for n in names) + " |",
+                      "|---" * (len(names) + 1) + "|"]
+            for vid, cells in table.items():
+                row = []
+                for k in names:
+                    c = cells.get(k)
+                    if c is None:
+                        row.append("–")
+                        continue
+                    hw = "" if c["half_width_m"] is None else f" ± {c['half_width_m']:.2f}"
+                    v = c["verdict"]
+                    row.append(f"{c['mean_m']:+.2f}{hw} " + (f"**{v}**" if v != "n.s." else v))
+                lines.append(f"| {vid} | " + " | ".join(row) + " |")
+            lines.append("")
     if study["anees"]:
         lo, hi = next(iter(study["anees"].values()))["band"]
         lines += [f"## Consistency: horizontal ANEES (n = 2), 95 % band for {n} runs: {lo:.2f}–{hi:.2f}", "",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deploy.study import aggregate, anees_band
+from deploy.study import aggregate, anees_band, paired_difference
 
 
 def test_anees_band_matches_the_chi_square_table() -> None:
@@ -21,13 +21,17 @@ def test_aggregate_over_seeds(tmp_path) -> None:
         (d / "V1.csv").write_text("time_s,method,nees_h\n" + "".join(f"{0.1 * k:.1f},SP,{nees}\n" for k in range(10)))
         per_seed[s] = {
             "scenario": "x",
-            "rmse": {"w": {"V1": {"SP": {"rmse_m": rmse, "along_rmse_m": rmse / 2, "cross_rmse_m": rmse / 3}}}},
+            "rmse": {"w": {"V1": {"SP": {"rmse_m": rmse, "along_rmse_m": rmse / 2, "cross_rmse_m": rmse / 3},
+                                  "CP": {"rmse_m": rmse - 0.5 - 0.1 * s, "along_rmse_m": 0.0, "cross_rmse_m": 0.0}}}},
             "first_stopped": {"V1": {"SL-SP": {"truth_s": 10.0, "claimed_s": 9.0, "wrong_s": 0.5 * s,
                                                "covered_s": 9.0 - 0.5 * s, "latency_s": [0.2 + s]}}},
         }
     st = aggregate(tmp_path, per_seed)
     c = st["rmse"]["w"]["V1"]["SP"]
     assert c["mean_rmse_m"] == pytest.approx(2.0) and c["sd_rmse_m"] == pytest.approx(np.sqrt(2.0))
+    cp = st["paired"]["w"]["V1"]["CP - SP"]  # differences -0.5, -0.6 over the two seeds
+    assert cp["mean_m"] == pytest.approx(-0.55) and cp["n_seeds"] == 2 and cp["verdict"] == "n.s."
+    assert "SL-CP - SP" not in st["paired"]["w"]["V1"]  # a method no seed ran is not compared
     assert st["anees"]["V1/SP"]["anees"] == pytest.approx(2.0)
     assert st["anees"]["V1/SP"]["inside"] is True  # 2 runs: band 0.24-5.57
     lo, hi = anees_band(2)
@@ -35,6 +39,38 @@ def test_aggregate_over_seeds(tmp_path) -> None:
     d = st["first_stopped"]["V1/SL-SP"]
     assert d["precision"] == pytest.approx(1 - 0.5 / 18) and d["recall"] == pytest.approx(17.5 / 20)
     assert d["mean_latency_s"] == pytest.approx(0.7)
+
+
+def test_paired_difference_closed_form() -> None:
+    # differences 1, 2, 3: mean 2, sd 1, t(0.975, 2) = 4.3027
+    c = paired_difference(np.array([2.0, 4.0, 6.0]), np.array([1.0, 2.0, 3.0]))
+    assert c["mean_m"] == pytest.approx(2.0) and c["n_seeds"] == 3
+    assert c["half_width_m"] == pytest.approx(4.3027 / np.sqrt(3.0), rel=1e-4)
+    assert c["verdict"] == "n.s."
+    assert paired_difference(np.array([1.0, 1.1, 0.9, 1.0]), np.zeros(4))["verdict"] == "worse"
+    assert paired_difference(np.zeros(4), np.array([1.0, 1.1, 0.9, 1.0]))["verdict"] == "better"
+    one = paired_difference(np.array([0.0]), np.array([1.0]))
+    assert one["half_width_m"] is None and one["verdict"] == "n.s."
+
+
+def test_paired_verdict_agrees_with_scipys_paired_t_test() -> None:
+    """Two ways to the same decision: the interval excludes 0 exactly when ttest_rel's p < 0.05."""
+    from scipy.stats import ttest_rel
+
+    rng = np.random.default_rng(7)
+    seen = set()
+    for _ in range(300):
+        n = int(rng.integers(2, 30))
+        b = rng.uniform(1.0, 4.0, n)
+        a = b + rng.normal(rng.normal(0.0, 0.3), rng.uniform(0.05, 1.0), n)
+        c = paired_difference(a, b)
+        p = ttest_rel(a, b).pvalue
+        if abs(p - 0.05) < 1e-9:
+            continue
+        expect = "n.s." if p > 0.05 else ("worse" if a.mean() > b.mean() else "better")
+        assert c["verdict"] == expect
+        seen.add(expect)
+    assert seen == {"n.s.", "worse", "better"}
 
 
 @pytest.mark.parametrize("argv", [["run", "--seeds", "0"], ["run", "--fusion", "bogus"], ["run", "--jobs", "x"],
