@@ -6,8 +6,9 @@ and ``<out>/report.md``:
 
 - RMSE per window, vehicle and method: mean and standard deviation over the seeds, with the
   along-track and cross-track means;
-- ANEES: the horizontal NEES (n = 2) averaged over every estimate of every seed, beside the
-  two-sided 95 % band of a consistent filter for N runs, ``χ²_{2N}(0.025, 0.975) / N``;
+- ANEES: the horizontal NEES (n = 2) averaged over every estimate of every seed, over the whole
+  run and per window, beside the two-sided 95 % band of a consistent filter for N runs,
+  ``χ²_{2N}(0.025, 0.975) / N``;
 - paired RMSE differences per window and vehicle (CP − SP, SL-CP − SP, SL-CP − CP, SL-SP − SP):
   the mean over the seeds that ran both methods, with its two-sided 95 % Student-t interval, and
   whether the first method is significantly better, worse, or neither (``n.s.``);
@@ -166,10 +167,18 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
                     "mean_rmse_m": float(vals.mean()), "sd_rmse_m": float(vals.std(ddof=1)) if len(vals) > 1 else 0.0,
                     "along_rmse_m": float(np.mean([c["along_rmse_m"] for c in cells])),
                     "cross_rmse_m": float(np.mean([c["cross_rmse_m"] for c in cells])), "n_seeds": len(cells)}
+                cell = rmse[w][vid][m]
                 if all("bound_rms_m" in c for c in cells):
-                    cell = rmse[w][vid][m]
                     cell["bound_rms_m"] = float(np.mean([c["bound_rms_m"] for c in cells]))
                     cell["sigma_below_bound"] = float(np.mean([c["sigma_below_bound"] for c in cells]))
+                # the window's ANEES: every estimate in it, of every seed (a seed weighs by its
+                # number of estimates), against the band of as many runs as held the window
+                q = [(c["nees_h"], c.get("n", 1)) for c in cells if c.get("nees_h") is not None]
+                q = [(a, k) for a, k in q if np.isfinite(a) and k > 0]
+                if q:
+                    lo, hi = anees_band(len(q))
+                    a = float(sum(a * k for a, k in q) / sum(k for _, k in q))
+                    cell["anees"] = {"anees": a, "band": [lo, hi], "inside": bool(lo <= a <= hi)}
     paired: dict = {}
     for w in rmse:
         for vid in rmse[w]:
@@ -221,8 +230,9 @@ def study_markdown(scn, study: dict) -> str:
     lane = lane_keeping_label(study.get("lane_constraint"))
     lines = [f"# slcp study: {scn.name}, {n} seeds, fusion `{study.get('fusion', '?')}`{lane}", "",
              "Horizontal RMSE [m]: mean ± sd over the seeds, the paper's figure in brackets; below, the mean "
-             "along-track / cross-track RMSE [m], the posterior CRLB (RMS over the window, mean over the seeds) and "
-             "the share of estimates whose reported σ is below it.", ""]
+             "along-track / cross-track RMSE [m], the posterior CRLB (RMS over the window, mean over the seeds), "
+             "the RMSE over it, the share of estimates whose reported σ is below it, and the window's horizontal "
+             "ANEES (n = 2) over every estimate of every seed, marked when outside the two-sided 95 % band.", ""]
     for w, table in study["rmse"].items():
         lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
         for vid, cells in table.items():
@@ -233,8 +243,11 @@ def study_markdown(scn, study: dict) -> str:
                 row.append("–" if c is None else f"{c['mean_rmse_m']:.2f} ± {c['sd_rmse_m']:.2f}"
                            + (f" [{p:.2f}]" if p is not None else "")
                            + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}"
-                           + (f"<br>bound {c['bound_rms_m']:.2f}, σ<bound {100 * c['sigma_below_bound']:.0f} %"
-                              if "bound_rms_m" in c else ""))
+                           + (f"<br>bound {c['bound_rms_m']:.2f} (RMSE {c['mean_rmse_m'] / c['bound_rms_m']:.1f}×), "
+                              f"σ<bound {100 * c['sigma_below_bound']:.0f} %"
+                              if c.get("bound_rms_m") else "")
+                           + (f"<br>ANEES {c['anees']['anees']:.2f}" + ("" if c["anees"]["inside"] else " (outside)")
+                              if "anees" in c else ""))
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
     if study.get("paired"):

@@ -21,7 +21,8 @@ def test_aggregate_over_seeds(tmp_path) -> None:
         (d / "V1.csv").write_text("time_s,method,nees_h\n" + "".join(f"{0.1 * k:.1f},SP,{nees}\n" for k in range(10)))
         per_seed[s] = {
             "scenario": "x",
-            "rmse": {"w": {"V1": {"SP": {"rmse_m": rmse, "along_rmse_m": rmse / 2, "cross_rmse_m": rmse / 3},
+            "rmse": {"w": {"V1": {"SP": {"rmse_m": rmse, "along_rmse_m": rmse / 2, "cross_rmse_m": rmse / 3,
+                                         "nees_h": nees + 1.0, "n": 10 + 30 * s},
                                   "CP": {"rmse_m": rmse - 0.5 - 0.1 * s, "along_rmse_m": 0.0, "cross_rmse_m": 0.0}}}},
             "first_stopped": {"V1": {"SL-SP": {"truth_s": 10.0, "claimed_s": 9.0, "wrong_s": 0.5 * s,
                                                "covered_s": 9.0 - 0.5 * s, "latency_s": [0.2 + s]}}},
@@ -32,6 +33,10 @@ def test_aggregate_over_seeds(tmp_path) -> None:
     cp = st["paired"]["w"]["V1"]["CP - SP"]  # differences -0.5, -0.6 over the two seeds
     assert cp["mean_m"] == pytest.approx(-0.55) and cp["n_seeds"] == 2 and cp["verdict"] == "n.s."
     assert "SL-CP - SP" not in st["paired"]["w"]["V1"]  # a method no seed ran is not compared
+    # the window's ANEES weighs each seed by its estimates: (2.5·10 + 3.5·40) / 50
+    wa = st["rmse"]["w"]["V1"]["SP"]["anees"]
+    assert wa["anees"] == pytest.approx(3.3) and wa["band"] == list(anees_band(2)) and wa["inside"] is True
+    assert "anees" not in st["rmse"]["w"]["V1"]["CP"]  # no NEES in the seeds' metrics: none made up
     assert st["anees"]["V1/SP"]["anees"] == pytest.approx(2.0)
     assert st["anees"]["V1/SP"]["inside"] is True  # 2 runs: band 0.24-5.57
     lo, hi = anees_band(2)
