@@ -54,14 +54,18 @@ def paired_difference(a: np.ndarray, b: np.ndarray, probability: float = 0.95) -
     Returns
     -------
     dict
-        ``mean_m`` (mean of a − b), ``half_width_m`` (None for fewer than 2 seeds), ``n_seeds``,
+        ``mean_m`` (mean of a − b over the seeds where both are finite; None if there is none),
+        ``half_width_m`` (None for fewer than 2 seeds), ``n_seeds``,
         and ``verdict``: ``better`` if the whole interval is below 0, ``worse`` if above, else
         ``n.s.`` (with one seed, the sign of the difference alone decides nothing: ``n.s.``).
     """
     from scipy.stats import t as student_t
 
     d = np.asarray(a, float) - np.asarray(b, float)
+    d = d[np.isfinite(d)]  # a seed without a figure for either method is not a pair
     n = len(d)
+    if n == 0:
+        return {"mean_m": None, "half_width_m": None, "n_seeds": 0, "verdict": "n.s."}
     mean = float(d.mean())
     if n < 2:
         return {"mean_m": mean, "half_width_m": None, "n_seeds": n, "verdict": "n.s."}
@@ -243,9 +247,10 @@ def study_markdown(scn, study: dict) -> str:
                 row.append("–" if c is None else f"{c['mean_rmse_m']:.2f} ± {c['sd_rmse_m']:.2f}"
                            + (f" [{p:.2f}]" if p is not None else "")
                            + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}"
-                           + (f"<br>bound {c['bound_rms_m']:.2f} (RMSE {c['mean_rmse_m'] / c['bound_rms_m']:.1f}×), "
-                              f"σ<bound {100 * c['sigma_below_bound']:.0f} %"
-                              if c.get("bound_rms_m") else "")
+                           + (f"<br>bound {c['bound_rms_m']:.2f}"
+                              + (f" (RMSE {c['mean_rmse_m'] / c['bound_rms_m']:.1f}×)" if c["bound_rms_m"] > 0.0 else "")
+                              + f", σ<bound {100 * c['sigma_below_bound']:.0f} %"
+                              if "bound_rms_m" in c else "")
                            + (f"<br>ANEES {c['anees']['anees']:.2f}" + ("" if c["anees"]["inside"] else " (outside)")
                               if "anees" in c else ""))
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
@@ -263,6 +268,9 @@ def study_markdown(scn, study: dict) -> str:
                 for k in names:
                     c = cells.get(k)
                     if c is None:
+                        row.append("–")
+                        continue
+                    if c["mean_m"] is None:
                         row.append("–")
                         continue
                     hw = "" if c["half_width_m"] is None else f" ± {c['half_width_m']:.2f}"

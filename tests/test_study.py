@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
-from deploy.study import aggregate, anees_band, paired_difference
+from deploy.study import aggregate, anees_band, paired_difference, study_markdown
 
 
 def test_anees_band_matches_the_chi_square_table() -> None:
@@ -37,6 +39,9 @@ def test_aggregate_over_seeds(tmp_path) -> None:
     wa = st["rmse"]["w"]["V1"]["SP"]["anees"]
     assert wa["anees"] == pytest.approx(3.3) and wa["band"] == list(anees_band(2)) and wa["inside"] is True
     assert "anees" not in st["rmse"]["w"]["V1"]["CP"]  # no NEES in the seeds' metrics: none made up
+    md = study_markdown(SimpleNamespace(name="x", paper_table={}), st)
+    assert f"| V1 | -0.55 ± {cp['half_width_m']:.2f} n.s. | – | – | – |" in md
+    assert "<br>ANEES 3.30" in md
     assert st["anees"]["V1/SP"]["anees"] == pytest.approx(2.0)
     assert st["anees"]["V1/SP"]["inside"] is True  # 2 runs: band 0.24-5.57
     lo, hi = anees_band(2)
@@ -56,6 +61,10 @@ def test_paired_difference_closed_form() -> None:
     assert paired_difference(np.zeros(4), np.array([1.0, 1.1, 0.9, 1.0]))["verdict"] == "better"
     one = paired_difference(np.array([0.0]), np.array([1.0]))
     assert one["half_width_m"] is None and one["verdict"] == "n.s."
+    # a seed with no figure (NaN) is left out of the pairs, not spread into the mean
+    gap = paired_difference(np.array([1.0, np.nan, 1.2, 0.8]), np.zeros(4))
+    assert gap["n_seeds"] == 3 and gap["mean_m"] == pytest.approx(1.0) and gap["verdict"] == "worse"
+    assert paired_difference(np.array([np.nan]), np.array([1.0]))["mean_m"] is None
 
 
 def test_paired_verdict_agrees_with_scipys_paired_t_test() -> None:
