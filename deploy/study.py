@@ -259,10 +259,10 @@ def study_markdown(scn, study: dict) -> str:
         lines += ["## Cooperation against the reference: paired RMSE differences [m]", "",
                   "Mean over the seeds of (method − reference) ± the half-width of its 95 % Student-t "
                   "interval; **better** / **worse**: the whole interval is below / above 0, n.s.: neither.", ""]
+        names = [f"{m} - {ref}" for m, ref in PAIRS]
+        header = "| vehicle | " + " | ".join(f"{m} − {ref}" for m, ref in PAIRS) + " |"
         for w, table in study["paired"].items():
-            names = [f"{m} - {ref}" for m, ref in PAIRS]
-            lines += [f"### {w}", "", "| vehicle | " + " | ".join(n.replace(" - ", " − ") for n in names) + " |",
-                      "|---" * (len(names) + 1) + "|"]
+            lines += [f"### {w}", "", header, "|---" * (len(names) + 1) + "|"]
             for vid, cells in table.items():
                 row = []
                 for k in names:
