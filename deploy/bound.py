@@ -45,6 +45,8 @@ from hw_emulation.truth import ScenarioTruth
 from .agent_configs import approach_lanes, lane_map
 
 _NV = 9  # per vehicle: p (2), v (2), multipath (2), stop gap (2), lane offset (1)
+#: what the driver's lateral offset in a lane is (:func:`posterior_crlb`)
+LANE_OFFSET_MODELS = ("vehicle", "lane")
 
 
 @dataclass(frozen=True)
@@ -66,14 +68,22 @@ class Bound:
 
 
 def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rate: float | None = None,
-                   lane_constraint: bool = True) -> Bound:
+                   lane_constraint: bool = True, lane_offset: str = "vehicle") -> Bound:
     """The bound for ``methods`` on the scenario's truth, stepping at ``rate`` Hz (default: GNSS).
 
     With ``lane_constraint`` the SL methods' bounds also hold the lane-keeping information:
     wherever a vehicle drives in a lane, its distance right of the left lane line is d_l, known
-    to the map's error. d_l is one random constant per vehicle, as the emulated drivers keep it
-    (the filters, less informed, redraw it in every lane).
+    to the map's error. ``lane_offset`` says what d_l is:
+
+    - ``"vehicle"`` (the bound proper): one random constant per vehicle, as the emulated drivers
+      keep it over their whole route;
+    - ``"lane"``: a new random constant in each lane, as the filters model it (real drivers do
+      not keep the same offset after a turn). This knows less than the truth allows, so it is
+      not the emulation's CRLB, but the bound of an estimator with the filters' driver model:
+      the part of the gap to the bound proper that the driver model explains.
     """
+    if lane_offset not in LANE_OFFSET_MODELS:
+        raise ValueError(f"lane_offset {lane_offset!r}: choose from {', '.join(LANE_OFFSET_MODELS)}")
     scn = truth.scenario
     specs = {v.id: v for v in scn.vehicles}
     ids = sorted(truth.vehicles)
@@ -104,19 +114,19 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
         spec = MethodSpec.of(m)
         if spec.ranges:  # the fleet's information, processed jointly: a bound for any distributed scheme
             covs = _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, spec.stop_line, True,
-                        lmap if spec.stop_line else None)
+                        lmap if spec.stop_line else None, lane_offset == "lane")
         else:  # a vehicle on its own (the common-mode error is not learned from the others)
             covs = {}
             for vid in ids:
                 covs.update(_run(scn, specs, [vid], ts, pos, moving, first, lane, lanes, spec.stop_line, False,
-                                 lmap if spec.stop_line else None))
+                                 lmap if spec.stop_line else None, lane_offset == "lane"))
         for vid in ids:
             out[(m, vid)] = covs[vid]
     return Bound(ts, out)
 
 
 def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use_ranges: bool,
-         lmap: LaneMap | None = None) -> dict:
+         lmap: LaneMap | None = None, offset_per_lane: bool = False) -> dict:
     n_v = len(ids)
     n = _NV * n_v + 2
     ic = slice(_NV * n_v, n)  # common mode
@@ -136,7 +146,18 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
     ranges_per_step = uwb.rate / (1.0 / (ts[1] - ts[0])) if len(ts) > 1 else 1.0
     out = {vid: np.zeros((len(ts), 2, 2)) for vid in ids}
     was_first = {vid: False for vid in ids}
+    kept_lane: dict[str, str | None] = {vid: None for vid in ids}  # the lane whose offset the state is
     for k, t in enumerate(ts):
+        if offset_per_lane and lmap is not None:
+            for i, vid in enumerate(ids):
+                ln = str(lane[vid][k])
+                if ln in lmap.marks and ln != kept_lane[vid]:
+                    if kept_lane[vid] is not None:  # a new lane draws a new offset
+                        o = _NV * i + 8
+                        P[o, :] = 0.0
+                        P[:, o] = 0.0
+                        P[o, o] = specs[vid].lateral[1] ** 2
+                    kept_lane[vid] = ln
         if k > 0:
             dt = ts[k] - ts[k - 1]
             F = np.eye(n)

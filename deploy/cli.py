@@ -169,6 +169,9 @@ def build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--csv", type=Path, metavar="FILE.csv", help="write the bound over time")
     bd.add_argument("--no-lane-constraint", action="store_true",
                     help="SL bounds without the lane-keeping information (as for slcp run --no-lane-constraint)")
+    bd.add_argument("--lane-offset", choices=("vehicle", "lane"), default="vehicle",
+                    help="the driver's offset in a lane: one constant per vehicle, as the emulated drivers "
+                         "keep it (the bound proper), or redrawn in each lane, as the filters model it")
     bn = sub.add_parser("bench", help="per-step costs of an agent and the replay real-time factor")
     bn.add_argument("--drive", type=Path, default=Path("../shared/data/rtklibexplorer_drive_0708"),
                     help="rtklibexplorer drive for the replay factor (skipped if absent)")
@@ -508,7 +511,7 @@ def _cmd_bound(args: argparse.Namespace) -> int:
 
     scn = load_scenario(args.scenario)
     truth = build_truth(scn)
-    b = posterior_crlb(truth, lane_constraint=not args.no_lane_constraint)
+    b = posterior_crlb(truth, lane_constraint=not args.no_lane_constraint, lane_offset=args.lane_offset)
     ids = sorted(truth.vehicles)
     rows = []
     for w, (a, c) in window_bounds(truth).items():
@@ -529,7 +532,7 @@ def _cmd_bound(args: argparse.Namespace) -> int:
 
         plot_bound(b, ids, METHODS, args.plot, f"{scn.name}: posterior CRLB, horizontal")
     if args.json:
-        print(json.dumps({"scenario": scn.name, "rows": rows}))
+        print(json.dumps({"scenario": scn.name, "lane_offset": args.lane_offset, "rows": rows}))
         return 0
     print(f"{scn.name}: posterior CRLB on horizontal position [m], RMS over each window")
     print(f"{'window':12s} {'vehicle':8s} " + " ".join(f"{m:>7s}" for m in METHODS))

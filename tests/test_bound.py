@@ -91,3 +91,34 @@ def test_the_stop_line_information_counts_from_the_step_in_which_the_vehicle_sto
     sl = b.sigma_h("SL-SP", "V0")
     assert sl[k] < 0.5 * sl[k - 1]  # the fix's information from step k on
     assert b.at("SL-SP", "V0", np.array([t_on]))[0] == sl[k]
+
+
+@pytest.mark.timeout(180)
+def test_an_offset_redrawn_in_each_lane_knows_less_than_one_kept_by_the_driver(capsys) -> None:
+    """``--lane-offset lane`` (the filters' driver model) discards what the emulated drivers'
+    constant offset tells across lanes: paper-1's SL bounds rise where a vehicle changes lanes
+    and the bounds without lane information are unchanged."""
+    from deploy.cli import main
+
+    rows = {}
+    for model in ("vehicle", "lane"):
+        assert main(["bound", "paper-1", "--json", "--lane-offset", model]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["lane_offset"] == model
+        rows[model] = {(r["window"], r["vehicle"]): r for r in out["rows"]}
+    assert rows["vehicle"].keys() == rows["lane"].keys()
+    for key, v in rows["vehicle"].items():
+        per_lane = rows["lane"][key]
+        for m in ("SP", "CP"):
+            assert per_lane[m] == pytest.approx(v[m], rel=1e-12)
+        for m in ("SL-SP", "SL-CP"):
+            assert per_lane[m] >= v[m] * (1 - 1e-6)
+    # V1, the first stopped vehicle: 0.11 -> 0.13 m (measured 2026-11-25)
+    assert rows["lane"][("t_s1-t_e", "V1")]["SL-CP"] > 1.1 * rows["vehicle"][("t_s1-t_e", "V1")]["SL-CP"]
+
+
+def test_an_unknown_lane_offset_model_is_refused() -> None:
+    from deploy.bound import posterior_crlb
+
+    with pytest.raises(ValueError, match="lane_offset"):
+        posterior_crlb(SimpleNamespace(), lane_offset="driver")
