@@ -183,6 +183,11 @@ class FilterSettings:
     #: classifier's prior, and its bias variance replaces ``uwb_nlos_sigma``² as the range's
     #: dependent noise
     nlos_link_tracking: bool = True
+    #: cooperative integrity (:mod:`agent.integrity`): CP and SL-CP are tested against their
+    #: own-sensor twins (SP, SL-SP, when the agent runs them) at the decision rate; a horizontal
+    #: separation beyond the χ² quantile of this false-alarm probability per test widens the
+    #: cooperative position so that its own measurements pull it back. None: no test
+    separation_false_alarm: float | None = 1e-4
     #: GNSS receiver characteristics: correlated (multipath) error carried as three
     #: Gauss-Markov states, so that correlated fixes are not averaged as if independent;
     #: None treats the reported sigma as white noise (the paper's filter)
@@ -294,7 +299,7 @@ class MethodFilter:
                          "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "ranges_gate_physical": 0,
                          "ranges_gate_rate": 0, "ranges_gate_nis": 0, "ranges_gate_nlos": 0, "ranges_skipped_near": 0,
                          "ranges_skipped_held": 0, "stop_line": 0,
-                         "lane_line": 0, "lane_line_rejected": 0}
+                         "lane_line": 0, "lane_line_rejected": 0, "integrity_tests": 0, "integrity_resets": 0}
         self.rate_gate = RangeRateGate()
         self.nlos_tracker = (NlosLinkTracker(s.uwb_nlos, s.sigma_uwb)
                              if s.uwb_nlos is not None and s.nlos_link_tracking and s.fusion != "paper" else None)
@@ -329,6 +334,25 @@ class MethodFilter:
             P[p, p] = self.settings.gnss_white_sigma**2 + sum(P[j, j] for j in err)
             for j in err:
                 P[p, j] = P[j, p] = -P[j, j]
+
+    def widen_position(self, d_ne: np.ndarray) -> None:
+        """A fault has moved the horizontal position by up to ``d_ne`` (north, east) [m]: add
+        ``d²`` per axis to its variance, and as much along each GNSS error state of that axis
+        taken with the opposite sign. The fixes see position plus GNSS error, and a fault that
+        pulled the position away while the fixes kept agreeing has put its error into the GNSS
+        error states too: widened alone, the position is pinned again by the next fix, where it
+        stands (paper-1 seed 2: σ 6.6 -> 1.4 m with the error still 6 m)."""
+        f = self.filter
+        delta = np.zeros((f.n, f.n))
+        for i in range(2):
+            var = float(d_ne[i]) ** 2
+            p = POS.start + i
+            delta[p, p] += var
+            for k in range(i, self._mp.stop, 3):  # this axis' multipath (and common-mode) state
+                v = np.zeros(f.n)
+                v[p], v[f.extra_offset + k] = 1.0, -1.0
+                delta += var * np.outer(v, v)
+        f.inflate(delta)
 
     def _common_mode_part(self) -> np.ndarray | None:
         """The initial covariance's common-mode share: δp = m + c + w puts +σ_c² on position,

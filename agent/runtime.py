@@ -26,6 +26,7 @@ from transport.codec import CodecError, decode, encode
 from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRange, UwbRound
 
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
+from .integrity import OWN_TWIN, check_separation
 from .lane_map import LaneMap
 from .misbehaviour import MisbehaviourDetector
 from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
@@ -596,3 +597,8 @@ class Agent:
                 log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,
                          "first stopped" if dec.first else "not first", t, dec.reason)
             self.counters["decisions"] += 1
+        for m, f in self.filters.items():  # cooperative integrity against the own-sensor twin
+            own = self.filters.get(OWN_TWIN.get(m, ""))
+            if own is not None and check_separation(f, own):
+                log.warning("%s %s: separated from %s beyond its integrity gate at t=%.1f; position widened",
+                            self.cfg.vehicle, m, OWN_TWIN[m], t)

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.first_stopped import FirstStoppedDetector, StopTracker
+from agent.integrity import OWN_TWIN, check_separation
 from agent.methods import DEFAULT_FUSION, METHODS, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from agent.nav import earth
 from agent.nav.motion import StationarityMonitor, ZuptGate, speed_sigma
@@ -184,6 +185,10 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                                                   lane_map=lmap)
                 if changed:
                     decisions.append((tk, key[0], key[1], dec.reason))
+            for (vid, m), f in filters.items():  # cooperative integrity against the own-sensor twin
+                own = filters.get((vid, OWN_TWIN.get(m, "")))
+                if own is not None:
+                    check_separation(f, own)
         if (k + 1) % RECORD_STEP == 0:
             rec_t.append(tk)
             for (vid, m), f in filters.items():

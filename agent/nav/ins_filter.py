@@ -449,6 +449,17 @@ class InsFilter:
         if self.P_ind is not None:
             self.P_ind[idx, idx] += variance
 
+    def inflate(self, delta: np.ndarray) -> None:
+        """Add ``delta`` (n, n), symmetric positive semi-definite, to P: uncertainty of the
+        vehicle's own (independent) kind, e.g. after a fault has been detected."""
+        self.flush_covariance()
+        delta = np.asarray(delta, float)
+        if delta.shape != (self.n, self.n):
+            raise ValueError(f"delta must be {self.n}x{self.n}, got {delta.shape}")
+        self.P += delta
+        if self.P_ind is not None:
+            self.P_ind += delta
+
     @property
     def position_cov(self) -> np.ndarray:
         """NED position error covariance, shape (3, 3) [m²]."""
