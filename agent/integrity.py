@@ -26,17 +26,15 @@ When it fires, the cooperative filter's horizontal position variance grows by ``
 measurements (GNSS, lane rows, the stop line) are accepted again and pull it back; nothing of the
 own-sensor estimate is copied into it (that would count the own sensors twice).
 
-Pure numpy/scipy (no I/O): the runtime and the in-process evaluation call :func:`check_separation`
-at the decision rate.
+Pure numpy (no I/O, and no scipy, which an agent process does not import): the runtime and
+the in-process evaluation call :func:`check_separation` at the decision rate.
 """
 
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
-from scipy.stats import chi2
 
 from .methods import MethodFilter
 from .nav import earth
@@ -75,12 +73,12 @@ def separation(coop_llh: np.ndarray, coop_cov: np.ndarray, own_llh: np.ndarray,
     return d, nis
 
 
-@lru_cache(maxsize=8)
 def separation_threshold(false_alarm: float) -> float:
-    """χ² quantile (2 degrees of freedom) for a false-alarm probability per test."""
+    """χ² quantile (2 degrees of freedom) for a false-alarm probability per test: the χ²(2)
+    survival function is exp(-x/2), so the quantile is -2 ln p (no scipy in an agent)."""
     if not 0.0 < false_alarm < 1.0:
         raise ValueError(f"false-alarm probability must lie in (0, 1), got {false_alarm!r}")
-    return float(chi2.isf(false_alarm, 2))
+    return -2.0 * math.log(false_alarm)
 
 
 def check_separation(coop: MethodFilter, own: MethodFilter) -> bool:

@@ -9,6 +9,8 @@ Agent configuration file (TOML)::
     methods = ["SP", "SL-SP", "CP", "SL-CP"]
     fusion = "source-ci"                        # paper | source-ci | split-ci | ci (how CP methods fuse ranges)
     lane_constraint = true                      # SL methods also keep to the map's lanes (false: stop line only)
+    integrity_false_alarm = 1e-4                # CP/SL-CP tested against SP/SL-SP (solution separation,
+                                                # agent.integrity): false-alarm probability per test; 0: off
 
     [security]                                  # optional; without it beacons are neither signed nor checked
     trust_dir = "keys"                          # ca.crt + vehicle certificates (``slcp keys create``);
@@ -102,7 +104,12 @@ def load_agent_config(path: Path, vehicle: str | None):
     lane = a.get("lane_constraint", True)
     if not isinstance(lane, bool):
         raise ConfigError(f"{path}: agent.lane_constraint: must be true or false")
-    unknown = set(a) - {"vehicle", "scenario", "methods", "fusion", "lane_constraint"}
+    integrity = a.get("integrity_false_alarm", None)
+    if integrity is not None and (isinstance(integrity, bool) or not isinstance(integrity, (int, float))
+                                  or not 0.0 <= integrity < 1.0):
+        raise ConfigError(f"{path}: agent.integrity_false_alarm: must be a probability in [0, 1) "
+                          f"(0 switches the test off), got {integrity!r}")
+    unknown = set(a) - {"vehicle", "scenario", "methods", "fusion", "lane_constraint", "integrity_false_alarm"}
     if unknown:
         raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
     unknown = set(data) - {"agent", "imu", "gnss", "security", "zenoh"}
@@ -120,6 +127,9 @@ def load_agent_config(path: Path, vehicle: str | None):
             cfg = with_gnss(cfg, _gnss_table(data["gnss"], path))
     except ValueError as exc:  # ScenarioError included
         raise ConfigError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
+    if integrity is not None:
+        cfg = dataclasses.replace(cfg, settings=dataclasses.replace(
+            cfg.settings, separation_false_alarm=float(integrity) if integrity > 0 else None))
     sec = {}
     if "security" in data:
         sec = security_config(data["security"], Path(path), vid)

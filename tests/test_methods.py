@@ -205,8 +205,9 @@ def test_the_stop_gap_states_are_forgotten_when_the_stop_ends(fusion: str) -> No
     """After a stop-line fix the gap states are correlated with the position; when the vehicle
     drives off they go back to their prior (in P and in its parts: split CI's independent one,
     source CI's components), so that no CI range can inflate them until the next stop; the
-    position keeps its covariance."""
-    f, approach, gap, _ = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), fusion=fusion)
+    position keeps its covariance. (Estimated gap states: ``consider_constants`` off; as consider
+    states they are never correlated with the position by an update.)"""
+    f, approach, gap, _ = _stopped_filter("SL-CP", offset_ne=(0.0, 0.0), fusion=fusion, consider_constants=False)
     flt = f.filter
     if fusion == "source-ci":  # some information from a neighbour, which the fix correlates too
         flt.flush_covariance()

@@ -124,6 +124,15 @@ def test_agent_config_rejects_an_unknown_fusion_rule(tmp_path) -> None:
     p.write_text('[agent]\nvehicle = "V1"\nscenario = "paper-1"\nlane_constraint = false\n')
     cfg, _ = load_agent_config(p, None)
     assert not cfg.settings.lane_constraint and cfg.lane_map is not None
+    assert cfg.settings.separation_false_alarm == 1e-4
+    for bad in ('"high"', "1.5", "-0.1", "true"):
+        p.write_text(f'[agent]\nvehicle = "V1"\nscenario = "paper-1"\nintegrity_false_alarm = {bad}\n')
+        with pytest.raises(ConfigError, match="agent.integrity_false_alarm: must be a probability"):
+            load_agent_config(p, None)
+    for value, expect in (("0", None), ("0.001", 0.001)):
+        p.write_text(f'[agent]\nvehicle = "V1"\nscenario = "paper-1"\nintegrity_false_alarm = {value}\n')
+        cfg, _ = load_agent_config(p, None)
+        assert cfg.settings.separation_false_alarm == expect
 
 
 @pytest.mark.timeout(120)
