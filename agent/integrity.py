@@ -21,10 +21,12 @@ The test: ``dᵀ (P_coop + P_own)⁻¹ d`` over the horizontal position, against
 (2 degrees of freedom) of ``1 - p`` for a false-alarm probability ``p`` per test. The two
 estimates share the own sensors' errors, so the variance of ``d`` is at most ``P_coop + P_own``
 for positively correlated errors: the test is conservative (false alarms fewer than ``p``).
-When it fires, the cooperative filter's horizontal position variance grows by ``d²`` per axis
-(an uncertainty of its own kind, as when a GNSS fix long refused re-anchors it), so that its own
-measurements (GNSS, lane rows, the stop line) are accepted again and pull it back; nothing of the
-own-sensor estimate is copied into it (that would count the own sensors twice).
+When it fires, the cooperative filter's horizontal position is widened by the separation
+(:meth:`~agent.methods.MethodFilter.widen_position`: ``d²`` per axis on the position, and as much
+along position and GNSS error state together, which the fixes cannot see), an uncertainty of its
+own kind, as when a GNSS fix long refused re-anchors it. Its own measurements (GNSS, lane rows,
+the stop line) are then accepted again and pull it back; nothing of the own-sensor estimate is
+copied into it (that would count the own sensors twice).
 
 Pure numpy (no I/O, and no scipy, which an agent process does not import): the runtime and
 the in-process evaluation call :func:`check_separation` at the decision rate.
