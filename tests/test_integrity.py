@@ -110,3 +110,19 @@ def test_the_widening_frees_the_position_from_gnss_error_states_that_took_the_fa
     assert math.sqrt(coop.position_cov[0, 0]) > 3.0
     coop.stop_line(approach)
     assert math.hypot(*earth.ned_offset(*coop.filter.state.llh, *true_llh)[:2]) < 0.5
+
+
+def test_a_lasting_disagreement_widens_once_then_holds_until_the_two_agree() -> None:
+    """The twin may be the faulty one: a disagreement widens the cooperative filter once."""
+    own, approach, _, _ = _stopped_filter("SL-SP", offset_ne=(9.0, 0.0))
+    coop, _, _, _ = _stopped_filter("SL-CP")
+    _overconfident(own, 0.1)  # the twin runs away (its GNSS on an NLOS fix, a wrong claim)
+    coop.stop_line(approach)  # the cooperative one is right
+    assert check_separation(coop, own)
+    for _ in range(5):
+        _overconfident(coop, 0.1)  # its measurements bring it back where it was
+        assert not check_separation(coop, own)
+    assert coop.counters["integrity_resets"] == 1 and coop.counters["integrity_held"] == 5
+    twin, _, _, _ = _stopped_filter("SL-SP")  # agreeing again: the latch opens
+    assert not check_separation(coop, twin) and not coop.separation_fault
+    assert check_separation(coop, own) and coop.counters["integrity_resets"] == 2
