@@ -301,7 +301,8 @@ class MethodFilter:
                          "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "ranges_gate_physical": 0,
                          "ranges_gate_rate": 0, "ranges_gate_nis": 0, "ranges_gate_nlos": 0, "ranges_skipped_near": 0,
                          "ranges_skipped_held": 0, "stop_line": 0,
-                         "lane_line": 0, "lane_line_rejected": 0, "integrity_tests": 0, "integrity_resets": 0, "integrity_held": 0}
+                         "lane_line": 0, "lane_line_rejected": 0,
+                         "integrity_tests": 0, "integrity_resets": 0, "integrity_held": 0}
         #: the cooperative integrity test has widened this filter for the current disagreement
         #: with its own-sensor twin (:func:`agent.integrity.check_separation`)
         self.separation_fault = False
