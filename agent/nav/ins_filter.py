@@ -443,11 +443,10 @@ class InsFilter:
     def inflate_position(self, variance: np.ndarray) -> None:
         """Add ``variance`` (3,) [m²] to the NED position error variances: uncertainty of the
         vehicle's own (independent) kind, e.g. before re-anchoring on a fix long rejected."""
-        self.flush_covariance()
+        delta = np.zeros((self.n, self.n))
         idx = np.arange(POS.start, POS.stop)
-        self.P[idx, idx] += variance
-        if self.P_ind is not None:
-            self.P_ind[idx, idx] += variance
+        delta[idx, idx] = variance
+        self.inflate(delta)
 
     def inflate(self, delta: np.ndarray) -> None:
         """Add ``delta`` (n, n), symmetric positive semi-definite, to P: uncertainty of the
