@@ -116,7 +116,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
-                                   agent_nice=agent_nice, zenoh_mode=zenoh_mode))
+                                   agent_nice=agent_nice, zenoh_mode=zenoh_mode, end_t=scn.duration))
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}
@@ -135,7 +135,16 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
 
 async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Path, progress,
                      max_restarts: int = 3, faults: list | None = None, monitor=None,
-                     wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client") -> dict:
+                     wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client",
+                     end_t: float | None = None, stall_s: float = 30.0, exit_grace_s: float = 15.0) -> dict:
+    """Run the fleet's processes until the emulator has played the scenario; return their statistics.
+
+    A process that dies is restarted (at most ``max_restarts`` times each; the emulator resumes
+    at the fleet's sensor time). The emulator is also watched for a hang: with no estimate
+    recorded for ``wait_agents + stall_s`` [s, wall] it is killed and resumed like a crashed
+    one, and once the fleet's estimates have reached the scenario's end ``end_t`` [s, sensor
+    time] it gets ``exit_grace_s`` [s, wall] of silence to exit before it is killed (counted in
+    ``stats["emulator_killed_at_end"]``; its scenario was played, so the run goes on)."""
     from transport.zenoh_bus import LIGHT_CLIENT_RUNTIME, ZenohBus, ZenohConfig
 
     agent_env = {} if "ZENOH_RUNTIME" in os.environ else {"ZENOH_RUNTIME": LIGHT_CLIENT_RUNTIME}
@@ -146,7 +155,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
     router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,)))
     procs: dict[str, subprocess.Popen] = {}
     logs = []
-    stats: dict = {"exit_codes": {}, "recorded": 0, "codec_errors": 0}
+    stats: dict = {"exit_codes": {}, "recorded": 0, "codec_errors": 0, "emulator_killed_at_end": False}
     rec_path = out / "recorded" / "messages.jsonl"
     rec_path.unlink(missing_ok=True)  # a new run starts a new recording
     rec = Recorder(rec_path)
@@ -169,11 +178,24 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         if speed:
             emu_args += ["--speed", str(speed)]
         emu = _spawn(procs, "emulator", _slcp(*emu_args), lf)
+        emu_started = time.monotonic()
         if monitor is not None:
             monitor.attach(router, procs)
         last = 0.0
         prev_diag: dict = {}
         while True:
+            silent = time.monotonic() - max(emu_started, max(rec.last_wall.values(), default=-math.inf))
+            at_end = end_t is not None and max(rec.latest_t.values(), default=0.0) >= end_t - 1.0
+            if emu.poll() is None and (silent > exit_grace_s if at_end else silent > wait_agents + stall_s):
+                # a hung emulator (it has been seen not to exit after its Zenoh session closed)
+                log.warning("the emulator has been silent for %.0f s%s; killing it", silent,
+                            " after the scenario's end" if at_end else "")
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(emu.pid, signal.SIGKILL)
+                emu.wait()
+                if at_end:
+                    stats["emulator_killed_at_end"] = True
+                    break
             if emu.poll() is not None:
                 if emu.returncode == 0:
                     break
@@ -186,6 +208,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 lf = open(out / "logs" / "emulator.log", "a")
                 logs.append(lf)
                 emu = _spawn(procs, "emulator", _slcp(*emu_args, "--start-at", f"{t_resume:.3f}"), lf)
+                emu_started = time.monotonic()
                 restarts.append({"process": "emulator", "exit_code": rc, "at_s": now - wall0, "_t": now,
                                  "rejoined_after_s": None, "resumed_at_t_s": t_resume})
             await asyncio.sleep(0.2)

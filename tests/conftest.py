@@ -46,6 +46,16 @@ def run_group(cmd: list[str], timeout: float) -> subprocess.CompletedProcess:
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         out, err = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        # a hung slcp process dumps its threads' stacks on SIGUSR1 (deploy.cli): keep them
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGUSR1)
+        time.sleep(1.0)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGKILL)
+        out, err = p.communicate()
+        raise AssertionError(f"{' '.join(cmd[-4:])} timed out after {timeout:g} s\n--- stdout (end) ---\n"
+                             f"{out[-1500:]}\n--- stderr (end) ---\n{err[-6000:]}") from None
     except BaseException:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(p.pid, signal.SIGKILL)
