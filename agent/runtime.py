@@ -135,6 +135,10 @@ class Agent:
         self.excluded_from: dict[str, int] = {}
         self.misbehaviour = (MisbehaviourDetector(nlos_bias=cfg.nlos_bias_max)
                              if cfg.misbehaviour_detection else None)
+        untested = [m for m in cfg.methods if m in OWN_TWIN and OWN_TWIN[m] not in cfg.methods]
+        if untested and cfg.settings.separation_false_alarm:
+            log.warning("%s: no cooperative integrity test for %s: it needs %s among the methods too",
+                        cfg.vehicle, ", ".join(untested), ", ".join(OWN_TWIN[m] for m in untested))
 
     # ----------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event) -> None:

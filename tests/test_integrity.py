@@ -126,3 +126,23 @@ def test_a_lasting_disagreement_widens_once_then_holds_until_the_two_agree() -> 
     twin, _, _, _ = _stopped_filter("SL-SP")  # agreeing again: the latch opens
     assert not check_separation(coop, twin) and not coop.separation_fault
     assert check_separation(coop, own) and coop.counters["integrity_resets"] == 2
+
+
+def test_an_agent_without_the_twin_method_warns_that_it_has_no_integrity_test(caplog) -> None:
+    """SL-CP alone has nothing to be tested against: said once, at start, in the log."""
+    import logging
+
+    from agent.runtime import Agent
+    from deploy.agent_configs import agent_config
+    from hw_emulation.scenario import load_scenario
+    from transport.bus import InMemoryNetwork
+
+    scn = load_scenario("paper-1")
+    with caplog.at_level(logging.WARNING, logger="agent.runtime"):
+        Agent(agent_config(scn, "V1", methods=("SP", "SL-CP")), InMemoryNetwork().bus())
+    assert [r.getMessage() for r in caplog.records] == [
+        "V1: no cooperative integrity test for SL-CP: it needs SL-SP among the methods too"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="agent.runtime"):
+        Agent(agent_config(scn, "V1", methods=("SP", "CP", "SL-SP", "SL-CP")), InMemoryNetwork().bus())
+    assert caplog.records == []
