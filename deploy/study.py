@@ -12,7 +12,9 @@ and ``<out>/report.md``:
 - paired RMSE differences per window and vehicle (CP − SP, SL-CP − SP, SL-CP − CP, SL-SP − SP):
   the mean over the seeds that ran both methods, with its two-sided 95 % Student-t interval, and
   whether the first method is significantly better, worse, or neither (``n.s.``);
-- first-stopped detection pooled over the seeds: precision, recall and latency.
+- first-stopped detection pooled over the seeds: precision, recall and latency;
+- the drivers' draws (:func:`stance_check`): how spread the seeds' stop gaps and lateral offsets
+  themselves are, against the scenario's σ.
 """
 
 from __future__ import annotations
@@ -35,6 +37,36 @@ def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[fl
 
     a = (1.0 - probability) / 2.0
     return float(chi2.ppf(a, dim * n_runs) / n_runs), float(chi2.ppf(1.0 - a, dim * n_runs) / n_runs)
+
+
+def stance_check(scn, seeds: list[int]) -> dict:
+    """How spread the drivers' draws of these seeds are: per vehicle, the mean over the seeds of
+    z² for its stop gap d_s and its lateral offset d_l (z the draw's deviation from the
+    scenario's mean in units of its σ), and of their sum, each beside the two-sided 95 % χ² band
+    of N draws (``χ²_N / N`` and ``χ²_2N / N``).
+
+    Both are random constants of a run that no sensor of the vehicle sees (only cooperation
+    can), so a vehicle's error while it stands first at its line, or keeps to a lane, is largely
+    its draws. The sum's mean is the ANEES an estimator would score whose error were exactly its
+    two draws, with σ the scenario's: where a column is outside its band, the seeds drew stances
+    more (or less) spread than the model, and a consistent filter's ANEES where that error
+    dominates is expected outside its band too.
+    """
+    from hw_emulation.truth import stance_draws
+
+    n = len(seeds)
+    draws = [stance_draws(scn, s) for s in seeds]
+    out = {}
+    for v in scn.vehicles:
+        z = np.array([[(d[v.id][0] - v.stop_gap[0]) / v.stop_gap[1] if v.stop_gap[1] > 0 else 0.0,
+                       (d[v.id][1] - v.lateral[0]) / v.lateral[1] if v.lateral[1] > 0 else 0.0] for d in draws])
+        cell = {}
+        for name, q, dim in (("stop_gap", z[:, 0] ** 2, 1), ("lateral", z[:, 1] ** 2, 1), ("both", (z**2).sum(1), 2)):
+            lo, hi = anees_band(n, dim)
+            a = float(np.mean(q))
+            cell[name] = {"mean_z2": a, "band": [lo, hi], "inside": bool(lo <= a <= hi)}
+        out[v.id] = cell
+    return out
 
 
 #: (method, reference) pairs whose per-seed RMSE differences the study reports
@@ -148,6 +180,9 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     study = aggregate(out, per_seed)
     study["fusion"] = fusion
     study["lane_constraint"] = lane_constraint
+    from hw_emulation.scenario import load_scenario
+
+    study["stance_draws"] = stance_check(load_scenario(scenario), sorted(per_seed))
     (out / "study.json").write_text(json.dumps(study, indent=2))
     return study
 
@@ -284,6 +319,21 @@ def study_markdown(scn, study: dict) -> str:
                   "| vehicle/method | ANEES | inside |", "|---|---|---|"]
         lines += [f"| {k} | {a['anees']:.2f} | {'yes' if a['inside'] else 'no'} |" for k, a in study["anees"].items()]
         lines.append("")
+    if study.get("stance_draws"):
+        b1, b2 = (next(iter(study["stance_draws"].values()))[k]["band"] for k in ("stop_gap", "both"))
+        lines += ["## The drivers' draws", "",
+                  "Mean over the seeds of z², the deviation of each driver's stop gap d_s and lateral offset d_l "
+                  "from the scenario's mean in units of its σ, beside the 95 % band of as many draws "
+                  f"({b1[0]:.2f}–{b1[1]:.2f}; for the sum {b2[0]:.2f}–{b2[1]:.2f}). The sum is the ANEES of an "
+                  "estimator whose error were exactly the two draws. A column outside its band: these seeds "
+                  "drew the stances more (or less) spread than the model, and where that error dominates (standing "
+                  "first at a line, keeping to a lane) a consistent filter's ANEES is expected outside its band too.",
+                  "", "| vehicle | d_s | d_l | sum |", "|---|---|---|---|"]
+        for vid, c in study["stance_draws"].items():
+            lines.append(f"| {vid} | " + " | ".join(
+                f"{c[k]['mean_z2']:.2f}" + ("" if c[k]["inside"] else " (outside)") for k in ("stop_gap", "lateral", "both"))
+                + " |")
+        lines.append("")
     if study["first_stopped"]:
         lines += ["## First-stopped detection (pooled over the seeds)", "",
                   "SL RMSE: the stop-line method's horizontal error while the vehicle is truly first stopped, "
@@ -313,6 +363,13 @@ def rebuild_study(out: Path) -> dict:
     if not per_seed:
         raise ValueError(f"{out}: no seed-* runs")
     study = aggregate(out, per_seed)
+    try:  # a study of a scenario file that has moved keeps the draws it had
+        from hw_emulation.scenario import load_scenario
+
+        study["stance_draws"] = stance_check(load_scenario(study["scenario"]), sorted(per_seed))
+    except (ValueError, OSError):
+        if "stance_draws" in old:
+            study["stance_draws"] = old["stance_draws"]
     study["fusion"] = old.get("fusion", next(iter(per_seed.values())).get("fusion", "?"))
     study["lane_constraint"] = old.get("lane_constraint", next(iter(per_seed.values())).get("lane_constraint"))
     (out / "study.json").write_text(json.dumps(study, indent=2))

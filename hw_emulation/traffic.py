@@ -95,14 +95,21 @@ def _idm_accel(v: float, v0: float, gap: float, dv: float, p) -> float:
     return p.a * (1.0 - (v / v0) ** p.delta - (s_star / max(gap, 0.1)) ** 2)
 
 
+def driver_draws(scn: Scenario, rng: np.random.Generator) -> dict[str, tuple[float, float]]:
+    """Where each driver stands in its lane, drawn from ``rng`` in the scenario's vehicle order:
+    vehicle -> (stop gap d_s, lateral offset d_l) [m], from ``VehicleSpec.stop_gap`` and
+    ``VehicleSpec.lateral`` (mean, σ). These are the traffic model's only random draws."""
+    return {veh.id: (float(rng.normal(*veh.stop_gap)), float(rng.normal(*veh.lateral))) for veh in scn.vehicles}
+
+
 def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
     """Run the traffic model over the scenario duration."""
     n = int(round(scn.duration / STEP)) + 1
     t = np.arange(n) * STEP
     routes, s, v, gaps, lats = {}, {}, {}, {}, {}
+    draws = driver_draws(scn, rng)
     for veh in scn.vehicles:
-        d_s = float(rng.normal(*veh.stop_gap))
-        d_l = float(rng.normal(*veh.lateral))
+        d_s, d_l = draws[veh.id]
         width = scn.lanes[veh.route[0]].width
         routes[veh.id] = build_route(scn, veh, d_l - width / 2.0)
         gaps[veh.id], lats[veh.id] = max(d_s, 0.2), d_l

@@ -18,7 +18,7 @@ from scipy.interpolate import PchipInterpolator
 from .geometry import Path
 from .kinematics import Truth, generate
 from .scenario import Scenario
-from .traffic import STOPPED_SPEED, TrafficResult, first_stopped_flags, simulate_traffic
+from .traffic import STOPPED_SPEED, TrafficResult, driver_draws, first_stopped_flags, simulate_traffic
 
 
 @dataclass(frozen=True)
@@ -79,6 +79,18 @@ class ScenarioTruth:
     vehicles: dict[str, VehicleTruth]
 
 
+def stance_rng(scn: Scenario, stop_seed: int | None = None) -> np.random.Generator:
+    """The generator of the drivers' stop gaps and lateral offsets (:func:`build_truth`): the
+    scenario's seed, combined with a run's ``stop_seed`` if given."""
+    return np.random.default_rng(scn.seed if stop_seed is None else [scn.seed, stop_seed])
+
+
+def stance_draws(scn: Scenario, stop_seed: int | None = None) -> dict[str, tuple[float, float]]:
+    """The drivers' (d_s, d_l) [m] of :func:`build_truth` with this ``stop_seed``, without the
+    traffic simulation (:func:`hw_emulation.traffic.driver_draws`)."""
+    return driver_draws(scn, stance_rng(scn, stop_seed))
+
+
 def build_truth(scn: Scenario, rng: np.random.Generator | None = None,
                 stop_seed: int | None = None) -> ScenarioTruth:
     """Simulate traffic and generate every vehicle's truth.
@@ -88,9 +100,7 @@ def build_truth(scn: Scenario, rng: np.random.Generator | None = None,
     from the scenario's seed, combined with ``stop_seed`` (a run's seed) if given: a Monte-Carlo
     over runs then redraws them with the sensors instead of replaying one draw per scenario.
     """
-    if rng is None:
-        rng = np.random.default_rng(scn.seed if stop_seed is None else [scn.seed, stop_seed])
-    traffic = simulate_traffic(scn, rng)
+    traffic = simulate_traffic(scn, rng if rng is not None else stance_rng(scn, stop_seed))
     fs = first_stopped_flags(scn, traffic)
     out = {}
     for vid, route in traffic.routes.items():

@@ -217,3 +217,44 @@ def test_an_interrupted_study_worker_does_not_start_the_seed_queued_behind(tmp_p
     finally:
         probe.kill()
         probe.wait(timeout=10)
+
+
+def test_the_stance_draws_are_the_truths_and_their_check_is_the_closed_form() -> None:
+    """`stance_draws` gives the traffic model's draws without simulating it (two ways to the same
+    numbers); `stance_check` is the mean z² of those draws against the χ² band of N draws."""
+    from deploy.study import stance_check
+    from hw_emulation.scenario import load_scenario
+    from hw_emulation.truth import build_truth, stance_draws
+
+    scn = load_scenario("paper-2")
+    seeds = [0, 9]
+    for s in seeds:
+        tr = build_truth(scn, stop_seed=s).traffic
+        assert stance_draws(scn, s) == {v: (pytest.approx(tr.stop_gap[v]), tr.lateral[v]) for v in tr.lateral}
+    check = stance_check(scn, seeds)
+    v2 = next(v for v in scn.vehicles if v.id == "V2")
+    z = np.array([[(stance_draws(scn, s)["V2"][k] - m) / sd for k, (m, sd) in enumerate((v2.stop_gap, v2.lateral))]
+                  for s in seeds])
+    c = check["V2"]
+    assert c["lateral"]["mean_z2"] == pytest.approx(np.mean(z[:, 1] ** 2))
+    assert c["both"]["mean_z2"] == pytest.approx(np.mean((z**2).sum(1)))
+    assert c["stop_gap"]["band"] == list(anees_band(2, 1)) and c["both"]["band"] == list(anees_band(2, 2))
+    assert c["lateral"]["inside"] == (anees_band(2, 1)[0] <= c["lateral"]["mean_z2"] <= anees_band(2, 1)[1])
+
+
+def test_the_stance_check_of_many_seeds_sees_the_scenarios_sigma() -> None:
+    """Over 400 seeds the draws are N(mean, σ²): every vehicle's mean z² is inside its band. And
+    paper-2's seeds 0-24 did draw V2's lateral offsets too spread (mean z² 1.77, band
+    0.52-1.63), which the report says."""
+    from deploy.study import stance_check
+    from hw_emulation.scenario import load_scenario
+
+    scn = load_scenario("paper-2")
+    many = stance_check(scn, list(range(400)))
+    assert all(c[k]["inside"] for c in many.values() for k in ("stop_gap", "lateral", "both"))
+    assert all(abs(c["both"]["mean_z2"] - 2.0) < 0.4 for c in many.values())
+    st = {"seeds": list(range(25)), "rmse": {}, "anees": {}, "first_stopped": {},
+          "stance_draws": stance_check(scn, list(range(25)))}
+    assert st["stance_draws"]["V2"]["lateral"]["inside"] is False
+    md = study_markdown(scn, st)
+    assert "## The drivers' draws" in md and "| V2 | 0.89 | 1.77 (outside) | 2.66 |" in md
