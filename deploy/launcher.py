@@ -187,7 +187,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
             silent = time.monotonic() - max(emu_started, max(rec.last_wall.values(), default=-math.inf))
             at_end = end_t is not None and max(rec.latest_t.values(), default=0.0) >= end_t - 1.0
             if emu.poll() is None and (silent > exit_grace_s if at_end else silent > wait_agents + stall_s):
-                # a hung emulator (it has been seen not to exit after its Zenoh session closed)
+                # a hung emulator (a run of the fault schedule once never finished; cause not traced)
                 log.warning("the emulator has been silent for %.0f s%s; killing it", silent,
                             " after the scenario's end" if at_end else "")
                 with contextlib.suppress(ProcessLookupError):
