@@ -97,7 +97,12 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
                                                 "gnss_outage", "agent_freeze", "agent_kill", "emulator_kill"]
     restarts = m["processes"]["restarts"]
     assert [(x["process"], x["exit_code"]) for x in restarts] == [("agent-V1", -9), ("emulator", -9)]
-    assert all(x["rejoined_after_s"] is not None and x["rejoined_after_s"] < 5.0 for x in restarts), restarts
+    # an agent is back within 5 s; the emulator rebuilds the scenario's truth and sensor data
+    # before it resumes (about 2.5 s of CPU), and took 5.15 and 5.46 s in two suite runs on
+    # the 2-core machine: its bound only tells a resumed run from a stuck one (speed is a figure)
+    limit = {"agent-V1": 5.0, "emulator": 15.0}
+    assert all(x["rejoined_after_s"] is not None and x["rejoined_after_s"] < limit[x["process"]]
+               for x in restarts), restarts
     # resumed where the fleet was: the kill comes at t = 45 s on the launcher's 0.2 s (wall) poll,
     # up to 4 s of sensor time later at the emulator's 20x, and it leads the agents by 0.5 s
     assert 45.0 <= restarts[1]["resumed_at_t_s"] < 50.0
