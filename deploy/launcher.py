@@ -188,11 +188,9 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
             at_end = end_t is not None and max(rec.latest_t.values(), default=0.0) >= end_t - 1.0
             if emu.poll() is None and (silent > exit_grace_s if at_end else silent > wait_agents + stall_s):
                 # a hung emulator (a run of the fault schedule once never finished; cause not traced)
-                log.warning("the emulator has been silent for %.0f s%s; killing it", silent,
-                            " after the scenario's end" if at_end else "")
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(emu.pid, signal.SIGKILL)
-                emu.wait()
+                log.warning("the emulator has been silent for %.0f s%s; killing it (its stacks: logs/emulator.log)",
+                            silent, " after the scenario's end" if at_end else "")
+                await asyncio.to_thread(_dump_and_kill, emu)
                 if at_end:
                     stats["emulator_killed_at_end"] = True
                     break
@@ -345,6 +343,19 @@ def _spawn(procs: dict[str, subprocess.Popen], name: str, args: list[str], log,
     return p
 
 
+def _dump_and_kill(p: subprocess.Popen, dump_wait: float = 0.5) -> None:
+    """SIGKILL a hung child's process group, after SIGUSR1 (every ``slcp`` process then writes
+    its threads' Python stacks to its log, :func:`deploy.cli.main`) and ``dump_wait`` [s]."""
+    if p.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGUSR1)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            p.wait(timeout=dump_wait)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+
+
 def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:
     for p in procs.values():
         if p.poll() is None:
@@ -353,15 +364,12 @@ def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 10.0) -> None:
             except ProcessLookupError:
                 pass
     deadline = time.monotonic() + grace
-    for p in procs.values():
+    for name, p in procs.items():
         try:
             p.wait(timeout=max(0.1, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
-            try:
-                os.killpg(p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            p.wait()
+            log.warning("%s did not stop within %.0f s of SIGTERM; killing it (its stacks: its log)", name, grace)
+            _dump_and_kill(p)
 
 
 def lane_keeping_label(lane_constraint: bool | None) -> str:

@@ -141,6 +141,8 @@ def test_an_emulator_that_does_not_exit_after_the_scenario_is_killed_and_the_run
     try:
         m = run_fleet("paper-1", out=out, seed=0, methods=("SP", "CP"))
         assert m["processes"]["emulator_killed_at_end"] is True
+        # where it hung is in its log: SIGUSR1 before the kill dumps its Python stacks
+        assert "most recent call first" in (out / "logs" / "emulator.log").read_text()
         assert m["processes"]["restarts"] == []
         assert m["processes"]["exit_codes"]["emulator"] == -9
         assert all(c == 0 for n, c in m["processes"]["exit_codes"].items() if n != "emulator")
