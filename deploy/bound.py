@@ -68,7 +68,8 @@ class Bound:
 
 
 def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rate: float | None = None,
-                   lane_constraint: bool = True, lane_offset: str = "vehicle") -> Bound:
+                   lane_constraint: bool = True, lane_offset: str = "vehicle",
+                   vehicles: tuple[str, ...] | None = None) -> Bound:
     """The bound for ``methods`` on the scenario's truth, stepping at ``rate`` Hz (default: GNSS).
 
     With ``lane_constraint`` the SL methods' bounds also hold the lane-keeping information:
@@ -81,12 +82,22 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
       not keep the same offset after a turn). This knows less than the truth allows, so it is
       not the emulation's CRLB, but the bound of an estimator with the filters' driver model:
       the part of the gap to the bound proper that the driver model explains.
+
+    ``vehicles`` restricts the fleet to these ids (default: all): the cooperative bounds then
+    process only their information, as if the others were not there, which tells how much of
+    a vehicle's bound comes from which neighbours. The result holds these vehicles only.
     """
     if lane_offset not in LANE_OFFSET_MODELS:
         raise ValueError(f"lane_offset {lane_offset!r}: choose from {', '.join(LANE_OFFSET_MODELS)}")
     scn = truth.scenario
     specs = {v.id: v for v in scn.vehicles}
     ids = sorted(truth.vehicles)
+    if vehicles is not None:
+        unknown = sorted(set(vehicles) - set(ids))
+        if unknown or not vehicles:
+            raise ValueError(f"vehicles {', '.join(unknown) or '(none)'} not in scenario {scn.name!r} "
+                             f"(it has {', '.join(ids)})")
+        ids = sorted(set(vehicles))
     rate = rate or max(specs[v].gnss.rate for v in ids)
     t0 = float(truth.vehicles[ids[0]].truth.t[0])
     t1 = float(truth.vehicles[ids[0]].truth.t[-1])

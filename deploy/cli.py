@@ -175,6 +175,12 @@ def build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--lane-offset", choices=("vehicle", "lane"), default="vehicle",
                     help="the driver's offset in a lane: one constant per vehicle, as the emulated drivers "
                          "keep it (the bound proper), or redrawn in each lane, as the filters model it")
+    bd.add_argument("--vehicles", metavar="ID,ID,...",
+                    help="a sub-fleet: the cooperative bounds process only these vehicles' information "
+                         "(how much of a bound comes from which neighbours; default: all)")
+    bd.add_argument("--seed", type=int, default=None,
+                    help="the drivers' stop draws of this run seed, as slcp run --seed draws them "
+                         "(default: the scenario's draw)")
     bn = sub.add_parser("bench", help="per-step costs of an agent and the replay real-time factor")
     bn.add_argument("--drive", type=Path, default=Path("../shared/data/rtklibexplorer_drive_0708"),
                     help="rtklibexplorer drive for the replay factor (skipped if absent)")
@@ -513,15 +519,23 @@ def _cmd_bound(args: argparse.Namespace) -> int:
     from .bound import posterior_crlb
 
     scn = load_scenario(args.scenario)
-    truth = build_truth(scn)
-    b = posterior_crlb(truth, lane_constraint=not args.no_lane_constraint, lane_offset=args.lane_offset)
-    ids = sorted(truth.vehicles)
+    truth = build_truth(scn, stop_seed=args.seed)
+    vehicles = None if args.vehicles is None else tuple(v.strip() for v in args.vehicles.split(",") if v.strip())
+    b = posterior_crlb(truth, lane_constraint=not args.no_lane_constraint, lane_offset=args.lane_offset,
+                       vehicles=vehicles)
+    ids = sorted({vid for _, vid in b.cov})
     rows = []
-    for w, (a, c) in window_bounds(truth).items():
-        sel = (b.t >= a) & (b.t <= c)
-        for vid in ids:
-            rows.append({"window": w, "vehicle": vid,
-                         **{m: float(np.sqrt(np.mean(b.sigma_h(m, vid)[sel] ** 2))) for m in METHODS}})
+    windows = {w: np.broadcast_to((b.t >= a) & (b.t <= c), (len(ids), len(b.t)))
+               for w, (a, c) in window_bounds(truth).items()}
+    # per vehicle, the bound steps at which it truly stands still
+    windows["standing"] = np.array([truth.vehicles[v].stopped[
+        np.clip(np.searchsorted(truth.vehicles[v].truth.t, b.t - 1e-9), 0, len(truth.vehicles[v].truth.t) - 1)]
+        for v in ids])
+    for w, sel in windows.items():
+        for i, vid in enumerate(ids):
+            if sel[i].any():
+                rows.append({"window": w, "vehicle": vid,
+                             **{m: float(np.sqrt(np.mean(b.sigma_h(m, vid)[sel[i]] ** 2))) for m in METHODS}})
     if args.csv:
         with open(args.csv, "w", newline="") as fh:
             wr = csv.writer(fh)
@@ -535,12 +549,13 @@ def _cmd_bound(args: argparse.Namespace) -> int:
 
         plot_bound(b, ids, METHODS, args.plot, f"{scn.name}: posterior CRLB, horizontal")
     if args.json:
-        print(json.dumps({"scenario": scn.name, "lane_offset": args.lane_offset, "rows": rows}))
+        print(json.dumps({"scenario": scn.name, "lane_offset": args.lane_offset, "seed": args.seed,
+                          "vehicles": ids, "rows": rows}))
         return 0
     print(f"{scn.name}: posterior CRLB on horizontal position [m], RMS over each window")
     print(f"{'window':12s} {'vehicle':8s} " + " ".join(f"{m:>7s}" for m in METHODS))
     for r in rows:
-        print(f"{r['window']:12s} {r['vehicle']:8s} " + " ".join(f"{r[m]:7.2f}" for m in METHODS))
+        print(f"{r['window']:12s} {r['vehicle']:8s} " + " ".join(f"{r[m]:7.3f}" for m in METHODS))
     return 0
 
 

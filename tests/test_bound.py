@@ -122,3 +122,46 @@ def test_an_unknown_lane_offset_model_is_refused() -> None:
 
     with pytest.raises(ValueError, match="lane_offset"):
         posterior_crlb(SimpleNamespace(), lane_offset="driver")
+
+
+@pytest.mark.timeout(180)
+def test_a_sub_fleet_knows_less_and_a_vehicle_alone_is_its_own_bound(capsys) -> None:
+    """``--vehicles``: the cooperative bounds of a sub-fleet process only its vehicles'
+    information, so they are never below the whole fleet's; SP and SL-SP use each vehicle's own
+    data and do not change; a sub-fleet of one has no ranges, so its CP and SL-CP bounds equal
+    its SP and SL-SP bounds (paper-2, seed 3's stop draws). The ``standing`` rows cover the
+    times a vehicle truly stands: V0 is first stopped then, and its SL-SP bound is the stop
+    line's decimetres."""
+    from deploy.cli import main
+
+    rows = {}
+    for sub in (None, "V0,V1", "V0"):
+        assert main(["bound", "paper-2", "--json", "--seed", "3"] + ([] if sub is None else ["--vehicles", sub])) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["seed"] == 3
+        rows[sub] = {(r["window"], r["vehicle"]): r for r in out["rows"]}
+    assert {v for _, v in rows[None]} == {"V0", "V1", "V2"}
+    assert {v for _, v in rows["V0,V1"]} == {"V0", "V1"}
+    for sub in ("V0,V1", "V0"):
+        for key, r in rows[sub].items():
+            full = rows[None][key]
+            for m in ("SP", "SL-SP"):
+                assert r[m] == pytest.approx(full[m], rel=1e-9)
+            for m in ("CP", "SL-CP"):
+                assert r[m] >= full[m] * (1 - 1e-9)
+    alone = rows["V0"]
+    for r in alone.values():
+        assert r["CP"] == pytest.approx(r["SP"], rel=1e-9)
+        assert r["SL-CP"] == pytest.approx(r["SL-SP"], rel=1e-9)
+    # the neighbours' information is worth something to V0 somewhere
+    assert any(rows["V0,V1"][k]["SL-CP"] < 0.99 * r["SL-CP"] for k, r in alone.items())
+    assert alone[("standing", "V0")]["SL-SP"] < 0.5 < alone[("standing", "V0")]["SP"]
+
+
+def test_a_sub_fleet_with_an_unknown_vehicle_is_refused(capsys) -> None:
+    from deploy.cli import main
+
+    assert main(["bound", "paper-1", "--vehicles", "V0,V9"]) == 2
+    err = capsys.readouterr().err
+    assert "V9" in err and "V0, V1, V2" in err
+    assert main(["bound", "paper-1", "--vehicles", " , "]) == 2
