@@ -42,7 +42,7 @@ from agent.methods import DEFAULT_FUSION, METHODS, MethodSpec
 from agent.nav import earth
 from hw_emulation.events import event_times, window_bounds
 from hw_emulation.faults import PROCESS_FAULTS, load_faults
-from hw_emulation.scenario import load_scenario
+from hw_emulation.scenario import STANDING_WINDOW, load_scenario
 from hw_emulation.truth import build_truth
 from transport.security import create_fleet
 
@@ -402,6 +402,7 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
     rows: dict = {w: {} for w in windows}
     series = {}
     extra = {}
+    standing: dict[tuple[str, str], np.ndarray] = {}
     sig_h = {}
     for vid, vt in truth.vehicles.items():
         tr = vt.truth
@@ -412,7 +413,7 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
                         "err_n_m", "err_e_m", "err_h_m", "err_along_m", "err_cross_m", "nees_h"])
             for m in methods:
                 recs = sorted(est.get((vid, m), []), key=lambda r: r["t"])
-                ts, eh, nees, claim, truth_first = [], [], [], [], []
+                ts, eh, nees, claim, truth_first, stands = [], [], [], [], [], []
                 for r in recs:
                     k = min(int(np.searchsorted(tr.t, r["t"] - 1e-9)), len(tr.t) - 1)
                     e = earth.ned_offset(*r["llh"], *tr.llh[k])
@@ -435,8 +436,10 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
                     nees.append(q)
                     claim.append(bool(r["first_stopped"]))
                     truth_first.append(bool(vt.first_stopped[k]))
+                    stands.append(bool(vt.stopped[k]))
                 series[(vid, m)] = (np.array(ts), np.array(eh).reshape(-1, 3))
                 extra[(vid, m)] = (np.array(nees), np.array(claim, bool), np.array(truth_first, bool))
+                standing[(vid, m)] = np.array(stands, bool)
                 sig_h[(vid, m)] = np.sqrt([r["cov_pos"][0][0] + r["cov_pos"][1][1] for r in recs])
     try:
         from .plots import plot_run_errors, plot_scenario
@@ -447,18 +450,20 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
         plot_scenario(truth, out / "map.png", event_times(truth))
     except ImportError:  # pragma: no cover - matplotlib is a dependency
         log.warning("matplotlib unavailable: no plots")
-    for wname, (a, b) in windows.items():
+    # the scenario's windows, then each vehicle's own: the times it truly stands still
+    selections = [(wname, lambda ts, vid, m, a=a, b=b: (ts >= a) & (ts <= b)) for wname, (a, b) in windows.items()]
+    selections.append((STANDING_WINDOW, lambda ts, vid, m: standing[(vid, m)]))
+    for wname, select in selections:
         for (vid, m), (ts, eh) in series.items():
-            sel = (ts >= a) & (ts <= b)
+            sel = select(ts, vid, m)
             if sel.any():
                 rms = np.sqrt(np.mean(eh[sel] ** 2, axis=0))
                 nees = extra[(vid, m)][0][sel]
                 lim = bound.at(m, vid, ts[sel])
-                rows[wname].setdefault(vid, {})[m] = {"rmse_m": float(rms[0]), "along_rmse_m": float(rms[1]),
-                                                      "cross_rmse_m": float(rms[2]), "n": int(sel.sum()),
-                                                      "nees_h": float(np.mean(nees)),
-                                                      "bound_rms_m": float(np.sqrt(np.mean(lim**2))),
-                                                      "sigma_below_bound": float(np.mean(sig_h[(vid, m)][sel] < lim * 0.99))}
+                rows.setdefault(wname, {}).setdefault(vid, {})[m] = {
+                    "rmse_m": float(rms[0]), "along_rmse_m": float(rms[1]), "cross_rmse_m": float(rms[2]),
+                    "n": int(sel.sum()), "nees_h": float(np.mean(nees)), "bound_rms_m": float(np.sqrt(np.mean(lim**2))),
+                    "sigma_below_bound": float(np.mean(sig_h[(vid, m)][sel] < lim * 0.99))}
     detection = {}
     for (vid, m), (nees, claim, truth_first) in extra.items():
         if MethodSpec.of(m).stop_line and (claim.any() or truth_first.any()):

@@ -28,6 +28,10 @@ from .sensors.uwb import UwbModel
 
 EVENT_KINDS = ("first_stopped", "stopped", "moving", "passes_stop_line", "near", "green", "time", "end")
 
+#: the evaluation window each run adds per vehicle: the times it truly stands still (a scenario
+#: may not define a window of that name)
+STANDING_WINDOW = "standing"
+
 
 class ScenarioError(ValueError):
     """A scenario file is invalid; the message names the file, the field and the reason."""
@@ -375,6 +379,9 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
         events.append(EventSpec(en, kind, veh, tm, other, dist, lane))
     windows = {}
     for wn, w in ctx.table(data, "windows", "").items():
+        if wn == STANDING_WINDOW:
+            raise ctx.fail(f"windows.{wn}", "is reserved: the evaluation adds it per vehicle (the times it truly "
+                                            "stands still)")
         if not (isinstance(w, list) and len(w) == 2 and all(x in names for x in w)):
             raise ctx.fail(f"windows.{wn}", f"must be [start_event, end_event] of defined events, got {w!r}")
         windows[wn] = (w[0], w[1])

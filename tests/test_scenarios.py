@@ -155,6 +155,7 @@ def _base() -> dict:
     (lambda d: d["vehicles"][1].update(imu={"bogus": 1.0}), r"vehicles\[1\].imu.bogus: unknown field"),
     (lambda d: d["events"][1].update(kind="teleport"), r"events\[1\].kind: must be one of"),
     (lambda d: d["windows"].update(w=["t_s1", "nope"]), r"windows.w: must be \[start_event, end_event\]"),
+    (lambda d: d["windows"].update(standing=["t_s1", "t_e"]), r"windows.standing: is reserved"),
     (lambda d: d["signals"]["phases"][0].update(lanes=["NB_out"]), r"lane 'NB_out' has no stop line"),
     (lambda d: d.update(extra=1), r"extra: unknown field"),
     (lambda d: d["scenario"].update(imu_batch=0), r"scenario.imu_batch: must be an integer from 1 to imu_rate"),
