@@ -513,7 +513,7 @@ def _cmd_bound(args: argparse.Namespace) -> int:
 
     from agent.methods import METHODS
     from hw_emulation.events import window_bounds
-    from hw_emulation.scenario import load_scenario
+    from hw_emulation.scenario import STANDING_WINDOW, load_scenario
     from hw_emulation.truth import build_truth
 
     from .bound import posterior_crlb
@@ -528,7 +528,7 @@ def _cmd_bound(args: argparse.Namespace) -> int:
     windows = {w: np.broadcast_to((b.t >= a) & (b.t <= c), (len(ids), len(b.t)))
                for w, (a, c) in window_bounds(truth).items()}
     # per vehicle, the bound steps at which it truly stands still
-    windows["standing"] = np.array([truth.vehicles[v].stopped[
+    windows[STANDING_WINDOW] = np.array([truth.vehicles[v].stopped[
         np.clip(np.searchsorted(truth.vehicles[v].truth.t, b.t - 1e-9), 0, len(truth.vehicles[v].truth.t) - 1)]
         for v in ids])
     for w, sel in windows.items():
