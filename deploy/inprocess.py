@@ -45,6 +45,10 @@ class RunResult:
     range_outcomes: dict[str, dict[str, dict[str, int]]] = field(default_factory=dict)
     #: (vehicle, method) -> horizontal NEES at the record times (n = 2)
     nees: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    #: (vehicle, method) -> horizontal error (north, east) [m], shape (n, 2), and the reported
+    #: horizontal covariance [m²], shape (n, 2, 2), at the record times
+    err_ne: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    cov_ne: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
 
 
 def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS,
@@ -107,6 +111,8 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
     rec_t, err, sig, first = [], {k: [] for k in filters}, {k: [] for k in filters}, {k: [] for k in filters}
     along: dict[tuple[str, str], list[float]] = {k: [] for k in filters}
     nees: dict[tuple[str, str], list[float]] = {k: [] for k in filters}
+    err_ne: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in filters}
+    cov_ne: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in filters}
 
     for k in range(len(dts)):
         tk = float(t[k + 1])
@@ -201,9 +207,13 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
                 sig[(vid, m)].append(math.sqrt(p[0, 0] + p[1, 1]))
                 eh = np.array([e[0], e[1]])
                 nees[(vid, m)].append(float(eh @ np.linalg.solve(p[:2, :2], eh)))
+                err_ne[(vid, m)].append(eh)
+                cov_ne[(vid, m)].append(np.array(p[:2, :2]))
                 first[(vid, m)].append(claim_of(vid, m))
     return RunResult(np.array(rec_t), {k: np.array(v) for k, v in err.items()},
                      {k: np.array(v) for k, v in sig.items()}, {k: np.array(v) for k, v in first.items()},
                      {k: dict(f.counters) for k, f in filters.items()}, decisions=decisions,
                      range_outcomes=range_outcomes, along={k: np.array(v) for k, v in along.items()},
-                     nees={k: np.array(v) for k, v in nees.items()})
+                     nees={k: np.array(v) for k, v in nees.items()},
+                     err_ne={k: np.array(v).reshape(-1, 2) for k, v in err_ne.items()},
+                     cov_ne={k: np.array(v).reshape(-1, 2, 2) for k, v in cov_ne.items()})

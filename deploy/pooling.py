@@ -1,0 +1,119 @@
+"""An idealised reference between the distributed filters and the joint bound: the fleet's
+own-sensor estimates pooled at each instant.
+
+At every record time, each vehicle's own-sensor estimate (SL-SP by default: no cooperation, so
+two vehicles' errors share nothing but the common-mode GNSS error) is fused with its reported
+covariance, under a relative geometry taken as known exactly (one translation of the whole fleet
+fitted to all of them). No estimator can do that: UWB does not give every pair's vector, the
+common-mode error is shared, and nothing is carried over time. So it shows what one-shot pooling
+of what each vehicle knows by itself is worth, beside the joint bound that also pools over time
+(README, *The physical limit*).
+
+``python -m deploy.pooling rush-hour --seeds 0,1`` runs the fleet in process and prints, per
+vehicle, the RMSE, ANEES and RMSE over the SL-CP bound while it truly stands: the pooled
+reference beside SL-SP and SL-CP. Pure numpy apart from the run itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+
+def pool_translation(err_ne: dict[str, np.ndarray], cov_ne: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse the vehicles' estimates of one common translation.
+
+    Parameters
+    ----------
+    err_ne : dict
+        vehicle -> horizontal errors (north, east) [m], shape (n, 2), at common times.
+    cov_ne : dict
+        vehicle -> their reported covariances [m²], shape (n, 2, 2).
+
+    Returns
+    -------
+    err : ndarray
+        The pooled error (n, 2) [m]: with the relative geometry exact, every vehicle's.
+    cov : ndarray
+        Its covariance (n, 2, 2) [m²], ``(Σ P_v⁻¹)⁻¹``: the errors taken as independent.
+    """
+    ids = sorted(err_ne)
+    if not ids:
+        raise ValueError("no vehicles to pool")
+    info = sum(np.linalg.inv(cov_ne[v]) for v in ids)
+    vec = sum(np.einsum("nij,nj->ni", np.linalg.inv(cov_ne[v]), err_ne[v]) for v in ids)
+    cov = np.linalg.inv(info)
+    return np.einsum("nij,nj->ni", cov, vec), cov
+
+
+def standing_scores(result, truth, source: str = "SL-SP", compare: tuple[str, ...] = ("SL-SP", "SL-CP")) -> dict:
+    """Per vehicle, while it truly stands: sums for RMSE, NEES and the SL-CP bound of the pooled
+    ``source`` estimates and of the methods in ``compare`` (:func:`deploy.inprocess.run_inprocess`
+    result ``result`` on ``truth``). Sums, so that seeds add up: ``{vehicle: {name: {"se",
+    "nees", "b2", "n"}}}``."""
+    from .bound import posterior_crlb
+
+    ids = sorted(truth.vehicles)
+    pooled, pcov = pool_translation({v: result.err_ne[(v, source)] for v in ids},
+                                    {v: result.cov_ne[(v, source)] for v in ids})
+    bound = posterior_crlb(truth, ("SL-CP",))
+    out: dict = {}
+    for v in ids:
+        tr = truth.vehicles[v]
+        k = np.clip(np.searchsorted(tr.truth.t, result.t - 1e-9), 0, len(tr.truth.t) - 1)
+        sel = tr.stopped[k]
+        if not sel.any():
+            continue
+        b2 = float(np.sum(bound.at("SL-CP", v, result.t[sel]) ** 2))
+        rows = {f"pooled {source}": (pooled[sel], pcov[sel])}
+        rows.update({m: (result.err_ne[(v, m)][sel], result.cov_ne[(v, m)][sel]) for m in compare})
+        out[v] = {}
+        for name, (e, c) in rows.items():
+            q = np.einsum("ni,ni->n", e, np.linalg.solve(c, e[..., None])[..., 0])
+            out[v][name] = {"se": float(np.sum(e**2)), "nees": float(np.sum(q)), "b2": b2, "n": int(sel.sum())}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m deploy.pooling", description=__doc__.split("\n\n")[0])
+    ap.add_argument("scenario", help="shipped scenario name or .toml")
+    ap.add_argument("--seeds", default="0", help="comma-separated run seeds (default 0)")
+    args = ap.parse_args(argv)
+    from hw_emulation.scenario import load_scenario
+    from hw_emulation.truth import build_truth
+
+    from .inprocess import run_inprocess
+
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")]
+        scn = load_scenario(args.scenario)
+    except ValueError as exc:
+        print(f"pooling: error: {exc}", file=sys.stderr)
+        return 2
+    total: dict = {}
+    for seed in seeds:
+        truth = build_truth(scn, stop_seed=seed)
+        res = run_inprocess(truth, seed, methods=("SL-SP", "SL-CP"))
+        for v, rows in standing_scores(res, truth).items():
+            for name, r in rows.items():
+                acc = total.setdefault(v, {}).setdefault(name, dict.fromkeys(r, 0.0))
+                for key, x in r.items():
+                    acc[key] += x
+    print(f"{scn.name}, seeds {args.seeds}: while each vehicle truly stands; RMSE [m] / RMSE over the "
+          "SL-CP bound / ANEES")
+    names = next(iter(total.values())).keys() if total else ()
+    print(f"{'vehicle':8s} {'bound':>7s} " + " ".join(f"{n:>22s}" for n in names))
+    for v, rows in sorted(total.items()):
+        b = np.sqrt(next(iter(rows.values()))["b2"] / next(iter(rows.values()))["n"])
+        cells = []
+        for r in rows.values():
+            rmse = np.sqrt(r["se"] / r["n"])
+            cells.append(f"{rmse:6.3f} / {rmse / b:5.2f} / {r['nees'] / r['n']:5.2f}")
+        print(f"{v:8s} {b:7.3f} " + " ".join(f"{c:>22s}" for c in cells))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
