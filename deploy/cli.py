@@ -525,17 +525,14 @@ def _cmd_bound(args: argparse.Namespace) -> int:
                        vehicles=vehicles)
     ids = sorted({vid for _, vid in b.cov})
     rows = []
-    windows = {w: np.broadcast_to((b.t >= a) & (b.t <= c), (len(ids), len(b.t)))
-               for w, (a, c) in window_bounds(truth).items()}
-    # per vehicle, the bound steps at which it truly stands still
-    windows[STANDING_WINDOW] = np.array([truth.vehicles[v].stopped[
-        np.clip(np.searchsorted(truth.vehicles[v].truth.t, b.t - 1e-9), 0, len(truth.vehicles[v].truth.t) - 1)]
-        for v in ids])
-    for w, sel in windows.items():
-        for i, vid in enumerate(ids):
-            if sel[i].any():
+    windows = {w: (lambda vid, a=a, c=c: (b.t >= a) & (b.t <= c)) for w, (a, c) in window_bounds(truth).items()}
+    windows[STANDING_WINDOW] = lambda vid: truth.vehicles[vid].stopped_at(b.t)  # each vehicle's own steps
+    for w, select in windows.items():
+        for vid in ids:
+            sel = select(vid)
+            if sel.any():
                 rows.append({"window": w, "vehicle": vid,
-                             **{m: float(np.sqrt(np.mean(b.sigma_h(m, vid)[sel[i]] ** 2))) for m in METHODS}})
+                             **{m: float(np.sqrt(np.mean(b.sigma_h(m, vid)[sel] ** 2))) for m in METHODS}})
     if args.csv:
         with open(args.csv, "w", newline="") as fh:
             wr = csv.writer(fh)

@@ -450,12 +450,10 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
         plot_scenario(truth, out / "map.png", event_times(truth))
     except ImportError:  # pragma: no cover - matplotlib is a dependency
         log.warning("matplotlib unavailable: no plots")
-    # the scenario's windows, then each vehicle's own: the times it truly stands still
-    selections = [(wname, lambda ts, vid, m, a=a, b=b: (ts >= a) & (ts <= b)) for wname, (a, b) in windows.items()]
-    selections.append((STANDING_WINDOW, lambda ts, vid, m: standing[(vid, m)]))
-    for wname, select in selections:
-        for (vid, m), (ts, eh) in series.items():
-            sel = select(ts, vid, m)
+    for (vid, m), (ts, eh) in series.items():
+        # the scenario's windows, then the vehicle's own: the times it truly stands still
+        masks = [(wname, (ts >= a) & (ts <= b)) for wname, (a, b) in windows.items()]
+        for wname, sel in masks + [(STANDING_WINDOW, standing[(vid, m)])]:
             if sel.any():
                 rms = np.sqrt(np.mean(eh[sel] ** 2, axis=0))
                 nees = extra[(vid, m)][0][sel]

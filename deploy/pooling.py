@@ -61,9 +61,7 @@ def standing_scores(result, truth, source: str = "SL-SP", compare: tuple[str, ..
     bound = posterior_crlb(truth, ("SL-CP",))
     out: dict = {}
     for v in ids:
-        tr = truth.vehicles[v]
-        k = np.clip(np.searchsorted(tr.truth.t, result.t - 1e-9), 0, len(tr.truth.t) - 1)
-        sel = tr.stopped[k]
+        sel = truth.vehicles[v].stopped_at(result.t)
         if not sel.any():
             continue
         b2 = float(np.sum(bound.at("SL-CP", v, result.t[sel]) ** 2))

@@ -71,6 +71,12 @@ class VehicleTruth:
     first_stopped: np.ndarray
     segment: np.ndarray
 
+    def stopped_at(self, t: np.ndarray) -> np.ndarray:
+        """Whether the vehicle truly stands at times ``t`` [s] (the first IMU sample not before
+        each), shape of ``t``."""
+        k = np.clip(np.searchsorted(self.truth.t, np.asarray(t, float) - 1e-9), 0, len(self.truth.t) - 1)
+        return self.stopped[k]
+
 
 @dataclass(frozen=True)
 class ScenarioTruth:
