@@ -144,3 +144,54 @@ def test_constant_noise_density_equals_G_Qc_Gt() -> None:
         st = moving_state(yaw)
         G = noise_input_matrix(st)
         assert np.allclose((G * MEMS_NOISE.psd()) @ G.T, np.diag(process_noise_density(MEMS_NOISE)), atol=1e-20)
+
+
+@pytest.mark.parametrize("method", ["van_loan", "series"])
+def test_a_gauss_markov_bias_keeps_its_steady_state_sigma(method: str) -> None:
+    """First-order Gauss-Markov ``ḃ = -b/τ + w``: the drive's PSD 2σ²/τ is what keeps the
+    variance at σ². Over dt the exact discrete variance is ``σ² (1 - e^(-2 dt/τ))`` and the
+    transition ``e^(-dt/τ)`` (the series is third order in dt/τ); propagated long, a bias that
+    starts known settles at σ², and one that starts at σ² stays there."""
+    noise = ImuNoise(arw=1e-3, vrw=1e-2, gyro_bias_sigma=2e-4, gyro_bias_tau=20.0,
+                     accel_bias_sigma=3e-3, accel_bias_tau=50.0)
+    F = system_matrix(moving_state(), np.array([0.0, 0.0, -9.8]), noise)
+    G = noise_input_matrix(moving_state())
+    dt = 0.1
+    phi, qd = discretize(F, G, noise.psd(), dt, method)
+    tol = 1e-9 if method == "van_loan" else 1e-6
+    for idx, sigma, tau in ((9, 2e-4, 20.0), (12, 3e-3, 50.0)):
+        assert phi[idx, idx] == pytest.approx(math.exp(-dt / tau), rel=tol)
+        assert qd[idx, idx] == pytest.approx(sigma**2 * (1 - math.exp(-2 * dt / tau)), rel=tol)
+        p = 0.0
+        for _ in range(3000):  # 300 s = 6-15 τ
+            p = phi[idx, idx] ** 2 * p + qd[idx, idx]
+        assert p == pytest.approx(sigma**2, rel=2e-3)
+        assert phi[idx, idx] ** 2 * sigma**2 + qd[idx, idx] == pytest.approx(sigma**2, rel=1e-6)
+
+
+def test_a_random_walk_bias_reads_sigma_as_its_density() -> None:
+    """τ = ∞: no decay, and σ is the random walk's density, so the variance grows as σ² dt."""
+    noise = ImuNoise(arw=1e-3, vrw=1e-2, gyro_bias_sigma=2e-5, gyro_bias_tau=math.inf,
+                     accel_bias_sigma=3e-4, accel_bias_tau=math.inf)
+    assert np.allclose(noise.psd()[6:], np.repeat([4e-10, 9e-8], 3), rtol=1e-12)
+    F = system_matrix(moving_state(), np.array([0.0, 0.0, -9.8]), noise)
+    phi, qd = discretize(F, noise_input_matrix(moving_state()), noise.psd(), 2.0, "van_loan")
+    assert phi[9, 9] == 1.0 and phi[12, 12] == 1.0
+    assert qd[9, 9] == pytest.approx(4e-10 * 2.0, rel=1e-9)
+    assert qd[12, 12] == pytest.approx(9e-8 * 2.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("h0", [0.0, 3000.0, -400.0])
+def test_ned_offset_uses_the_radii_at_the_reference_height(h0: float) -> None:
+    """``ned_offset`` against pymap3d's exact conversion for offsets of ±20 m: the arcs are on
+    radii R_M + h0 and (R_N + h0) cos L0 (at 3 km, leaving out h0 would be 9 mm in 20 m, where
+    the first-order conversion is good to 0.1 mm); ``offset_llh`` is its inverse."""
+    import pymap3d
+
+    lat0, lon0 = math.radians(39.9), math.radians(116.3)
+    for dn, de, dd in ((20.0, 0.0, 0.0), (0.0, 20.0, 0.0), (-15.0, 13.0, 1.5), (7.0, -20.0, -3.0)):
+        lat, lon, h = pymap3d.ned2geodetic(dn, de, dd, lat0, lon0, h0, deg=False)
+        got = earth.ned_offset(lat, lon, h, lat0, lon0, h0)
+        assert np.allclose(got, [dn, de, dd], atol=1e-4), got - [dn, de, dd]
+        back = earth.offset_llh(np.array([lat0, lon0, h0]), np.array([dn, de, dd]))
+        assert np.allclose(earth.ned_offset(*back, lat0, lon0, h0), [dn, de, dd], atol=1e-9)

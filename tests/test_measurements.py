@@ -266,3 +266,57 @@ def test_range_closed_forms_equal_the_matrix_forms(rng: np.random.Generator) -> 
     assert np.allclose(m1.H[0], u @ point_position_jacobian(s, np.zeros(3)), atol=0)
     m3 = range_measurement(s, 6.0, 0.1, nb, Pj, relative=d)
     assert np.array_equal(m3.z, m1.z) and np.array_equal(m3.R, m1.R)
+
+
+@pytest.mark.parametrize("heading_deg", [0.0, 90.0, 37.0, -128.0])
+def test_the_along_only_stop_line_row_is_the_full_fix_along_the_normal(heading_deg: float) -> None:
+    """A first stopped vehicle whose lane is ambiguous among lanes sharing the stop line uses
+    only the distance behind the line: the full fix's innovation and Jacobian projected on the
+    stop line's normal, with the variance of d_s alone (``nᵀ J Σ Jᵀ n = σ_xb²``, since the
+    normal component of the fix does not depend on d_l), computed both ways."""
+    heading = math.radians(heading_deg)
+    approach, origin = _approach(heading)
+    gap = StopGapModel(m_xb=2.0, sigma_xb=0.3, m_yb=1.2, sigma_yb=0.7, l0=3.0)
+    s = moving_state(yaw=heading)
+    full = stop_line_measurement(s, approach, gap, origin, LEVER)
+    along = stop_line_measurement(s, approach, gap, origin, LEVER, along_only=True)
+    n = approach.stop_line_normal()
+    assert along.dim == 1 and along.name == "stop_line_along"
+    assert along.z[0] == pytest.approx(float(n @ full.z), abs=1e-9)
+    assert np.allclose(along.H[0], n @ full.H, atol=1e-12)
+    assert along.R[0, 0] == pytest.approx(float(n @ full.R @ n), rel=1e-9)
+    assert along.R[0, 0] == pytest.approx(gap.sigma_xb**2, rel=1e-12)
+    _check_jacobian(lambda st: stop_line_measurement(st, approach, gap, origin, LEVER, along_only=True), s, tol=2e-5)
+
+
+def test_the_joseph_form_holds_for_any_gain(rng: np.random.Generator) -> None:
+    """``joseph`` is ``(I - K H) P (I - K H)ᵀ + K R Kᵀ`` for any gain, computed both ways: the
+    explicit product, and the covariance of ``(I - KH) e - K v`` over samples; with the optimal
+    gain it equals ``P - K S Kᵀ``; with consider states (rows of K zeroed) their block is kept."""
+    from agent.nav.kalman import joseph
+
+    n, m = 6, 2
+    A = rng.normal(size=(n, n))
+    P = A @ A.T + np.eye(n)
+    H = rng.normal(size=(m, n))
+    R = np.diag([0.3, 0.7])
+    K = rng.normal(size=(n, m))  # not the optimal gain
+    I_KH = np.eye(n) - K @ H
+    want = I_KH @ P @ I_KH.T + K @ R @ K.T
+    assert np.allclose(joseph(P, K, H, R), want, rtol=1e-12, atol=1e-12)
+    e = rng.multivariate_normal(np.zeros(n), P, 200_000)
+    v = rng.multivariate_normal(np.zeros(m), R, 200_000)
+    post = e @ I_KH.T - v @ K.T
+    assert np.allclose(np.cov(post.T), want, rtol=0.03, atol=0.03 * np.abs(want).max())
+    meas = Measurement(rng.normal(size=m), H, R, "x")
+    S = H @ P @ H.T + R
+    Kopt = P @ H.T @ np.linalg.inv(S)
+    _, Ppost, res = kalman_update(P, meas)
+    assert np.allclose(Ppost, P - Kopt @ S @ Kopt.T, rtol=1e-10, atol=1e-10)
+    assert np.allclose(res.gain, Kopt, rtol=1e-10, atol=1e-12)
+    consider = np.array([4, 5])
+    dx, Pc, res = kalman_update(P, meas, consider=consider)
+    Kc = Kopt.copy()
+    Kc[consider] = 0.0
+    assert np.allclose(dx[consider], 0.0) and np.allclose(Pc[4:, 4:], P[4:, 4:], rtol=1e-12)
+    assert np.allclose(Pc, (np.eye(n) - Kc @ H) @ P @ (np.eye(n) - Kc @ H).T + Kc @ R @ Kc.T, rtol=1e-10)

@@ -96,6 +96,52 @@ def test_a_claimed_position_off_the_measured_range_is_flagged() -> None:
     assert det2.range("V9", 0.0, 22.9, at(0.0, 0.0), np.diag([0.25, 0.25, 1.0]), 0.1) is None
 
 
+def test_the_range_test_weighs_both_covariances_at_its_threshold() -> None:
+    """Near its 10σ threshold: σ² = σ_uwb² + uᵀ(P_own + P_nb)u along the line of sight. A
+    receiver whose own estimate is uncertain along the line (4 m²) accepts a 15 m short range
+    that the neighbour's claim (0.25 m²) alone would fail, and fails one 10% beyond 10σ; the
+    same with the roles swapped; the cross-track variance does not count."""
+    sig = 0.1
+    for own, nb in (((4.0, 0.25), (0.25, 0.25)), ((0.25, 0.25), (4.0, 0.25))):
+        var = sig**2 + own[0] + nb[0]  # the neighbour is due north: u = (1, 0, 0)
+        k10 = 10.0 * np.sqrt(var)
+        for resid, expect in ((-0.9 * k10, None), (-1.1 * k10, "range")):
+            det = MisbehaviourDetector()
+            det.beacon("V9", "CP", 0.0, at(40.0, 0.0), np.zeros(3), np.diag([nb[0], 100.0, 1.0]))
+            got = det.range("V9", 0.0, 40.0 + resid, at(0.0, 0.0), np.diag([own[0], 50.0, 1.0]), sig)
+            assert got == expect, (own, nb, resid)
+    # a positive residual is allowed the NLOS bias first: 10σ + nlos_bias passes, beyond it fails
+    var = sig**2 + 0.5
+    for excess, expect in ((3.0 + 9.9 * np.sqrt(var), None), (3.0 + 10.1 * np.sqrt(var), "range")):
+        det = MisbehaviourDetector(nlos_bias=3.0)
+        det.beacon("V9", "CP", 0.0, at(40.0, 0.0), np.zeros(3), np.diag([0.25, 1.0, 1.0]))
+        assert det.range("V9", 0.0, 40.0 + excess, at(0.0, 0.0), np.diag([0.25, 1.0, 1.0]), sig) == expect
+
+
+@pytest.mark.parametrize("cov, flagged", [
+    (np.diag([1.0, 1.0, 1.0]), False),
+    (np.array([[1.0, 0.99, 0], [0.99, 1.0, 0], [0, 0, 1.0]]), False),  # smallest eigenvalue 0.01 m²
+    (np.array([[1.0, 0.999, 0], [0.999, 1.0, 0], [0, 0, 1.0]]), True),  # 0.001 m² < 0.05² m²
+    (np.array([[1.0, 0.9985, 0], [0.9985, 1.0, 0], [0, 0, 1.0]]), True),  # 0.0015 m²: σ 3.9 cm
+    (np.array([[1.0, 0.997, 0], [0.997, 1.0, 0], [0, 0, 1.0]]), False),  # 0.003 m²: σ 5.5 cm
+    (np.array([[4.0, 1.99, 0], [2.01, 1.0, 0], [0, 0, 1.0]]), True),  # an asymmetric block: its symmetric part
+    (np.array([[0.0026, 0, 0], [0, 9.0, 0], [0, 0, 1.0]]), False),
+    (np.array([[9.0, 0, 0], [0, 0.0024, 0], [0, 0, 1.0]]), True),
+    (np.array([[1.0, 2.0, 0], [2.0, 1.0, 0], [0, 0, 1.0]]), True),  # not positive semi-definite
+    (np.array([[np.nan, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]), True),
+])
+def test_the_covariance_test_is_on_the_smallest_horizontal_eigenvalue(cov, flagged: bool) -> None:
+    """σ_min of the horizontal block against ``min_sigma`` (5 cm), checked against numpy's
+    eigenvalues: a thin ellipse is as implausible as a small circle, whatever its diagonal."""
+    sym = 0.5 * (cov[:2, :2] + cov[:2, :2].T)
+    lam = np.linalg.eigvalsh(sym)[0] if np.isfinite(sym).all() else np.nan
+    assert flagged == (not lam >= 0.05**2)  # the cases are on the side of the threshold they say
+    det = MisbehaviourDetector()
+    got = det.beacon("V9", "CP", 0.0, ORIGIN, np.zeros(3), cov)
+    assert (got == "covariance") == flagged
+    assert det.excluded("V9", 0.0) == flagged
+
+
 @pytest.mark.parametrize("rate_test", [False, True])
 def test_a_range_jump_the_claims_do_not_show_fails_the_range_rate_test(rate_test: bool) -> None:
     """A range that jumps by 7 m within half a second while the claimed distance stays (and

@@ -72,6 +72,28 @@ def test_every_forgery_is_refused_with_its_reason(fleet, tmp_path) -> None:
     assert store.verify(dataclasses.replace(signed, auth=bytes(flipped))) == "bad_signature"
 
 
+def test_the_signature_covers_every_field_but_its_own(fleet) -> None:
+    """Each field a receiver reads, changed after signing, breaks the signature: the velocity
+    (which the misbehaviour detector extrapolates with), the covariance by source and the
+    constants' sensitivities (which the fusion rules weigh) as much as the position."""
+    store = TrustStore.from_dir(fleet)
+    b = dataclasses.replace(beacon(), sources=((("V1",), np.diag([1.0, 2.0, 4.0])),),
+                            constants=(("V1~gap", np.array([0.1, 0.2, 0.0])),))
+    signed = BeaconSigner.from_file("V1", fleet / "V1.key").sign(b)
+    assert store.verify(signed) == "ok"
+    changes = {
+        "seq": 8, "method": "SL-CP", "t": 100.2, "first_stopped": False,
+        "llh": signed.llh + [1e-7, 0, 0], "v_ned": signed.v_ned + [0.0, 0.01, 0.0],
+        "cov_pos": signed.cov_pos * 1.01,
+        "sources": ((("V1",), np.diag([1.0, 2.0, 4.1])),),
+        "constants": (("V1~gap", np.array([0.1, 0.3, 0.0])),),
+    }
+    assert set(changes) == {f.name for f in dataclasses.fields(Beacon)} - {"vehicle", "auth"}
+    for name, value in changes.items():
+        assert store.verify(dataclasses.replace(signed, **{name: value})) == "bad_signature", name
+        assert store.verify(decode(encode(dataclasses.replace(signed, **{name: value})))) == "bad_signature", name
+
+
 def test_a_certificate_not_issued_by_the_fleet_ca_is_refused(fleet, tmp_path) -> None:
     other = tmp_path / "other"
     create_fleet(other, ["V9"])

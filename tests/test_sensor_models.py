@@ -105,6 +105,23 @@ def test_uwb_los_nlos_outliers_and_success(rng) -> None:
     assert not far.delivered.any()
 
 
+
+def test_uwb_outliers_go_both_ways_within_their_size(rng) -> None:
+    """A gross outlier adds ±U(outlier_min, outlier_max) (then the range is kept positive):
+    at 40 m true range, half the outliers are short and half long, each error's size within
+    the bounds (plus LOS noise and an NLOS bias), and uniform: its mean is the interval's."""
+    model = UwbModel(outlier_prob=0.2, nlos_enter=0.0)
+    n = 100_000
+    r = simulate_pair(model, np.arange(n) / model.rate, np.full(n, 40.0), rng)
+    err = r.range[r.outlier] - 40.0
+    assert len(err) > 15_000
+    assert (err < 0).mean() == pytest.approx(0.5, abs=0.02)
+    slack = 5 * model.sigma_los
+    assert (np.abs(err) >= model.outlier_min - slack).all() and (np.abs(err) <= model.outlier_max + slack).all()
+    assert np.abs(err).mean() == pytest.approx(0.5 * (model.outlier_min + model.outlier_max), rel=0.02)
+    close = simulate_pair(model, np.arange(n) / model.rate, np.full(n, 2.0), rng)
+    assert (close.range[close.delivered] >= 0).all()  # a short outlier at 2 m stays a distance
+
 def test_radio_loss_burstiness_latency_and_range(rng) -> None:
     model = RadioModel()
     n = 300_000

@@ -129,6 +129,33 @@ def test_truncated_and_wrong_version_and_types() -> None:
         decode(b"\x00" * (300 * 1024))
 
 
+
+def test_an_imu_batch_has_one_row_per_sample_in_every_field() -> None:
+    """The leading dimension is shared within a message: a field with one row more or less
+    than the others, an empty batch, or more than ``MAX_SAMPLES`` rows is refused by name."""
+    from transport.codec import MAX_SAMPLES
+
+    def batch(n: int) -> dict:
+        t = np.arange(1, n + 1) * 0.01
+        return msgpack.unpackb(encode(ImuBatch("V0", 1, t, np.full(n, 0.01), np.zeros((n, 3)), np.ones((n, 3)))))
+
+    obj = batch(4)
+    assert decode(msgpack.packb(obj, use_bin_type=True)).dvel.shape == (4, 3)
+    for fname, rows in (("t", 5), ("dt", 3), ("dtheta", 3), ("dvel", 5)):
+        width = 3 if fname in ("dtheta", "dvel") else 1
+        bad = dict(obj, **{fname: np.zeros(rows * width).tobytes()})
+        # the first field read sets the count; the first that differs is named
+        with pytest.raises(CodecError, match=r"imu\.(t|dt|dtheta|dvel): [345] rows, other fields have [45]"):
+            decode(msgpack.packb(bad, use_bin_type=True))
+    with pytest.raises(CodecError, match="not a multiple of 3"):
+        decode(msgpack.packb(dict(obj, dtheta=np.zeros(13).tobytes()), use_bin_type=True))
+    empty = {k: (b"" if isinstance(v, bytes) else v) for k, v in obj.items()}
+    with pytest.raises(CodecError, match="0 rows outside"):
+        decode(msgpack.packb(empty, use_bin_type=True))
+    assert len(decode(msgpack.packb(batch(MAX_SAMPLES), use_bin_type=True)).t) == MAX_SAMPLES
+    with pytest.raises(CodecError, match=f"{MAX_SAMPLES + 1} rows outside"):
+        decode(msgpack.packb(batch(MAX_SAMPLES + 1), use_bin_type=True))
+
 def test_fuzzed_payloads_only_raise_codec_errors() -> None:
     """5,000 seeded random, mutated and truncated payloads: every one is rejected with CodecError
     (or, rarely, decodes to a valid message) and nothing else is raised."""
