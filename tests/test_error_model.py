@@ -195,3 +195,51 @@ def test_ned_offset_uses_the_radii_at_the_reference_height(h0: float) -> None:
         assert np.allclose(got, [dn, de, dd], atol=1e-4), got - [dn, de, dd]
         back = earth.offset_llh(np.array([lat0, lon0, h0]), np.array([dn, de, dd]))
         assert np.allclose(earth.ned_offset(*back, lat0, lon0, h0), [dn, de, dd], atol=1e-9)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.6, -2.4])
+def test_G_matches_numerical_error_dynamics_of_sensor_noise(yaw: float) -> None:
+    """The noise input matrix against the navigation equations: the estimate integrates the
+    measured rate and specific force (true + noise), the truth the true ones, and the error's
+    rate per unit of noise is G's gyro and accelerometer columns (the sign included: a rate
+    measured too large turns the estimate the other way from a bias estimated too large)."""
+    base = moving_state(yaw)
+    base.bg = np.zeros(3)
+    base.ba = np.zeros(3)
+    truth = _Offset(base, 0.0, 0.0, base)
+    w_ib = np.array([0.01, -0.02, 0.15])
+    f_b = np.array([0.8, -1.5, -9.6])
+    tau = MEMS_NOISE.gyro_bias_tau
+
+    def central(noise: np.ndarray, h: float) -> np.ndarray:
+        w, f = w_ib + noise[:3], f_b + noise[3:]
+        ep = _error(_rk4(truth, w, f, h, tau), _rk4(truth, w_ib, f_b, h, tau))
+        em = _error(_rk4(truth, w, f, -h, tau), _rk4(truth, w_ib, f_b, -h, tau))
+        return (ep - em) / (2 * h)
+
+    def error_rate(noise: np.ndarray) -> np.ndarray:
+        return (4.0 * central(noise, 0.01) - central(noise, 0.02)) / 3.0
+
+    G_num = numerical_jacobian(error_rate, 6, 1e-4)
+    G = noise_input_matrix(base)
+    assert np.allclose(G[:, :6], G_num, atol=1e-6), np.abs(G[:, :6] - G_num).max()
+    # the bias drives enter their own states only
+    assert np.array_equal(G[9:, 6:], np.eye(6)) and not G[:9, 6:].any() and not G[9:, :6].any()
+
+
+def test_transport_rate_and_geodetic_rates_at_altitude() -> None:
+    """At 8 km (where R + h and R differ by 0.13 %): the geodetic rates against pymap3d moving a
+    point along its NED velocity, and the transport rate ω_en = (λ̇ cos L, -L̇, -λ̇ sin L) built
+    from them."""
+    import pymap3d
+
+    lat, lon, h = math.radians(52.0), math.radians(13.0), 8000.0
+    v = np.array([40.0, -70.0, 3.0])
+    dt = 1e-3
+    lat2, lon2, h2 = pymap3d.ned2geodetic(*(v * dt), lat, lon, h, deg=False)
+    lat1, lon1, h1 = pymap3d.ned2geodetic(*(-v * dt), lat, lon, h, deg=False)
+    rates = np.array(earth.geodetic_rates(lat, h, v))
+    assert np.allclose(rates, [(lat2 - lat1) / (2 * dt), (lon2 - lon1) / (2 * dt), (h2 - h1) / (2 * dt)], rtol=1e-6)
+    ldot, odot = rates[0], rates[1]
+    w_en = earth.transport_rate_ned(lat, h, v)
+    assert np.allclose(w_en, [odot * math.cos(lat), -ldot, -odot * math.sin(lat)], rtol=1e-12)

@@ -105,9 +105,16 @@ def test_plain_gain_bounds_split_ci_so_the_screen_changes_no_decision(m: int) ->
         ci_gain = prior - f(best_omega(Pd, Pi, H, Rd, Ri, IDX))
         assert naive_gain(P, H, Rd + Ri, IDX) >= ci_gain - 1e-9 * prior
         for min_gain in (0.01, 0.1, 0.3):
-            res = split_ci_update(P, Pi, Measurement(np.zeros(m), H, Ri), Rd, IDX, min_gain=min_gain)[3]
+            dx, Pp, Pip, res = split_ci_update(P, Pi, Measurement(np.zeros(m), H, Ri, "r"), Rd, IDX,
+                                               min_gain=min_gain)
             assert res.skipped == (ci_gain < min_gain * prior)
             skipped += res.skipped
+            if res.skipped:  # nothing applied, and the result says so
+                assert Pp is P and Pip is Pi and not dx.any() and not res.dx.any()
+                assert not res.accepted and res.dof == m and res.name == "r" and res.gain is None
+                assert np.isnan(res.nis) and res.dx.shape == (6,)
+            else:
+                assert res.accepted and res.gain.shape == (6, m) and 0.0 < res.omega < 1.0
     assert 0 < skipped < 600  # both outcomes occur
 
 

@@ -320,3 +320,52 @@ def test_the_joseph_form_holds_for_any_gain(rng: np.random.Generator) -> None:
     Kc[consider] = 0.0
     assert np.allclose(dx[consider], 0.0) and np.allclose(Pc[4:, 4:], P[4:, 4:], rtol=1e-12)
     assert np.allclose(Pc, (np.eye(n) - Kc @ H) @ P @ (np.eye(n) - Kc @ H).T + Kc @ R @ Kc.T, rtol=1e-10)
+
+
+def test_vehicle_pseudo_measurements_in_closed_form() -> None:
+    """ZUPT, ZARU and NHC: their innovations where the constraint holds exactly (zero), their
+    noise matrices, dimensions and names. A body at rest reads the earth's rotation in its
+    gyros: ZARU removes it (and the estimated bias) from the mean rate."""
+    s = moving_state(yaw=0.7)
+    z = zero_velocity(s, 0.02)
+    assert z.name == "zupt" and np.array_equal(z.z, s.v) and np.allclose(z.R, np.eye(3) * 4e-4)
+    s.bg = np.array([1e-4, -2e-4, 3e-4])
+    w_ie_b = s.dcm.T @ earth.earth_rate_ned(s.lat)
+    zr = zero_angular_rate(s, w_ie_b + s.bg, 1e-3)
+    assert zr.name == "zaru" and np.allclose(zr.z, 0.0, atol=1e-15) and np.allclose(zr.R, np.eye(3) * 1e-6)
+    assert np.allclose(zero_angular_rate(s, w_ie_b + s.bg + [1e-5, 0, 0], 1e-3).z, [1e-5, 0, 0], atol=1e-15)
+    # NHC: a velocity along the body's forward axis has no lateral or vertical component
+    s.v = s.dcm @ np.array([12.0, 0.0, 0.0])
+    nh = non_holonomic(s, 0.1, 0.3)
+    assert nh.name == "nhc" and nh.dim == 2 and np.allclose(nh.z, 0.0, atol=1e-12)
+    assert np.allclose(nh.R, np.diag([0.01, 0.09]))
+    assert np.allclose(non_holonomic(s, 0.1).R, np.diag([0.01, 0.01]))
+    s.v = s.dcm @ np.array([12.0, 0.5, -0.2])
+    assert np.allclose(non_holonomic(s, 0.1).z, [0.5, -0.2])
+
+
+def test_stacking_keeps_each_block_and_the_name() -> None:
+    a = Measurement(np.array([1.0]), np.ones((1, 4)), np.array([[2.0]]), "a")
+    b = Measurement(np.array([3.0, 4.0]), np.arange(8.0).reshape(2, 4), np.array([[5.0, 0.5], [0.5, 6.0]]), "b")
+    s = stack([a, b])
+    assert s.name == "stacked" and stack([a, b], "gnss").name == "gnss"
+    assert np.array_equal(s.z, [1.0, 3.0, 4.0]) and np.array_equal(s.H, np.vstack([a.H, b.H]))
+    assert np.array_equal(s.R, block_diag(a.R, b.R))
+
+
+def test_chi2_survival_at_and_below_zero_is_one() -> None:
+    from agent.nav.kalman import chi2_survival
+
+    for dof in (1, 2, 3, 4):
+        assert chi2_survival(0.0, dof) == 1.0 and chi2_survival(-1.0, dof) == 1.0
+    assert chi2_survival(2.0, 2) == pytest.approx(math.exp(-1.0), rel=1e-14)
+
+
+def test_lines_from_points_and_slope_intercept() -> None:
+    """Both constructors give a unit direction and a point on the line, away from the origin."""
+    ln = Line2D.from_points((3.0, -2.0), (7.0, 1.0))
+    assert np.allclose(ln.direction, [0.8, 0.6]) and ln.point == (3.0, -2.0)
+    assert ln.signed_distance(np.array([7.0, 1.0])) == pytest.approx(0.0, abs=1e-12)
+    sl = Line2D.from_slope_intercept(2.0, 5.0)
+    assert np.allclose(sl.direction, np.array([1.0, 2.0]) / math.sqrt(5.0)) and sl.point == (0.0, 5.0)
+    assert sl.signed_distance(np.array([1.0, 7.0])) == pytest.approx(0.0, abs=1e-12)  # y = 2x + 5 at x = 1
