@@ -62,14 +62,17 @@ def _error(est: _Offset, truth: _Offset) -> np.ndarray:
     return dx
 
 
-@pytest.mark.parametrize("yaw", [0.0, 0.6, -2.4])
-def test_F_matches_numerical_error_dynamics(yaw: float) -> None:
+def _turning(yaw: float) -> tuple[NavState, _Offset, np.ndarray, np.ndarray]:
+    """A moving state without biases, as truth, and constant body rate and specific force."""
     base = moving_state(yaw)
     base.bg = np.zeros(3)
     base.ba = np.zeros(3)
-    truth = _Offset(base, 0.0, 0.0, base)
-    w_ib = np.array([0.01, -0.02, 0.15])
-    f_b = np.array([0.8, -1.5, -9.6])
+    return base, _Offset(base, 0.0, 0.0, base), np.array([0.01, -0.02, 0.15]), np.array([0.8, -1.5, -9.6])
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.6, -2.4])
+def test_F_matches_numerical_error_dynamics(yaw: float) -> None:
+    base, truth, w_ib, f_b = _turning(yaw)
     tau = MEMS_NOISE.gyro_bias_tau
     noise = ImuNoise(MEMS_NOISE.arw, MEMS_NOISE.vrw, MEMS_NOISE.gyro_bias_sigma, tau,
                      MEMS_NOISE.accel_bias_sigma, tau)
@@ -203,12 +206,7 @@ def test_G_matches_numerical_error_dynamics_of_sensor_noise(yaw: float) -> None:
     measured rate and specific force (true + noise), the truth the true ones, and the error's
     rate per unit of noise is G's gyro and accelerometer columns (the sign included: a rate
     measured too large turns the estimate the other way from a bias estimated too large)."""
-    base = moving_state(yaw)
-    base.bg = np.zeros(3)
-    base.ba = np.zeros(3)
-    truth = _Offset(base, 0.0, 0.0, base)
-    w_ib = np.array([0.01, -0.02, 0.15])
-    f_b = np.array([0.8, -1.5, -9.6])
+    base, truth, w_ib, f_b = _turning(yaw)
     tau = MEMS_NOISE.gyro_bias_tau
 
     def central(noise: np.ndarray, h: float) -> np.ndarray:
