@@ -133,6 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--seeds", type=_positive_int, default=None, metavar="N",
                     help="N seeded runs (seeds S..S+N-1) spread over the cores, with mean ± sd")
     rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")
+    rn.add_argument("--strict", action="store_true",
+                    help="with --seeds: exit 1 if a seed fails twice (default: report the others and exit 0)")
     rn.add_argument("--faults", type=Path, default=None,
                     help="fault schedule (TOML): link, sensor and process faults, shown on the report")
     rn.add_argument("--agent-nice", type=int, choices=range(0, 20), default=5, metavar="0-19",
@@ -398,7 +400,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     scn = load_scenario(args.scenario)
     name = args.scenario.replace("/", "_").removesuffix(".toml")
     if args.seeds:
-        from .study import run_study, study_markdown
+        from .study import StudyError, run_study, study_markdown
 
         out = args.out or Path("runs") / f"{name}-{args.seeds}seeds"
         seeds = list(range(args.seed, args.seed + args.seeds))
@@ -408,12 +410,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
             k = int(30 * done / total)
             print(f"  [{'#' * k}{'.' * (30 - k)}] {done}/{total} (seed {seed} done)", flush=True)
 
-        study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign,
-                          agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
-                          zenoh_mode=args.zenoh_mode)
+        try:
+            study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign,
+                              agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
+                              zenoh_mode=args.zenoh_mode)
+        except StudyError as exc:
+            print(f"slcp run: {exc}", file=sys.stderr)
+            return 1
         text = study_markdown(scn, study)
         (out / "report.md").write_text(text)
         print(text)
+        if study["failed_seeds"]:
+            print(f"slcp run: {len(study['failed_seeds'])} of {args.seeds} seeds failed and are left out "
+                  f"(seeds {', '.join(study['failed_seeds'])}; see {out}/failed-seed-*/logs)", file=sys.stderr)
+            return 1 if args.strict else 0
         return 0
     out = args.out or Path("runs") / f"{name}-seed{args.seed}"
     print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")

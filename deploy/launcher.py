@@ -133,6 +133,19 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     return metrics
 
 
+def _check_resume_progressed(restarts: list[dict], t_now: float, how: str, out: Path) -> None:
+    """Refuse to resume the emulator a second time at the same point: a resumed emulator that
+    failed before the fleet's sensor time moved past its resume point stalls or crashes
+    deterministically there, and another restart would only repeat it (and cost the watchdog's
+    whole timeout each time)."""
+    last = next((r for r in reversed(restarts) if r["process"] == "emulator"), None)
+    if last is None or t_now > last["resumed_at_t_s"]:
+        return
+    raise RuntimeError(f"the emulator resumed at t={last['resumed_at_t_s']:.2f} s {how} before the fleet got past "
+                       f"that time, as it had the first time: a failure that repeats at that point, so it is not "
+                       f"restarted again (its log and thread stacks: {out / 'logs' / 'emulator.log'})")
+
+
 async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Path, progress,
                      max_restarts: int = 3, faults: list | None = None, monitor=None,
                      wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client",
@@ -144,7 +157,9 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
     recorded for ``wait_agents + stall_s`` [s, wall] it is killed and resumed like a crashed
     one, and once the fleet's estimates have reached the scenario's end ``end_t`` [s, sensor
     time] it gets ``exit_grace_s`` [s, wall] of silence to exit before it is killed (counted in
-    ``stats["emulator_killed_at_end"]``; its scenario was played, so the run goes on)."""
+    ``stats["emulator_killed_at_end"]``; its scenario was played, so the run goes on). A resumed
+    emulator that fails again before the fleet gets past its resume point is not restarted a
+    second time there: the run fails with what was seen (:func:`_check_resume_progressed`)."""
     from transport.zenoh_bus import LIGHT_CLIENT_RUNTIME, ZenohBus, ZenohConfig
 
     agent_env = {} if "ZENOH_RUNTIME" in os.environ else {"ZENOH_RUNTIME": LIGHT_CLIENT_RUNTIME}
@@ -183,6 +198,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
             monitor.attach(router, procs)
         last = 0.0
         prev_diag: dict = {}
+        silenced: float | None = None  # the watchdog killed the emulator after this long [s] of silence
         while True:
             silent = time.monotonic() - max(emu_started, max(rec.last_wall.values(), default=-math.inf))
             at_end = end_t is not None and max(rec.latest_t.values(), default=0.0) >= end_t - 1.0
@@ -191,6 +207,7 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 log.warning("the emulator has been silent for %.0f s%s; killing it (its stacks: logs/emulator.log)",
                             silent, " after the scenario's end" if at_end else "")
                 await asyncio.to_thread(_dump_and_kill, emu)
+                silenced = silent
                 if at_end:
                     stats["emulator_killed_at_end"] = True
                     break
@@ -202,6 +219,9 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                     raise RuntimeError(f"the emulator exited {max_restarts + 1} times; see {out / 'logs'}")
                 now, rc = time.monotonic(), emu.returncode
                 t_resume = max(rec.latest_t.values(), default=0.0)
+                _check_resume_progressed(restarts, t_resume, f"was killed after {silenced:.0f} s of silence"
+                                         if silenced is not None else f"exited with {rc}", out)
+                silenced = None
                 log.warning("the emulator exited with %s; restarting it at t=%.2f s", rc, t_resume)
                 lf = open(out / "logs" / "emulator.log", "a")
                 logs.append(lf)

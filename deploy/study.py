@@ -20,8 +20,10 @@ and ``<out>/report.md``:
 from __future__ import annotations
 
 import json
+import logging
 import multiprocessing as mp
 import os
+import shutil
 import signal
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -29,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from agent.methods import DEFAULT_FUSION, METHODS
+
+log = logging.getLogger(__name__)
 
 
 def anees_band(n_runs: int, dim: int = 2, probability: float = 0.95) -> tuple[float, float]:
@@ -149,22 +153,61 @@ def _stop_with_parent(period: float = 0.5) -> None:
     threading.Thread(target=watch, name="stop-with-parent", daemon=True).start()
 
 
+class StudyError(RuntimeError):
+    """No seed of a study finished: there is nothing to aggregate."""
+
+
 def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHODS, out: Path = Path("runs/study"),
               fusion: str = DEFAULT_FUSION, jobs: int | None = None, progress=None, sign: bool = True,
-              agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client") -> dict:
-    """Run the seeds and aggregate; ``progress(done, total, seed)`` after each run."""
+              agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client",
+              runner=None, retries: int = 1) -> dict:
+    """Run the seeds and aggregate; ``progress(done, total, seed)`` after each finished seed.
+
+    A seed whose run fails is run again (``retries`` times, into a fresh folder); one that still
+    fails is left out of the aggregate and named, with its error, in ``study["failed_seeds"]``
+    (seed -> error text), so that one bad seed costs a study that seed, not the others. If no
+    seed finishes, :class:`StudyError`. ``runner`` (tests) replaces the fleet run of one seed:
+    a picklable callable with :func:`_one`'s arguments."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(seeds)))
     per_seed: dict[int, dict] = {}
+    failed: dict[int, str] = {}
+    tries = dict.fromkeys(seeds, 0)
     pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
+
+    def set_aside(s: int) -> None:
+        """Keep a failed try's files (its logs say why) out of the study's ``seed-*`` runs."""
+        seed_dir = out / f"seed-{s}"
+        if seed_dir.exists():
+            failed_dir = out / f"failed-seed-{s}-try{tries[s]}"
+            shutil.rmtree(failed_dir, ignore_errors=True)
+            seed_dir.rename(failed_dir)
+
+    def submit(s: int):
+        tries[s] += 1
+        seed_dir = out / f"seed-{s}"
+        return pool.submit(_interruptible, runner or _one, scenario, methods, s, str(seed_dir), fusion, sign,
+                           agent_nice, lane_constraint, zenoh_mode)
+
     try:
-        futs = {pool.submit(_interruptible, _one, scenario, methods, s, str(out / f"seed-{s}"), fusion, sign,
-                            agent_nice, lane_constraint, zenoh_mode): s for s in seeds}
-        for fut in as_completed(futs):
-            per_seed[futs[fut]] = fut.result()
+        futs = {submit(s): s for s in seeds}
+        while futs:
+            done = next(as_completed(futs))
+            s = futs.pop(done)
+            try:
+                per_seed[s] = done.result()
+            except Exception as exc:  # a seed that failed (a run error, or its worker died)
+                reason = f"{type(exc).__name__}: {exc}"
+                set_aside(s)
+                if tries[s] <= retries:
+                    log.warning("seed %d failed (%s); running it again", s, reason)
+                    futs[submit(s)] = s
+                    continue
+                log.warning("seed %d failed again (%s); the study goes on without it", s, reason)
+                failed[s] = reason
             if progress:
-                progress(len(per_seed), len(seeds), futs[fut])
+                progress(len(per_seed) + len(failed), len(seeds), s)
     except BaseException:
         # interrupted: no new seed starts, then each worker stops its own fleet (SIGTERM -> its
         # cleanup) and the workers are joined
@@ -177,7 +220,10 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
             proc.join(timeout=30)
         raise
     pool.shutdown(wait=True)
+    if not per_seed:
+        raise StudyError("no seed of the study finished: " + "; ".join(f"seed {s}: {r}" for s, r in sorted(failed.items())))
     study = aggregate(out, per_seed)
+    study["failed_seeds"] = {str(s): r for s, r in sorted(failed.items())}
     study["fusion"] = fusion
     study["lane_constraint"] = lane_constraint
     from hw_emulation.scenario import load_scenario
@@ -272,6 +318,10 @@ def study_markdown(scn, study: dict) -> str:
              "along-track / cross-track RMSE [m], the posterior CRLB (RMS over the window, mean over the seeds), "
              "the RMSE over it, the share of estimates whose reported σ is below it, and the window's horizontal "
              "ANEES (n = 2) over every estimate of every seed, marked when outside the two-sided 95 % band.", ""]
+    failed = study.get("failed_seeds") or {}
+    if failed:
+        lines += [f"**{len(failed)} seed(s) failed and are left out** (their files: `failed-seed-*`):", ""]
+        lines += [f"- seed {s}: {r}" for s, r in sorted(failed.items(), key=lambda kv: int(kv[0]))] + [""]
     for w, table in study["rmse"].items():
         lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
         for vid, cells in table.items():
@@ -372,5 +422,6 @@ def rebuild_study(out: Path) -> dict:
             study["stance_draws"] = old["stance_draws"]
     study["fusion"] = old.get("fusion", next(iter(per_seed.values())).get("fusion", "?"))
     study["lane_constraint"] = old.get("lane_constraint", next(iter(per_seed.values())).get("lane_constraint"))
+    study["failed_seeds"] = {s: r for s, r in old.get("failed_seeds", {}).items() if int(s) not in per_seed}
     (out / "study.json").write_text(json.dumps(study, indent=2))
     return study

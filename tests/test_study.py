@@ -258,3 +258,62 @@ def test_the_stance_check_of_many_seeds_sees_the_scenarios_sigma() -> None:
     assert st["stance_draws"]["V2"]["lateral"]["inside"] is False
     md = study_markdown(scn, st)
     assert "## The drivers' draws" in md and "| V2 | 0.89 | 1.77 (outside) | 2.66 |" in md
+
+
+@pytest.mark.timeout(240)
+def test_a_study_survives_a_seed_that_cannot_start(tmp_path) -> None:
+    """Seed 1's emulator never publishes (no agent ever reports): the launcher gives it up after
+    one resume at the same point, the study runs the seed once more, then aggregates seed 0
+    alone, names seed 1 and why in study.json and the report, keeps each failed try's files
+    apart from the study's runs, and leaves no process behind."""
+    import json
+    import subprocess
+
+    import _study_seed
+
+    from deploy.study import rebuild_study, run_study
+    from hw_emulation.scenario import load_scenario
+
+    out = tmp_path / "study"
+    try:
+        study = run_study("paper-1", [0, 1], ("SP",), out, jobs=2, runner=_study_seed.runner)
+        assert study["seeds"] == [0]
+        assert list(study["failed_seeds"]) == ["1"]
+        assert "not restarted again" in study["failed_seeds"]["1"]
+        assert (out / _study_seed.TRIES_FILE).read_text().split() == ["1", "1"]  # retried once
+        assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["failed-seed-1-try1", "failed-seed-1-try2",
+                                                                       "seed-0"]
+        assert (out / "failed-seed-1-try2" / "logs" / "emulator.log").is_file()
+        assert json.loads((out / "study.json").read_text())["failed_seeds"] == study["failed_seeds"]
+        text = study_markdown(load_scenario("paper-1"), study)
+        assert "1 seed(s) failed and are left out" in text and "- seed 1: RuntimeError" in text
+        assert rebuild_study(out)["failed_seeds"] == study["failed_seeds"]  # `slcp report` keeps them
+        left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()
+        assert left == [], left
+    finally:
+        subprocess.run(["pkill", "-KILL", "-f", str(out)], check=False)
+
+
+@pytest.mark.parametrize("strict, code", [(False, 0), (True, 1)])
+def test_a_study_with_a_failed_seed_exits_non_zero_only_when_strict(strict, code, tmp_path, monkeypatch,
+                                                                      capsys) -> None:
+    import deploy.study as study_mod
+    from deploy.cli import main
+
+    def fake(scenario, seeds, methods, out, *a, **k):
+        out.mkdir(parents=True)
+        return {"seeds": seeds[:-1], "failed_seeds": {str(seeds[-1]): "RuntimeError: stalled"}}
+
+    monkeypatch.setattr(study_mod, "run_study", fake)
+    monkeypatch.setattr(study_mod, "study_markdown", lambda scn, study: "# report\n")
+    argv = ["run", "paper-1", "--seeds", "3", "--out", str(tmp_path / "s")] + (["--strict"] if strict else [])
+    assert main(argv) == code
+    err = capsys.readouterr().err
+    assert "1 of 3 seeds failed" in err and "seeds 2" in err
+
+    def none(*a, **k):
+        raise study_mod.StudyError("no seed of the study finished: seed 0: RuntimeError: stalled")
+
+    monkeypatch.setattr(study_mod, "run_study", none)
+    assert main(argv) == 1
+    assert "no seed of the study finished" in capsys.readouterr().err
