@@ -26,6 +26,7 @@ import os
 import shutil
 import signal
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import numpy as np
@@ -197,7 +198,9 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
             s = futs.pop(done)
             try:
                 per_seed[s] = done.result()
-            except Exception as exc:  # a seed that failed (a run error, or its worker died)
+            except BrokenProcessPool:  # a worker interrupted (SIGTERM): the study stops, below
+                raise
+            except Exception as exc:  # a seed whose run failed
                 reason = f"{type(exc).__name__}: {exc}"
                 set_aside(s)
                 if tries[s] <= retries:
