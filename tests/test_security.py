@@ -210,3 +210,49 @@ def test_security_section_errors_name_the_field(fleet, tmp_path) -> None:
     create_fleet(tmp_path / "small", ["V0"])
     with pytest.raises(ConfigError, match="no vehicle certificate for V1"):
         load_agent_config(cfg(f'[security]\ntrust_dir = "{tmp_path / "small"}"\nkey = "{fleet / "V1.key"}"\n'), None)
+
+
+def test_the_fleet_is_a_valid_x509_pki_for_tls(tmp_path) -> None:
+    """What ``create_fleet`` writes, checked as TLS will check it: the router's certificate
+    validates for 127.0.0.1 and localhost, and a vehicle's as a client, under a path validator
+    (cryptography's, the web-PKI profile: a CA limited to signing certificates, critical basic
+    constraints, leaves that are no CA); and the profile field by field."""
+    import datetime as dt
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+    from cryptography.x509.verification import PolicyBuilder, Store
+
+    d = tmp_path / "a" / "b"  # created with its parents
+    written = create_fleet(d, ["V0"], days=30)
+    assert sorted(p.name for p in written) == sorted(f"{n}.{e}" for n in ("ca", "V0", "router", "emulator", "recorder")
+                                                    for e in ("key", "crt"))
+    certs = {p.stem: x509.load_pem_x509_certificate(p.read_bytes()) for p in written if p.suffix == ".crt"}
+    ca = certs["ca"]
+    assert ca.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == "slcp fleet CA"
+    bc = ca.extensions.get_extension_for_class(x509.BasicConstraints)
+    assert bc.critical and bc.value.ca and bc.value.path_length == 0
+    ku = ca.extensions.get_extension_for_class(x509.KeyUsage)
+    assert ku.critical and ku.value.key_cert_sign and ku.value.crl_sign
+    assert not (ku.value.digital_signature or ku.value.key_encipherment or ku.value.content_commitment
+                or ku.value.data_encipherment or ku.value.key_agreement)
+    for name, cert in certs.items():
+        life = cert.not_valid_after_utc - cert.not_valid_before_utc
+        assert dt.timedelta(days=30) < life <= dt.timedelta(days=30, minutes=6), name
+        if name == "ca":
+            continue
+        bc = cert.extensions.get_extension_for_class(x509.BasicConstraints)
+        assert bc.critical and not bc.value.ca
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName)
+        assert not san.critical and name in san.value.get_values_for_type(x509.DNSName)
+    san = certs["router"].extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert san.get_values_for_type(x509.IPAddress) == [ipaddress.ip_address("127.0.0.1")]
+    assert "localhost" in san.get_values_for_type(x509.DNSName)
+    store = Store([ca])
+    for host in (x509.IPAddress(ipaddress.ip_address("127.0.0.1")), x509.DNSName("localhost")):
+        PolicyBuilder().store(store).build_server_verifier(host).verify(certs["router"], [])
+    PolicyBuilder().store(store).build_client_verifier().verify(certs["V0"], [])
+    for reserved in ("ca", "router", "emulator", "recorder"):
+        with pytest.raises(SecurityError, match="reserved"):
+            create_fleet(tmp_path / "r", [reserved])

@@ -203,6 +203,7 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
         ca_cert = (_builder(name, name, ca_key.public_key(), days)
                    .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
                    .add_extension(x509.KeyUsage(False, False, False, False, False, True, True, False, False), critical=True)
+                   .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
                    .sign(ca_key, hashes.SHA256()))
         written += _write_pair(d, "ca", ca_key, ca_cert)
     else:
@@ -216,8 +217,12 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
         key = ec.generate_private_key(_CURVE)
         subject = x509.Name([x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, role),
                              x509.NameAttribute(NameOID.COMMON_NAME, name)])
+        # key identifiers: RFC 5280 asks for them, and path validators of the web-PKI profile
+        # refuse a leaf without the authority's
         b = (_builder(subject, ca_cert.subject, key.public_key(), days)
-             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True))
+             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+             .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_cert.public_key()), critical=False)
+             .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False))
         alt = [x509.DNSName(name)]
         for h in sans:
             try:
