@@ -256,3 +256,56 @@ def test_the_fleet_is_a_valid_x509_pki_for_tls(tmp_path) -> None:
     for reserved in ("ca", "router", "emulator", "recorder"):
         with pytest.raises(SecurityError, match="reserved"):
             create_fleet(tmp_path / "r", [reserved])
+
+
+def test_each_bad_key_or_certificate_is_refused_with_its_reason(fleet, tmp_path) -> None:
+    """Keys and certificates that are not the fleet's P-256 profile, expired or not yet valid,
+    without a role or a vehicle id, or not PEM at all: each refusal says what is wrong."""
+    import datetime as dt
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec, rsa
+    from cryptography.x509.oid import NameOID
+
+    with pytest.raises(SecurityError, match="V1: the signing key must be an ECDSA P-256 key"):
+        BeaconSigner("V1", ec.generate_private_key(ec.SECP384R1()))
+    with pytest.raises(SecurityError, match="V1: the signing key must be an ECDSA P-256 key"):
+        BeaconSigner("V1", rsa.generate_private_key(65537, 2048))
+    rsa_pem = tmp_path / "rsa.key"
+    rsa_pem.write_bytes(rsa.generate_private_key(65537, 2048).private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()))
+    with pytest.raises(SecurityError, match="rsa.key: not an elliptic-curve key"):
+        BeaconSigner.from_file("V1", rsa_pem)
+    ca_key = serialization.load_pem_private_key((fleet / "ca.key").read_bytes(), None)
+    ca = x509.load_pem_x509_certificate((fleet / "ca.crt").read_bytes())
+    now = dt.datetime.now(dt.timezone.utc)
+
+    def cert(cn: str = "V7", ou: str | None = "vehicle", key=None, start=-1.0, days=10.0) -> x509.Certificate:
+        attrs = ([x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, ou)] if ou else []) + \
+            [x509.NameAttribute(NameOID.COMMON_NAME, cn)]
+        key = key or ec.generate_private_key(ec.SECP256R1())
+        return (x509.CertificateBuilder().subject_name(x509.Name(attrs)).issuer_name(ca.subject)
+                .public_key(key.public_key()).serial_number(x509.random_serial_number())
+                .not_valid_before(now + dt.timedelta(days=start)).not_valid_after(now + dt.timedelta(days=start + days))
+                .sign(ca_key, hashes.SHA256()))
+
+    assert TrustStore(ca, [cert()]).vehicles() == ["V7"]
+    for bad, match in [
+        (cert(start=-20.0), "certificate of 'V7' is outside its validity period"),  # expired
+        (cert(start=1.0), "certificate of 'V7' is outside its validity period"),  # not yet valid
+        (cert(key=ec.generate_private_key(ec.SECP384R1())), "certificate of 'V7': not an ECDSA P-256 key"),
+        (cert(ou=None), "OU must be vehicle or infrastructure"),
+        (cert(ou="guest"), "OU must be vehicle or infrastructure"),
+        (cert(cn="not a name!"), "CN is not a vehicle id"),
+    ]:
+        with pytest.raises(SecurityError, match=match):
+            TrustStore(ca, [bad])
+    d = tmp_path / "d"
+    d.mkdir()
+    shutil.copy(fleet / "ca.crt", d / "ca.crt")
+    with pytest.raises(SecurityError, match="d: no vehicle certificates"):
+        TrustStore.from_dir(d)
+    (d / "V1.crt").write_text("garbage")
+    with pytest.raises(SecurityError, match="V1.crt: not a PEM certificate"):
+        TrustStore.from_dir(d)

@@ -122,6 +122,20 @@ def test_uwb_outliers_go_both_ways_within_their_size(rng) -> None:
     close = simulate_pair(model, np.arange(n) / model.rate, np.full(n, 2.0), rng)
     assert (close.range[close.delivered] >= 0).all()  # a short outlier at 2 m stays a distance
 
+
+def test_radio_without_jitter_and_at_its_range_limit(rng) -> None:
+    """No jitter: every latency is ``latency_min``; the range limit is inclusive, and past it
+    nothing arrives whatever the loss; no loss: everything within range arrives."""
+    model = RadioModel(loss=0.0, ge_p_good_to_bad=0.0, jitter_mean=0.0, stale_prob=0.0, max_range=100.0)
+    t = np.arange(1000) * 0.2
+    d = simulate_link(model, t, np.full(1000, 100.0), rng)
+    assert d.delivered.all() and np.allclose(d.t_arrive - t, model.latency_min, atol=1e-12)
+    assert not simulate_link(model, t, np.full(1000, 100.001), rng).delivered.any()
+    jit = simulate_link(RadioModel(loss=0.0, ge_p_good_to_bad=0.0, stale_prob=0.0), t, np.full(1000, 5.0), rng)
+    lat = jit.t_arrive - t
+    assert lat.min() >= 0.001 - 1e-12 and lat.max() <= 0.020 + 1e-12 and lat.std() > 0.001  # float sums
+
+
 def test_radio_loss_burstiness_latency_and_range(rng) -> None:
     model = RadioModel()
     n = 300_000
