@@ -91,6 +91,47 @@ def test_range_rate_gate_follows_motion_and_restarts() -> None:
     assert g.check("B", 5.0, 60.0, 0.0)         # after a long gap the track restarts
 
 
+
+def test_range_rate_gate_width_in_closed_form_and_forget() -> None:
+    """The gate at elapsed time dt is ``max_jump + k σ_rate dt`` around the predicted range,
+    both edges inclusive; the track keeps to the neighbour; ``forget`` starts it anew."""
+    from agent.range_gate import RangeRateGate
+
+    g = RangeRateGate(max_jump=0.5, sigma_rate=0.4, k=3.0, max_gap=2.0)
+    width = 0.5 + 3.0 * 0.4 * 0.25  # 0.8 m after 0.25 s
+    for edge, ok in ((width - 1e-9, True), (width + 1e-6, False), (-width + 1e-9, True), (-width - 1e-6, False)):
+        g = RangeRateGate(max_jump=0.5, sigma_rate=0.4, k=3.0, max_gap=2.0)
+        assert g.check("B", 10.0, 30.0, 2.0)
+        assert g.check("B", 10.25, 30.5 + edge, 2.0) == ok, edge  # predicted 30.5 m
+    g = RangeRateGate(max_jump=0.5, sigma_rate=0.4, k=3.0, max_gap=2.0)
+    assert g.check("B", 0.0, 30.0, 0.0) and g.check("C", 0.0, 80.0, 0.0)  # one track per neighbour
+    assert g.check("B", 1.99, 30.0 + 0.5 + 3.0 * 0.4 * 1.99 - 1e-6, 0.0)  # within max_gap: extrapolated
+    assert not g.check("C", 0.1, 90.0, 0.0)
+    g.forget("C")
+    assert g.check("C", 0.2, 90.0, 0.0)  # a new track: anything goes
+    assert not g.check("C", 0.3, 95.0, 0.0)
+
+
+def test_a_forgotten_neighbour_leaves_no_state_in_the_misbehaviour_detector() -> None:
+    """After ``forget`` (the neighbour left), a range is not checked against its old claim, and
+    its next beacon starts a new motion history instead of being compared with the old one."""
+    from agent.misbehaviour import MisbehaviourDetector
+    from agent.nav import earth
+
+    o = np.array([0.7, 2.0, 50.0])
+    cov = np.diag([0.25, 0.25, 1.0])
+    det = MisbehaviourDetector()
+    assert det.beacon("V9", "CP", 0.0, earth.offset_llh(o, np.array([60.0, 0.0, 0.0])), np.zeros(3), cov) is None
+    assert det.range("V9", 0.1, 20.0, o, cov, 0.1) == "range"  # 60 m claimed, 20 m measured
+    det.forget("V9")
+    assert det.range("V9", 0.2, 20.0, o, cov, 0.1) is None  # nothing to check against
+    # a beacon 500 m away 0.2 s later would fail the motion test against the old one
+    far = earth.offset_llh(o, np.array([500.0, 0.0, 0.0]))
+    assert det.beacon("V9", "CP", 0.4, far, np.zeros(3), cov) is None
+    det2 = MisbehaviourDetector()
+    det2.beacon("V9", "CP", 0.0, earth.offset_llh(o, np.array([60.0, 0.0, 0.0])), np.zeros(3), cov)
+    assert det2.beacon("V9", "CP", 0.2, far, np.zeros(3), cov) == "motion"
+
 def test_displacement_since_interpolates_the_recent_history() -> None:
     """The INS displacement since a past time equals the displacement accumulated since then,
     linearly interpolated in the 20 Hz history (checked against np.interp), zero outside it."""
