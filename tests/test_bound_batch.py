@@ -247,3 +247,15 @@ def test_one_step_range_weight_in_closed_form() -> None:
     assert cov["V0"][0, 0, 0] == pytest.approx(np.linalg.inv(info)[0, 0], rel=1e-6)
     assert cov["V1"][0, 0, 0] == pytest.approx(np.linalg.inv(info)[1, 1], rel=1e-6)
     assert cov["V0"][0, 1, 1] == pytest.approx(1 / (1 / s**2 + 1e-4), rel=1e-6)  # east: no range information
+
+
+def test_the_bound_at_a_time_is_the_latest_step_not_after_it() -> None:
+    from deploy.bound import Bound
+
+    cov = np.zeros((3, 2, 2))
+    cov[:, 0, 0] = [9.0, 4.0, 1.0]
+    cov[:, 1, 1] = [16.0, 5.0, 3.0]
+    b = Bound(np.array([10.0, 10.2, 10.4]), {("SP", "V0"): cov})
+    assert np.allclose(b.sigma_h("SP", "V0"), [5.0, 3.0, 2.0])
+    got = b.at("SP", "V0", np.array([9.0, 10.0, 10.1, 10.2 - 1e-12, 10.2, 10.39, 10.4, 99.0]))
+    assert np.allclose(got, [5.0, 5.0, 5.0, 3.0, 3.0, 3.0, 2.0, 2.0])
