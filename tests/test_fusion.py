@@ -170,3 +170,17 @@ def test_unshared_states_stay_out_of_the_inflation(unshared: bool) -> None:
         assert flt.P[8, 8] > 1.1 * P0[8, 8]
     # the independent part stays a part: P − P_ind ⪰ 0
     assert np.linalg.eigvalsh(flt.P - flt.P_ind).min() > -1e-9
+
+
+def test_a_gated_split_ci_update_changes_nothing_and_says_why() -> None:
+    """A range far outside its χ² gate: the priors come back unchanged, with the NIS that
+    rejected it, its dimension and name, and the ω it was weighed with."""
+    rng = np.random.default_rng(3)
+    Pd, Pi = _spd(rng, 6, 1.0), _spd(rng, 6, 0.5)
+    P = Pd + Pi
+    H, Rd, Ri = rng.normal(size=(1, 6)), np.array([[0.5]]), np.array([[0.01]])
+    dx, Pp, Pip, res = split_ci_update(P, Pi, Measurement(np.array([1e3]), H, Ri, "range"), Rd, IDX,
+                                       gate_probability=0.999)
+    assert Pp is P and Pip is Pi and not dx.any() and not res.dx.any() and res.dx.shape == (6,)
+    assert not res.accepted and res.name == "range" and res.dof == 1 and res.gain is None
+    assert res.nis > 1e4 and 0.0 < res.omega < 1.0

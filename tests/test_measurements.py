@@ -194,6 +194,11 @@ def test_range_with_road_height_offset_ignores_the_estimated_heights() -> None:
     assert m4.R[0, 0] == pytest.approx(m.R[0, 0] + (0.8 / 50.0 * 0.3) ** 2, rel=1e-3)
     for offset in ((0.0, 0.3), (0.8, 0.3)):
         _check_jacobian(lambda st: range_measurement(st, 50.0, 0.1, nb, Pj, LEVER, height_offset=offset), tol=3e-5)
+    # a large, uncertain offset: R = σ² + (u_v σ_dh)² + u_hᵀ P_h u_h along the slanted line
+    m8 = range_measurement(s, 50.0, 0.1, nb, Pj, height_offset=(8.0, 2.0))
+    rho = math.hypot(50.0, 8.0)
+    u_h = np.array([-0.6, -0.8]) * 50.0 / rho
+    assert m8.R[0, 0] == pytest.approx(0.01 + (8.0 / rho * 2.0) ** 2 + u_h @ Pj[:2, :2] @ u_h, rel=2e-3)
 
 
 def test_range_r_includes_neighbour_covariance_and_second_order_terms() -> None:

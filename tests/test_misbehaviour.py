@@ -199,3 +199,32 @@ def test_attacks_on_a_running_fleet_are_detected_within_a_second(kind) -> None:
     for v, r in run["receivers"].items():
         assert r["detected"], (v, r)
     assert run["honest_excluded"] == 0 and run["honest_beacons"] > 100
+
+
+def test_the_motion_tests_in_closed_form() -> None:
+    """The sudden-stop test allows a braking of ``max_accel dt + velocity_step``; the motion χ²
+    weighs both axes with the acceleration allowance and the covariances' correlation: the
+    same 1.2 m mismatch fails across a thin, correlated ellipse and passes along it."""
+    cov = np.diag([0.003, 0.003, 1.0])  # σ 5.5 cm: the acceleration allowance (0.12 m) dominates
+    still, fast = np.zeros(3), np.array([3.1, 0.0, 0.0])
+    det = MisbehaviourDetector()
+    det.beacon("V9", "CP", 0.0, at(0.0, 0.0), fast, cov)
+    # 3.1 -> 0.2 m/s in 0.2 s: 2.9 m/s below the 10·0.2 + 1 = 3 m/s allowed
+    assert det.beacon("V9", "CP", 0.2, at(0.33, 0.0), np.array([0.2, 0.0, 0.0]), cov) is None
+    det = MisbehaviourDetector()
+    det.beacon("V9", "CP", 0.0, at(0.0, 0.0), np.array([3.2, 0.0, 0.0]), cov)
+    assert det.beacon("V9", "CP", 0.2, at(0.33, 0.0), np.array([0.1, 0.0, 0.0]), cov) == "acceleration"  # 3.1 m/s
+    # a 5 m jump east of where a standing vehicle was, with small covariances: a motion strike
+    det = MisbehaviourDetector()
+    det.beacon("V9", "CP", 0.0, at(0.0, 0.0), still, cov)
+    assert det.beacon("V9", "CP", 0.2, at(0.0, 5.0), still, cov) == "motion"
+    assert det.beacon("V9", "CP", 0.4, at(0.0, 5.0), still, cov) is None
+    # 0.5 m off per axis in 0.2 s: inside the allowance (χ² 12 per axis), outside without it (42)
+    for d in ((0.5, 5.0), (0.0, 5.5)):
+        assert det.beacon("V9", "CP", 0.6 + 0.2 * (d[1] == 5.5), at(*d), still, cov) is None, d
+    # correlated covariances (ρ = 0.98): thin across (1, -1), long along (1, 1)
+    corr = np.array([[1.0, 0.98, 0.0], [0.98, 1.0, 0.0], [0.0, 0.0, 1.0]]) * 0.5
+    for d, expect in (((0.85, 0.85), None), ((0.85, -0.85), "motion")):
+        det = MisbehaviourDetector()
+        det.beacon("V9", "CP", 0.0, at(0.0, 0.0), still, corr)
+        assert det.beacon("V9", "CP", 0.2, at(*d), still, corr) == expect, d

@@ -135,6 +135,24 @@ def test_radio_without_jitter_and_at_its_range_limit(rng) -> None:
     lat = jit.t_arrive - t
     assert lat.min() >= 0.001 - 1e-12 and lat.max() <= 0.020 + 1e-12 and lat.std() > 0.001  # float sums
 
+    # without bursts the long-run loss is the good state's
+    assert RadioModel(loss=0.3, ge_p_good_to_bad=0.0, ge_p_bad_to_good=0.0).expected_loss() == 0.3
+
+
+@pytest.mark.parametrize("error", [0.02, 0.4])
+def test_lane_camera_misreads_for_the_configured_share_of_the_time(error: float, rng) -> None:
+    """The misread chain's stationary share is ``error`` (its entry probability is set from the
+    exit one), with episodes of mean length ``error_tau``, at a small and a large error."""
+    from agent.lane_markings import DIVIDER
+
+    model = LaneCameraModel(error=error, error_tau=1.0, unseen=0.0)
+    n = 200_000
+    out = simulate_markings(model, np.full((n, 2), DIVIDER), rng)
+    wrong = out[:, 0] != DIVIDER
+    assert wrong.mean() == pytest.approx(error, rel=0.1)
+    starts = np.count_nonzero(wrong[1:] & ~wrong[:-1])
+    assert wrong.sum() / starts / model.rate == pytest.approx(model.error_tau, rel=0.1)
+
 
 def test_radio_loss_burstiness_latency_and_range(rng) -> None:
     model = RadioModel()
