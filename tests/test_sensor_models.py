@@ -86,6 +86,31 @@ def test_gnss_white_multipath_nlos_outage_statistics(rng) -> None:
     assert cm.shape == (len(t), 3)
 
 
+def test_gnss_nlos_bias_and_reported_sigma_in_closed_form(rng) -> None:
+    """An NLOS episode adds a horizontal bias of size U(min, max) in a uniform direction and
+    0.3 of it downward (the fix rises); the receiver reports σ = sqrt(white² + multipath²) per
+    axis, mis-scaled by a log-normal factor of median 1."""
+    t = np.arange(0, 100_000, 0.2)
+    m = GnssModel(white_h=1e-6, white_v=1e-6, multipath_h=1e-6, multipath_v=1e-6, nlos_rate=1 / 300,
+                  outage_rate=0.0)
+    e = simulate_gnss(m, t, np.ones(len(t), bool), rng)
+    b = e.pos_error[e.nlos]
+    mag = np.hypot(b[:, 0], b[:, 1])
+    # episodes seldom overlap (then their biases add as vectors and their heights as sizes)
+    up = -b[:, 2]  # NED: the fix rises
+    assert up.min() >= 0.3 * m.nlos_bias_min - 1e-3 and (up >= 0.3 * mag - 1e-3).all()
+    single = np.isclose(up, 0.3 * mag, atol=1e-3)
+    assert single.mean() > 0.8
+    assert mag[single].min() >= m.nlos_bias_min - 1e-3 and mag[single].max() <= m.nlos_bias_max + 1e-3
+    ang = np.arctan2(b[single, 1], b[single, 0])
+    assert abs(np.mean(np.cos(ang))) < 0.15 and abs(np.mean(np.sin(ang))) < 0.15  # no preferred direction
+    q = GnssModel(white_h=0.6, white_v=0.9, multipath_h=0.8, multipath_v=1.2, nlos_rate=0.0, outage_rate=0.0)
+    e = simulate_gnss(q, t[:20_000], np.ones(20_000, bool), rng)
+    ratio = e.reported_sigma / np.array([1.0, 1.0, 1.5])  # sqrt(0.6² + 0.8²), sqrt(0.9² + 1.2²)
+    assert np.allclose(ratio[:, 0], ratio[:, 2]) and np.allclose(ratio[:, 0], ratio[:, 1])
+    assert np.median(ratio[:, 0]) == pytest.approx(1.0, abs=0.02)
+
+
 def test_uwb_los_nlos_outliers_and_success(rng) -> None:
     model = UwbModel()
     n = 400_000
