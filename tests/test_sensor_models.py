@@ -31,6 +31,26 @@ def test_gauss_markov_sigma_and_correlation_time(rng) -> None:
     assert _tau_from_lag1(y, 0.1) == pytest.approx(5.0, rel=0.10)
 
 
+
+def test_a_varying_gauss_markov_process_starts_and_stays_stationary(rng) -> None:
+    """Many short runs: the first sample is already the stationary N(0, σ²) (no warm-up), and
+    so is every later one whatever τ does between them."""
+    dt = np.full(6, 0.5)
+    tau = np.array([1.0, 1.0, 100.0, 0.2, 5.0, 1.0])
+    x = np.stack([gauss_markov_varying(dt, 2.0, tau, rng)[:, 0] for _ in range(20_000)])
+    assert np.allclose(x.mean(0), 0.0, atol=0.06) and np.allclose(x.std(0), 2.0, rtol=0.03)
+    lag = np.mean(x[:, 1] * x[:, 0]) / 4.0
+    assert lag == pytest.approx(math.exp(-0.5 / 1.0), abs=0.03)
+
+
+def test_each_uwb_nlos_episode_draws_its_own_bias(rng) -> None:
+    model = UwbModel(nlos_enter=0.5, nlos_exit=0.5, outlier_prob=0.0, sigma_los=1e-6)
+    n = 5000
+    r = simulate_pair(model, np.arange(n) / model.rate, np.full(n, 20.0), rng)
+    bias = np.round(r.range[r.nlos] - 20.0, 4)
+    assert len(np.unique(bias)) > 100  # one per episode, not one for all
+    assert bias.min() >= model.nlos_bias_min - 1e-3 and bias.max() <= model.nlos_bias_max + 1e-3
+
 def test_two_state_markov_occupancy_and_dwell(rng) -> None:
     s = two_state_markov(500_000, 0.01, 0.09, rng)
     assert s.mean() == pytest.approx(0.1, abs=0.01)
