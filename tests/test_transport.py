@@ -156,6 +156,30 @@ def test_an_imu_batch_has_one_row_per_sample_in_every_field() -> None:
     with pytest.raises(CodecError, match=f"{MAX_SAMPLES + 1} rows outside"):
         decode(msgpack.packb(batch(MAX_SAMPLES + 1), use_bin_type=True))
 
+def test_the_codec_limits_are_exact() -> None:
+    """Each limit accepts its edge and refuses one past it, and each refusal names its field:
+    sequence numbers below 2⁶³, an auth block of at most 1,024 bytes, constant names of
+    1-129 characters; and a payload that is not bytes."""
+    obj = msgpack.unpackb(encode(_beacon()))
+
+    def dec(**change):
+        return decode(msgpack.packb(dict(obj, **change), use_bin_type=True))
+
+    assert dec(seq=2**63 - 1).seq == 2**63 - 1
+    with pytest.raises(CodecError, match="beacon.seq"):
+        dec(seq=2**63)
+    assert len(dec(auth=bytes(1024)).auth) == 1024
+    for bad in (bytes(1025), "text"):
+        with pytest.raises(CodecError, match=r"beacon\.auth: must be bytes \(<= 1024\)"):
+            dec(auth=bad)
+    g = np.ones(3).tobytes()
+    assert dec(constants=[["x" * 129, g]]).constants[0][0] == "x" * 129
+    for name in ("x" * 130, ""):
+        with pytest.raises(CodecError, match="a name must be a string of 1-129 characters"):
+            dec(constants=[[name, g]])
+    with pytest.raises(CodecError, match="payload is not bytes"):
+        decode("not bytes")
+
 def test_fuzzed_payloads_only_raise_codec_errors() -> None:
     """5,000 seeded random, mutated and truncated payloads: every one is rejected with CodecError
     (or, rarely, decodes to a valid message) and nothing else is raised."""
