@@ -159,7 +159,10 @@ def test_passing_cars_and_outliers_on_the_link_tracker() -> None:
     for tk in np.arange(0.0, 2.0, 0.1):
         tr.belief("V2", float(tk), 20.0, 0.0)
     before = tr.belief("V2", 2.0, 20.0, 0.0)
-    assert tr.belief("V2", 2.1, 30.0, 0.0).outlier
+    out = tr.belief("V2", 2.1, 30.0, 0.0)
+    # an outlier leaves the link's belief as it was: its NLOS probability and bias
+    assert out.outlier and out.p_nlos == pytest.approx(tr._links["V2"].p)
+    assert out.bias_mean_square == pytest.approx(tr._links["V2"].b2)
     after = tr.belief("V2", 2.2, 20.0, 0.0)
     assert not after.outlier and after.p_nlos <= before.p_nlos
 
