@@ -316,8 +316,9 @@ def test_the_joseph_form_holds_for_any_gain(rng: np.random.Generator) -> None:
     meas = Measurement(rng.normal(size=m), H, R, "x")
     S = H @ P @ H.T + R
     Kopt = P @ H.T @ np.linalg.inv(S)
-    _, Ppost, res = kalman_update(P, meas)
+    dx, Ppost, res = kalman_update(P, meas)
     assert np.allclose(Ppost, P - Kopt @ S @ Kopt.T, rtol=1e-10, atol=1e-10)
+    assert np.allclose(dx, Kopt @ meas.z) and np.array_equal(res.dx, dx) and res.accepted and res.dof == m
     assert np.allclose(res.gain, Kopt, rtol=1e-10, atol=1e-12)
     consider = np.array([4, 5])
     dx, Pc, res = kalman_update(P, meas, consider=consider)

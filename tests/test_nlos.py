@@ -260,3 +260,11 @@ def test_braking_towards_each_other_is_no_step_with_the_inertial_rate() -> None:
             assert p[t >= 1.75].min() > 0.9
         else:
             assert p.max() <= MODEL.steady + 1e-9
+
+
+def test_an_nlos_model_accepts_outliers_from_any_non_negative_size() -> None:
+    import dataclasses
+
+    assert dataclasses.replace(MODEL, outlier_min=0.5).outlier_min == 0.5
+    with pytest.raises(ValueError):
+        dataclasses.replace(MODEL, outlier_min=-0.5)

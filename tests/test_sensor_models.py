@@ -52,6 +52,7 @@ def test_each_uwb_nlos_episode_draws_its_own_bias(rng) -> None:
     assert bias.min() >= model.nlos_bias_min - 1e-3 and bias.max() <= model.nlos_bias_max + 1e-3
 
 def test_two_state_markov_occupancy_and_dwell(rng) -> None:
+    assert two_state_markov(0, 0.1, 0.1, rng).shape == (0,)
     s = two_state_markov(500_000, 0.01, 0.09, rng)
     assert s.mean() == pytest.approx(0.1, abs=0.01)
     runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[0], s.astype(int), [0]]))))[::2]
@@ -251,6 +252,8 @@ def test_seeded_models_are_bit_identical() -> None:
     (ImuModel, "arw", -1.0, "ImuModel.arw must be >= 0"),
     (ImuModel, "bias_tau", 0.0, "ImuModel.bias_tau must be > 0"),
     (GnssModel, "nlos_bias_max", 1.0, "nlos_bias_min must not exceed nlos_bias_max"),
+    *[(GnssModel, f, -0.1, f"GnssModel.{f} must be >= 0") for f in ("white_h", "white_v", "multipath_h",
+                                                                    "multipath_v", "nlos_rate")],
     (UwbModel, "outlier_prob", 1.5, "UwbModel.outlier_prob must be in"),
     (UwbModel, "rate", 500.0, "<= 100 Hz"),
     (RadioModel, "loss", float("nan"), "RadioModel.loss must be a number"),
