@@ -53,12 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=300, help="mutants in the sample (default 300)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the draw (default 0)")
-    ap.add_argument("--chunk", type=int, default=50, help="mutants per mutmut call (default 50)")
     args = ap.parse_args(argv)
     if args.size < 1:
         ap.error("--size must be at least 1")
-    if not _codes():
-        subprocess.run([*_mutmut(), "run", "no-such-mutant"], cwd=ROOT, check=False)
+    if not _codes():  # generate the mutants and the test statistics; mutmut then refuses the name
+        subprocess.run([*_mutmut(), "run", "no-such-mutant"], cwd=ROOT, check=False,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     codes = _codes()
     if not codes:
         print("mutmut generated no mutants: check [tool.mutmut] in pyproject.toml", file=sys.stderr)
@@ -66,9 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     names = sorted(codes)
     sample = sorted(random.Random(args.seed).sample(names, min(args.size, len(names))))
     todo = [n for n in sample if codes[n] is None]
-    for i in range(0, len(todo), args.chunk):
-        subprocess.run([*_mutmut(), "run", *todo[i:i + args.chunk]], cwd=ROOT, check=False,
-                       stdout=subprocess.DEVNULL)
+    if todo:  # one call: each call re-collects the test statistics first
+        subprocess.run([*_mutmut(), "run", *todo], cwd=ROOT, check=False, stdout=subprocess.DEVNULL)
     codes = _codes()
     unchecked = [n for n in sample if codes[n] is None]
     if unchecked:
