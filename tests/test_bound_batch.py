@@ -26,8 +26,8 @@ from hw_emulation.sensors.imu import ImuModel
 from hw_emulation.sensors.radio import RadioModel
 from hw_emulation.sensors.uwb import UwbModel
 
-# per vehicle, as the bound's docstring lays them out
-P_, V_, M_, G_, L_ = slice(0, 2), slice(2, 4), slice(4, 6), 6, 8  # gap errors are 6 (d_s), 7 (d_l)
+# per vehicle, as the bound's docstring lays them out: p 0-1, v 2-3, multipath 4-5, stop gap
+# errors 6 (d_s) and 7 (d_l), lane offset 8; then the common mode (2)
 
 
 def _vehicle(white: float, mp: float, tau: tuple[float, float], vw: float, vrw: float,
