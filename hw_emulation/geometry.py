@@ -74,12 +74,15 @@ class Path:
         hd = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
         mid = 0.5 * (ss[1:] + ss[:-1])
         # deferred: an agent loads its site map from this module and needs no splines
-        from scipy.interpolate import CubicSpline, make_smoothing_spline
+        from scipy.interpolate import CubicSpline
+
+        from .smoothing_cache import gcv_smoothing_spline
 
         if np.ptp(hd) < 1e-12:
             self._heading = CubicSpline(mid[[0, -1]], hd[[0, -1]], extrapolate=True)
         else:
-            self._heading = make_smoothing_spline(mid, hd)
+            self._heading = gcv_smoothing_spline(mid, hd)
+        self._heading_rate = self._heading.derivative(1)
         self._s_vertices = s
         self._vertices = p
         self.points = p
@@ -92,7 +95,7 @@ class Path:
         """dHeading/ds [1/m] (zero beyond the ends)."""
         s = np.asarray(s, float)
         inside = (s >= 0.0) & (s <= self.length)
-        return np.where(inside, self._heading.derivative(1)(np.clip(s, 0.0, self.length)), 0.0)
+        return np.where(inside, self._heading_rate(np.clip(s, 0.0, self.length)), 0.0)
 
     def position(self, s: np.ndarray) -> np.ndarray:
         """Point(s) (north, east) on the polyline at arc length ``s``, shape (..., 2)."""

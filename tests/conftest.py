@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -19,6 +22,12 @@ from agent.nav.rotation import euler_to_quat
 from agent.nav.state import NavState
 
 REPO = Path(__file__).resolve().parents[1]
+
+# The emulator's fitted route splines (hw_emulation.smoothing_cache) are kept for the session, for
+# the processes the tests start too, and never in the user's own cache.
+_SPLINE_CACHE = tempfile.mkdtemp(prefix="slcp-test-cache-")
+os.environ["SLCP_CACHE_DIR"] = _SPLINE_CACHE
+atexit.register(shutil.rmtree, _SPLINE_CACHE, ignore_errors=True)
 SHARED_DRIVE = REPO.parent / "shared" / "data" / "rtklibexplorer_drive_0708"
 
 
