@@ -6,6 +6,7 @@ import atexit
 import contextlib
 import math
 import os
+import re
 import shutil
 import signal
 import socket
@@ -24,11 +25,27 @@ from agent.nav.state import NavState
 REPO = Path(__file__).resolve().parents[1]
 
 # The emulator's fitted route splines (hw_emulation.smoothing_cache) are kept for the session, for
-# the processes the tests start too, and never in the user's own cache.
-_SPLINE_CACHE = tempfile.mkdtemp(prefix="slcp-test-cache-")
-os.environ["SLCP_CACHE_DIR"] = _SPLINE_CACHE
-atexit.register(shutil.rmtree, _SPLINE_CACHE, ignore_errors=True)
+# the processes the tests start too, and never in the user's own cache. pytest-xdist's workers
+# inherit the folder from the process that made it, which removes it at its exit.
+if not (os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("SLCP_TEST_CACHE_OWNER")):
+    _SPLINE_CACHE = tempfile.mkdtemp(prefix="slcp-test-cache-")
+    os.environ["SLCP_CACHE_DIR"] = _SPLINE_CACHE
+    os.environ["SLCP_TEST_CACHE_OWNER"] = str(os.getpid())
+    atexit.register(shutil.rmtree, _SPLINE_CACHE, ignore_errors=True)
 SHARED_DRIVE = REPO.parent / "shared" / "data" / "rtklibexplorer_drive_0708"
+
+
+def short_scenario(folder: Path, name: str = "paper-1", duration: float = 25.0) -> Path:
+    """A copy of the shipped scenario ``name`` in ``folder`` that ends after ``duration`` s of
+    sensor time (for tests of mechanisms that need the fleet running, not the whole drive)."""
+    from importlib import resources
+
+    text = resources.files("hw_emulation.scenarios").joinpath(f"{name}.toml").read_text()
+    cut = re.sub(r"(?m)^duration = [0-9.]+$", f"duration = {duration!r}", text, count=1)
+    assert cut != text, f"{name}.toml has no duration line to cut"
+    path = Path(folder) / f"{name}-{duration:g}s.toml"
+    path.write_text(cut)
+    return path
 
 
 def free_port() -> int:

@@ -7,17 +7,20 @@ import json
 
 import pytest
 
+from conftest import short_scenario
 from deploy.cli import main
 
 
 @pytest.mark.timeout(300)
-def test_gates_over_seeds_sum_the_single_seed_evaluations(capsys) -> None:
-    assert main(["scenario", "gates", "paper-1", "--seeds", "2", "--json"]) == 0
+def test_gates_over_seeds_sum_the_single_seed_evaluations(capsys, tmp_path) -> None:
+    # paper-1 to 25 s: by then V1 and V2 stand at the red light (V1 first, from about 18 s)
+    scn = str(short_scenario(tmp_path, "paper-1", 25.0))
+    assert main(["scenario", "gates", scn, "--seeds", "2", "--json"]) == 0
     pooled = json.loads(capsys.readouterr().out)
     assert pooled["seeds"] == [0, 1]
     want: dict = {}
     for seed in (0, 1):
-        assert main(["scenario", "evaluate", "paper-1", "--seed", str(seed), "--json"]) == 0
+        assert main(["scenario", "evaluate", scn, "--seed", str(seed), "--json"]) == 0
         for m, kinds in json.loads(capsys.readouterr().out)["ranges"].items():
             for kind, d in kinds.items():
                 w = want.setdefault(m, {}).setdefault(kind, {"n": 0, "rejected": 0})

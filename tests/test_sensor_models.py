@@ -12,7 +12,7 @@ from agent.lane_markings import BOUNDARY, DIVIDER, UNSEEN
 from hw_emulation.sensors.camera import LaneCameraModel, simulate_markings
 from hw_emulation.sensors.gnss import GnssModel, common_mode_error, simulate_gnss
 from hw_emulation.sensors.imu import ImuModel, corrupt_increments
-from hw_emulation.sensors.processes import gauss_markov, gauss_markov_varying, two_state_markov
+from hw_emulation.sensors.processes import ar1_filter, gauss_markov, gauss_markov_varying, two_state_markov
 from hw_emulation.sensors.radio import RadioModel, simulate_link
 from hw_emulation.sensors.uwb import UwbModel, simulate_pair
 
@@ -263,3 +263,16 @@ def test_seeded_models_are_bit_identical() -> None:
 def test_bad_parameters_name_the_field(cls, field, value, match) -> None:
     with pytest.raises(ValueError, match=match):
         cls(**{field: value})
+
+
+@pytest.mark.parametrize("phi", [0.0, 0.5, 0.99998, 1.0])
+def test_the_ar1_recursion_is_scipys_lfilter_bit_for_bit(phi) -> None:
+    """The Gauss-Markov recursion without scipy.signal: the same operations as lfilter's, so
+    the same bits (the seeded sensor data does not move)."""
+    from scipy.signal import lfilter
+
+    w = np.random.default_rng(5).normal(size=(3000, 3))
+    x = ar1_filter(w, phi)
+    assert np.array_equal(x, lfilter([1.0], [1.0, -phi], w, axis=0))
+    assert np.array_equal(w, np.random.default_rng(5).normal(size=(3000, 3)))  # input left alone
+    assert ar1_filter(np.zeros((0, 2)), phi).shape == (0, 2)

@@ -22,10 +22,25 @@ def gauss_markov(n: int, dt: float, sigma: float, tau: float, rng: np.random.Gen
     phi = math.exp(-dt / tau)
     w = rng.normal(0.0, sigma * math.sqrt(1.0 - phi * phi), (n, dims))
     w[0] = x0
-    # x[k] = phi x[k-1] + w[k], x[0] = w[0]
-    from scipy.signal import lfilter  # deferred: agents import the sensor models' parameters only
+    return ar1_filter(w, phi)
 
-    return lfilter([1.0], [1.0, -phi], w, axis=0)
+
+def ar1_filter(w: np.ndarray, phi: float) -> np.ndarray:
+    """``x[k] = phi x[k-1] + w[k]``, ``x[0] = w[0]``, along axis 0 of ``w`` (n, dims).
+
+    The same floating-point operations as ``scipy.signal.lfilter([1], [1, -phi], w, axis=0)``, so
+    the same bits, without importing ``scipy.signal`` (about a second of every emulator's start)."""
+    x = np.array(w, dtype=float, copy=True)
+    if len(x) == 0:
+        return x
+    for d in range(x.shape[1]):
+        col = x[:, d].tolist()
+        acc = col[0]
+        for k in range(1, len(col)):
+            acc = phi * acc + col[k]
+            col[k] = acc
+        x[:, d] = col
+    return x
 
 
 def gauss_markov_varying(dt: np.ndarray, sigma: float, tau: np.ndarray, rng: np.random.Generator,
