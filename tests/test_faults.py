@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import free_port, run_group
+from conftest import free_port, run_group, short_scenario
 
 
 def _t_of(line: str) -> float | None:
@@ -30,18 +30,19 @@ def _t_of(line: str) -> float | None:
 @pytest.mark.timeout(240)
 def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None:
     out = tmp_path / "run"
-    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--out", str(out)],
+    scn = short_scenario(tmp_path, "paper-1", 25.0)
+    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", str(scn), "--out", str(out)],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         rec = out / "recorded" / "messages.jsonl"
         deadline = time.monotonic() + 90
         victim = None
-        while time.monotonic() < deadline and victim is None:  # kill V2 once it has run ~15 s of sensor time
+        while time.monotonic() < deadline and victim is None:  # kill V2 once it has run ~8 s of sensor time
             time.sleep(0.2)
             if rec.exists():
                 ts = [_t_of(x) for x in rec.read_text().splitlines()[-200:] if '"Estimate"' in x and '"V2"' in x]
                 ts = [t for t in ts if t is not None]
-                if ts and max(ts) > 15.0:
+                if ts and max(ts) > 8.0:
                     pid = subprocess.run(["pgrep", "-f", f"agent --vehicle V2 --config {out}"],
                                          capture_output=True, text=True).stdout.split()
                     victim = int(pid[0])

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import short_scenario
+
 from transport.security import create_fleet
 
 HUB_IP = "10.77.0.1"
@@ -129,6 +131,7 @@ def test_the_fleet_works_across_network_namespaces_through_the_router(tmp_path) 
     port = 7447
     ep = f"tls/{HUB_IP}:{port}"
     rec = tmp_path / "messages.jsonl"
+    scn = short_scenario(tmp_path, "paper-1", 25.0)  # V1 first at its stop line from about 18 s
     with Namespaces(vehicles) as net, Procs() as procs:
         procs.start("router", net.hub, ["router", "--fleet", str(fleet), "--listen", ep], tmp_path / "router.log")
         wait_listening(net.hub, port)
@@ -136,10 +139,10 @@ def test_the_fleet_works_across_network_namespaces_through_the_router(tmp_path) 
                     tmp_path / "recorder.log")
         for v in vehicles:
             cfg = tmp_path / f"agent-{v}.toml"
-            cfg.write_text(f'[agent]\nvehicle = "{v}"\nscenario = "paper-1"\n\n[security]\ntrust_dir = "{fleet}"\n\n'
+            cfg.write_text(f'[agent]\nvehicle = "{v}"\nscenario = "{scn}"\n\n[security]\ntrust_dir = "{fleet}"\n\n'
                            f'[zenoh]\nmode = "client"\nconnect = ["{ep}"]\ntls = true\n')
             procs.start(f"agent-{v}", net.ns[v], ["agent", "--config", str(cfg)], tmp_path / f"agent-{v}.log")
-        emu = procs.start("emulator", net.hub, ["emulate", "paper-1", "--fleet", str(fleet), "--connect", ep],
+        emu = procs.start("emulator", net.hub, ["emulate", str(scn), "--fleet", str(fleet), "--connect", ep],
                           tmp_path / "emulator.log")
         try:
             assert emu.wait(timeout=180) == 0, (tmp_path / "emulator.log").read_text()[-2000:]
