@@ -67,6 +67,15 @@ class Bound:
         return self.sigma_h(method, vehicle)[k]
 
 
+def map_ne(llh: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
+    """North and east [m], shape (n, 2), of geodetic points ``llh`` (rad, rad, m; shape (n, 3))
+    in the scenario's map frame at ``origin``: the tangent plane scaled by the origin's radii of
+    curvature (within millimetres of the exact local NED over an intersection's few hundred m)."""
+    rm, rn = earth.radii(origin[0])
+    return np.column_stack([(llh[:, 0] - origin[0]) * (rm + origin[2]),
+                            (llh[:, 1] - origin[1]) * (rn + origin[2]) * np.cos(origin[0])])
+
+
 def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rate: float | None = None,
                    lane_constraint: bool = True, lane_offset: str = "vehicle",
                    vehicles: tuple[str, ...] | None = None) -> Bound:
@@ -108,9 +117,7 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
     for vid in ids:
         tr = truth.vehicles[vid]
         k = np.clip(np.searchsorted(tr.truth.t, ts - 1e-9), 0, len(tr.truth.t) - 1)
-        llh = tr.truth.llh[k]
-        rm, rn = earth.radii(o[0])
-        pos[vid] = np.column_stack([(llh[:, 0] - o[0]) * (rm + o[2]), (llh[:, 1] - o[1]) * (rn + o[2]) * np.cos(o[0])])
+        pos[vid] = map_ne(tr.truth.llh[k], o)
         moving[vid] = ~tr.stopped[k]
         # first stopped at any instant of the step's interval [t_k, t_k+1): the bound at step k
         # stands for the whole interval (``Bound.at``), and a detector may claim (and fix) as

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -165,3 +166,20 @@ def test_a_sub_fleet_with_an_unknown_vehicle_is_refused(capsys) -> None:
     err = capsys.readouterr().err
     assert "V9" in err and "V0, V1, V2" in err
     assert main(["bound", "paper-1", "--vehicles", " , "]) == 2
+
+
+def test_the_bound_s_map_frame_is_the_local_ned_within_two_centimetres() -> None:
+    """The bound places the vehicles by a tangent plane scaled at the origin; over an intersection
+    (400 m each way, 60 m up) it is pymap3d's exact local NED within 2 cm."""
+    import pymap3d
+
+    from deploy.bound import map_ne
+
+    o = (math.radians(39.9552), math.radians(116.3194), 50.0)
+    rng = np.random.default_rng(11)
+    ned = np.column_stack([rng.uniform(-400.0, 400.0, (60, 2)), rng.uniform(-60.0, 10.0, 60)])
+    llh = np.array([pymap3d.ned2geodetic(*p, *o, deg=False) for p in ned])
+    got = map_ne(llh, o)
+    want = np.array([pymap3d.geodetic2ned(*p, *o, deg=False)[:2] for p in llh])
+    assert np.max(np.abs(got - want)) < 0.02
+    assert np.max(np.abs(got - want)) > 0.0  # an approximation, not the same computation

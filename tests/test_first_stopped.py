@@ -320,3 +320,32 @@ def test_the_geometry_free_moving_decision_is_the_full_decision() -> None:
         assert got == want, (k, got, want)
         assert (quick.since, quick.claim, quick.vetoed, quick.lane) == (full.since, full.claim, full.vetoed, full.lane)
     assert paths == {True, False} and full.claim  # claimed again after the drive-off
+
+
+def test_three_recent_ranges_are_enough_to_show_a_neighbour_beside_me() -> None:
+    """``beside`` takes the median of at least three ranges of the last ``range_window``: two
+    short ranges prove nothing, a third does; ranges older than the window no longer count."""
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    for k in range(2):
+        tr.observe_range("E1", 0.1 * k, 3.5, 0.1)
+    assert not tr.beside("E1", 0.1)
+    tr.observe_range("E1", 0.2, 3.5, 0.1)
+    assert tr.beside("E1", 0.2)
+    assert not tr.beside("E1", 0.2 + tr.s.range_window + 0.05)  # the first one fell out of the window
+    assert not tr.beside("E9", 0.2)
+
+
+def test_a_speed_within_the_stop_hysteresis_is_moving_for_the_decision() -> None:
+    """Between ``stop_speed`` and twice it the rest keeps its start (a stop is not restarted by
+    noise), but the vehicle is not at rest: the geometry-free decision says "moving" and a claim
+    ends, however long the vehicle stood before."""
+    a, b, cov = _queue(err_ahead=0.0)
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    for k in range(10):
+        dec, _ = tr.decide(0.2 * k, b, cov, 0.0, 0.0, {})
+    assert dec.first and tr.since == 0.0
+    slow = 1.5 * tr.s.stop_speed
+    quick = tr.moving_decision(2.0, slow)
+    assert quick is not None and quick[0].reason == "moving" and quick[1]
+    assert tr.since == 0.0  # kept: a return below stop_speed continues this stop
+    assert tr.moving_decision(2.2, 0.0) is None  # at rest for 2.2 s

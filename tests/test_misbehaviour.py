@@ -228,3 +228,33 @@ def test_the_motion_tests_in_closed_form() -> None:
         det = MisbehaviourDetector()
         det.beacon("V9", "CP", 0.0, at(0.0, 0.0), still, corr)
         assert det.beacon("V9", "CP", 0.2, at(*d), still, corr) == expect, d
+
+
+def test_the_range_rate_test_waits_for_a_reference_old_enough() -> None:
+    """The rate test compares with a range at least ``rate_window[0]`` old: a 9 m jump 0.1 s into
+    a neighbour's ranges has no reference yet (the absolute test, 10σ of 3.2 m, passes it); the
+    same jump 0.5 s in fails."""
+    cov, own_cov = np.diag([1.0, 1.0, 4.0]), np.diag([9.0, 9.0, 9.0])
+    t0 = 30.0  # ages are differences of sensor times
+    for late, want in ((False, None), (True, "range rate")):
+        det = MisbehaviourDetector(rate_test=True)
+        det.beacon("V9", "CP", t0, at(20.0, 0.0), np.zeros(3), cov)
+        assert det.range("V9", t0, 20.0, at(0.0, 0.0), own_cov, 0.1) is None
+        t = t0 + (0.5 if late else 0.1)
+        det.beacon("V9", "CP", t - 0.05, at(20.0, 0.0), np.zeros(3), cov)
+        assert det.range("V9", t, 29.0, at(0.0, 0.0), own_cov, 0.1) == want, late
+
+
+def test_a_switch_of_reference_stream_starts_the_range_history_afresh() -> None:
+    """Ranges are checked against one stream per neighbour, CP once it is heard. The distances
+    kept for the rate test belong to the old stream (here SL-CP, 8 m off CP's claim, both within
+    their σ): after the switch they are dropped, and the first CP range is no range-rate jump."""
+    cov, own_cov = np.diag([9.0, 9.0, 4.0]), np.diag([9.0, 9.0, 9.0])
+    det = MisbehaviourDetector(rate_test=True)
+    for k in range(6):
+        t = 0.1 * k
+        det.beacon("V9", "SL-CP", t, at(20.0, 0.0), np.zeros(3), cov)
+        assert det.range("V9", t, 20.0, at(0.0, 0.0), own_cov, 0.1) is None
+    det.beacon("V9", "CP", 0.6, at(28.0, 0.0), np.zeros(3), cov)
+    assert det.range("V9", 0.6, 20.0, at(0.0, 0.0), own_cov, 0.1) is None
+    assert det.counters["range_strikes"] == 0
