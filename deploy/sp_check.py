@@ -53,9 +53,17 @@ def run_sp(vt: VehicleTruth, vs: VehicleSensors, imu_model: ImuModel, rng: np.ra
     gi = 1 if g.t.size and g.t[0] <= tr.t[0] + 1e-6 else 0
     dth, dvl = vs.imu.dtheta.tolist(), vs.imu.dvel.tolist()
     dts = np.diff(tr.t).tolist()
+    n = len(dts)
+    # the IMU intervals run between events (a fix to take, an evaluation) in one call each
+    fix_k = np.searchsorted(tr.t[1:], g.t[gi:] - 1e-6, side="left")  # interval after which each fix applies
+    ends = np.union1d(fix_k[fix_k < n], np.arange(EVAL_STEP - 1, n, EVAL_STEP))
     ts, errs, sigs = [], [], []
-    for k in range(len(dts)):
-        flt.propagate(dth[k], dvl[k], dts[k])
+    start = 0
+    for k in (*ends.tolist(), n - 1):
+        if k < start:
+            continue
+        flt.propagate_run(dth[start:k + 1], dvl[start:k + 1], dts[start:k + 1])
+        start = k + 1
         tk = tr.t[k + 1]
         while gi < len(g.t) and g.t[gi] <= tk + 1e-6:
             flt.update(gnss_position(flt.state, g.llh[gi], np.diag(g.sigma_ned[gi] ** 2)))

@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import short_scenario
+
 from deploy.detection import score_first_stopped
 from deploy.inprocess import run_inprocess
 from hw_emulation.scenario import load_scenario
@@ -74,12 +76,13 @@ def test_cooperation_improves_the_fleet(run) -> None:
     assert cp < sp
 
 
-def test_cli_evaluate_json(capsys) -> None:
+def test_cli_evaluate_json(capsys, tmp_path) -> None:
     import json
 
     from deploy.cli import main
 
-    assert main(["scenario", "evaluate", "paper-1", "--json"]) == 0
+    # paper-1 to 25 s: V1 stands first at the stop line from about 18 s
+    assert main(["scenario", "evaluate", str(short_scenario(tmp_path, "paper-1", 25.0)), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     row = out["rows"][0]
     assert {"SP", "SL-SP", "CP", "SL-CP", "paper"} <= set(row)

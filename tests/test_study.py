@@ -7,6 +7,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from conftest import short_scenario
+
 from deploy.study import aggregate, anees_band, paired_difference, study_markdown
 
 
@@ -275,8 +277,9 @@ def test_a_study_survives_a_seed_that_cannot_start(tmp_path) -> None:
     from hw_emulation.scenario import load_scenario
 
     out = tmp_path / "study"
+    scn = str(short_scenario(tmp_path, "paper-1", 25.0))
     try:
-        study = run_study("paper-1", [0, 1], ("SP",), out, jobs=2, runner=_study_seed.runner)
+        study = run_study(scn, [0, 1], ("SP",), out, jobs=2, runner=_study_seed.runner)
         assert study["seeds"] == [0]
         assert list(study["failed_seeds"]) == ["1"]
         assert "not restarted again" in study["failed_seeds"]["1"]
@@ -285,7 +288,7 @@ def test_a_study_survives_a_seed_that_cannot_start(tmp_path) -> None:
                                                                        "seed-0"]
         assert (out / "failed-seed-1-try2" / "logs" / "emulator.log").is_file()
         assert json.loads((out / "study.json").read_text())["failed_seeds"] == study["failed_seeds"]
-        text = study_markdown(load_scenario("paper-1"), study)
+        text = study_markdown(load_scenario(scn), study)
         assert "1 seed(s) failed and are left out" in text and "- seed 1: RuntimeError" in text
         assert rebuild_study(out)["failed_seeds"] == study["failed_seeds"]  # `slcp report` keeps them
         left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()
