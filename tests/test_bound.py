@@ -125,6 +125,7 @@ def test_an_unknown_lane_offset_model_is_refused() -> None:
         posterior_crlb(SimpleNamespace(), lane_offset="driver")
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_a_sub_fleet_knows_less_and_a_vehicle_alone_is_its_own_bound(capsys) -> None:
     """``--vehicles``: the cooperative bounds of a sub-fleet process only its vehicles'

@@ -65,6 +65,7 @@ def test_bounded_minimiser_takes_scipys_steps(rng) -> None:
             assert ours == ref
 
 
+@pytest.mark.fleet
 def test_an_agent_process_imports_no_scipy() -> None:
     """Loading an agent's configuration (scenario site map and sensors) and its runtime pulls in
     no scipy module: scipy's packages would take an agent past its 80 MB memory budget."""

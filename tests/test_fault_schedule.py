@@ -43,6 +43,7 @@ def test_a_schedule_file_is_read_and_its_errors_name_the_fault(tmp_path) -> None
         parse_faults({"faults": []}, "x")
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_link_and_sensor_faults_on_a_running_fleet() -> None:
     from agent.runtime import Agent

@@ -18,6 +18,8 @@ import pytest
 
 from conftest import free_port, run_group, short_scenario
 
+pytestmark = [pytest.mark.fleet, pytest.mark.slow]
+
 
 def _t_of(line: str) -> float | None:
     """A recorded message's sensor time, None for a line the recorder is still writing."""

@@ -98,6 +98,7 @@ def _monte_carlo(truth, model_gm: bool):
     return float(np.sqrt(np.mean(z**2))), float(nis_all.mean()), len(nis_all)
 
 
+@pytest.mark.slow
 def test_monte_carlo_error_over_sigma_and_nis(truth) -> None:
     rms_norm, mean_nis, n = _monte_carlo(truth, model_gm=True)
     # the innovations of a consistent filter are white: n independent 3-dof samples
@@ -108,6 +109,7 @@ def test_monte_carlo_error_over_sigma_and_nis(truth) -> None:
     assert lo <= mean_nis <= hi
 
 
+@pytest.mark.slow
 def test_treating_correlated_gnss_error_as_white_is_overconfident(truth) -> None:
     rms_norm, _, _ = _monte_carlo(truth, model_gm=False)
     print(f"R inflated only: RMS(error/sigma) horizontal = {rms_norm:.3f}")

@@ -18,6 +18,8 @@ from transport import keys
 from transport.bus import InMemoryNetwork
 from transport.codec import decode
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.timeout(300)
 def test_fleet_on_the_in_memory_bus() -> None:

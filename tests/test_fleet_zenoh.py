@@ -14,6 +14,8 @@ from conftest import short_scenario
 
 from deploy.launcher import run_fleet
 
+pytestmark = [pytest.mark.fleet, pytest.mark.slow]
+
 
 @pytest.mark.timeout(400)
 def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:

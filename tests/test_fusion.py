@@ -118,6 +118,7 @@ def test_plain_gain_bounds_split_ci_so_the_screen_changes_no_decision(m: int) ->
     assert 0 < skipped < 600  # both outcomes occur
 
 
+@pytest.mark.slow
 def test_the_exact_scalar_screen_agrees_with_a_dense_search_over_omega() -> None:
     """For a scalar measurement the screen decides "does some ω gain more than T" in closed form
     (a cubic's maximum); a dense grid over ω must agree wherever the grid's best is clearly on

@@ -31,6 +31,7 @@ N_PAYLOADS = 10_200
 BURST = 24  #: payloads per 0.05 s of sensor time: all sent within 21.25 s
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> None:
     scn = load_scenario(short_scenario(tmp_path, "paper-1", 25.0))

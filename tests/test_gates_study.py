@@ -11,6 +11,7 @@ from conftest import short_scenario
 from deploy.cli import main
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_gates_over_seeds_sum_the_single_seed_evaluations(capsys, tmp_path) -> None:
     # paper-1 to 25 s: by then V1 and V2 stand at the red light (V1 first, from about 18 s)

@@ -14,6 +14,8 @@ from deploy.inprocess import run_inprocess
 from hw_emulation.scenario import load_scenario
 from hw_emulation.truth import build_truth
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module", params=["paper-1", "paper-2"])
 def run(request):

@@ -188,6 +188,7 @@ def test_each_attack_changes_the_beacon_as_veremi_defines_it(kind) -> None:
         Attack.parse("V2-random_offset")
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("kind", ["constant_offset", "random_position", "overconfident"])
 def test_attacks_on_a_running_fleet_are_detected_within_a_second(kind) -> None:

@@ -21,6 +21,8 @@ from conftest import short_scenario
 
 from transport.security import create_fleet
 
+pytestmark = [pytest.mark.fleet, pytest.mark.slow]
+
 HUB_IP = "10.77.0.1"
 
 

@@ -53,6 +53,7 @@ def test_nothing_to_pool_and_bad_arguments_are_refused(capsys) -> None:
     assert "unknown scenario" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_the_reference_on_paper_1_in_process(capsys) -> None:
     """paper-1 seed 0: rows for the vehicles that stand (V1, V2; V0 never does), the pooled

@@ -240,6 +240,7 @@ def _stop(p: subprocess.Popen, timeout: float = 10.0) -> int:
     return p.returncode
 
 
+@pytest.mark.fleet
 @pytest.mark.timeout(60)
 def test_the_driver_reads_nmea_from_a_serial_port() -> None:
     """A pseudo-terminal stands in for the receiver's USB serial port: pyserial opens it, the
@@ -312,6 +313,8 @@ def _drive_agent_config() -> str:
     return text[:text.index("[zenoh]")]
 
 
+@pytest.mark.fleet
+@pytest.mark.slow
 @needs_drive
 @pytest.mark.timeout(180)
 def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) -> None:
@@ -370,6 +373,8 @@ def _write_logs(tmp_path: Path, t_from: float, t_to: float, gap: tuple[float, fl
     return nmea, csv, truth
 
 
+@pytest.mark.fleet
+@pytest.mark.slow
 @needs_drive
 @pytest.mark.timeout(180)
 def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:

@@ -67,6 +67,7 @@ def test_real_drive_accuracy(replay_result) -> None:
     assert np.all(np.isfinite(replay_result.trajectory))
 
 
+@pytest.mark.slow
 def test_cli_replay_writes_outputs(tmp_path, capsys) -> None:
     if not SHARED_DRIVE.is_dir():
         pytest.skip("shared drive not available")
@@ -105,6 +106,7 @@ def test_bad_inputs_give_clear_errors(tmp_path, capsys) -> None:
     assert "LENGTH:GNSS_ON" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 @needs_drive
 def test_outage_phases_pool_their_runs(replay_result, tmp_path, capsys) -> None:
     """``--phases 2``: phase 0 is the protocol itself, phase 1 starts half a period later, and

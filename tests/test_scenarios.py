@@ -39,6 +39,7 @@ def test_shipped_scenarios_are_listed() -> None:
     assert {"paper-1", "paper-2", "rush-hour"} <= set(shipped_scenarios())
 
 
+@pytest.mark.slow
 def test_rush_hour_has_three_queues_of_three(rush) -> None:
     """Departed vehicles standing still on the same approach lane at the same time."""
     scn = rush.scenario
@@ -97,6 +98,7 @@ def test_first_stopped_vehicle_stands_d_s_behind_the_stop_line(paper1) -> None:
     assert front_gap == pytest.approx(tr.stop_gap["V1"], abs=0.15)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["paper-1", "paper-2", "rush-hour"])
 def test_truth_increments_reproduce_truth(name, paper1, paper2, rush) -> None:
     """Integrating each vehicle's truth increments with the mechanisation stays within 0.05 m
@@ -113,6 +115,7 @@ def test_truth_is_bit_identical(paper1) -> None:
         assert np.array_equal(again.vehicles[vid].truth.dtheta, paper1.vehicles[vid].truth.dtheta)
 
 
+@pytest.mark.slow
 def test_a_run_seed_redraws_where_drivers_stop_and_nothing_else(paper1) -> None:
     scn = load_scenario("paper-1")
     a, b = build_truth(scn, stop_seed=1), build_truth(scn, stop_seed=1)
@@ -193,6 +196,7 @@ def test_cli_scenario_list_and_show(tmp_path, capsys) -> None:
     assert "unknown scenario" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["paper-1", "paper-2"])
 def test_sp_on_emulated_sensors_matches_the_papers_sp_row(name, paper1, paper2) -> None:
     """Issue 3 acceptance 6: with the shipped parameters, SP's horizontal RMSE (mean over 20

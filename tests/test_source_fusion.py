@@ -96,6 +96,7 @@ def _loop(rule: str, runs: int = 400, steps: int = 15, seed: int = 7) -> tuple[f
     return float(np.mean(nees)), float(np.mean(rep) / np.mean(np.square(err_e)))
 
 
+@pytest.mark.slow
 def test_own_information_coming_back_is_not_taken_for_news() -> None:
     """The loop that made split CI overconfident: V1's estimate is V0's fix moved by the range,
     and split CI counts it as independent of V0's own part. Source CI pairs it with V0's own
@@ -388,6 +389,7 @@ def test_a_constant_tracked_exactly_makes_the_updates_the_joint_kalman_updates()
     assert np.trace(P_f[:2, :2]) > 1.05 * np.trace(P_e[:2, :2])
 
 
+@pytest.mark.slow
 def test_a_chain_ranging_around_an_anchor_stays_consistent() -> None:
     """Monte-Carlo (200 runs): an anchor fixes itself on its stop line (a stop-gap state,
     random constant) and two followers range with it and each other 40 times in random pairs;

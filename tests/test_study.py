@@ -185,6 +185,7 @@ def _gone_within(pid: int, seconds: float) -> bool:
     return False
 
 
+@pytest.mark.fleet
 def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
     """A study killed with SIGKILL must not leave its pool workers running its queued seeds."""
     import os
@@ -202,6 +203,8 @@ def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
             probe.kill()
 
 
+@pytest.mark.fleet
+@pytest.mark.slow
 def test_an_interrupted_study_worker_does_not_start_the_seed_queued_behind(tmp_path) -> None:
     """SIGTERM to a pool worker during a seed: the seed's own cleanup runs (KeyboardInterrupt),
     then the worker exits instead of taking the call already queued to it."""
@@ -262,6 +265,8 @@ def test_the_stance_check_of_many_seeds_sees_the_scenarios_sigma() -> None:
     assert "## The drivers' draws" in md and "| V2 | 0.89 | 1.77 (outside) | 2.66 |" in md
 
 
+@pytest.mark.fleet
+@pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_a_study_survives_a_seed_that_cannot_start(tmp_path) -> None:
     """Seed 1's emulator never publishes (no agent ever reports): the launcher gives it up after

@@ -293,6 +293,7 @@ def test_a_burst_from_another_thread_wakes_the_loop_once() -> None:
     asyncio.run(main())
 
 
+@pytest.mark.fleet
 @pytest.mark.timeout(60)
 def test_two_zenoh_peers_on_loopback() -> None:
     from transport.zenoh_bus import ZenohBus, ZenohConfig
@@ -350,6 +351,7 @@ asyncio.run(main())
 """
 
 
+@pytest.mark.fleet
 @pytest.mark.timeout(60)
 def test_the_light_runtime_runs_zenoh_on_one_thread_and_a_bad_one_is_a_clear_error() -> None:
     """slcp run gives its agents LIGHT_CLIENT_RUNTIME (ZENOH_RUNTIME): a router and a client on
@@ -400,6 +402,7 @@ asyncio.run(main())
 """
 
 
+@pytest.mark.fleet
 @pytest.mark.timeout(90)
 def test_a_burst_through_the_router_to_a_client_loses_nothing() -> None:
     """20,000 messages of 2 kB published as fast as possible through a router to a client in
@@ -447,6 +450,8 @@ def test_zenoh_peer_settings_and_a_bad_strategy() -> None:
         ZenohConfig(autoconnect_strategy="sometimes").to_zenoh()
 
 
+@pytest.mark.fleet
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_zenoh_peers_recover_both_ways_after_a_freeze_about_a_lease_long(tmp_path) -> None:
     """Six peers behind a router on loopback (lease 2 s, as slcp's default); one is frozen

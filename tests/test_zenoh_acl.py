@@ -18,6 +18,8 @@ from transport import keys
 from conftest import free_port, wait_for_port
 from transport.security import create_fleet
 
+pytestmark = pytest.mark.fleet
+
 
 @pytest.fixture()
 def router(tmp_path):
