@@ -391,16 +391,16 @@ def test_a_constant_tracked_exactly_makes_the_updates_the_joint_kalman_updates()
 
 @pytest.mark.slow
 def test_a_chain_ranging_around_an_anchor_stays_consistent() -> None:
-    """Monte-Carlo (200 runs): an anchor fixes itself on its stop line (a stop-gap state,
+    """Monte-Carlo (100 runs): an anchor fixes itself on its stop line (a stop-gap state,
     random constant) and two followers range with it and each other 40 times in random pairs;
     both ends fuse each range (the same white noise), every estimate a mix of every source by
     then. Every vehicle's horizontal NEES stays below the upper end of the two-sided 95 % band
     of the mean of n = 2 over the runs (and above half its lower end), with the constants
     tracked exactly and as CI parts alike (the followers are conservative, 1.3-1.4: CI on the
     rest). A wrong sign of the neighbour's sensitivity makes them overconfident."""
-    lo, hi = _nees_band(200)
+    lo, hi = _nees_band(100)
     for exact in (True, False):
-        nees = _chain_nees(200, exact, seed=3)
+        nees = _chain_nees(100, exact, seed=3)
         assert all(lo / 2.0 < x < hi for x in nees.values()), (exact, nees)
 
 
