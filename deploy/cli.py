@@ -15,7 +15,9 @@ from pathlib import Path
 
 from agent.methods import DEFAULT_FUSION, FUSION_RULES
 
+from . import cli_types as T
 from .datasets import DatasetError
+from .run_dirs import folder_stem, next_free, prepare_out
 
 
 def _outage_arg(text: str) -> tuple[float, float]:
@@ -28,19 +30,20 @@ def _outage_arg(text: str) -> tuple[float, float]:
     return length, gap
 
 
-def _positive_int(text: str) -> int:
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
     try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
-    return v
+        return version("slcp")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "(not installed)"
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="slcp", description="Stop-line-aided cooperative positioning")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}",
+                   help="print the installed version and exit")
     sub = p.add_subparsers(dest="command", required=True)
 
     rp = sub.add_parser("replay", help="replay a recorded drive through the SP (GNSS/INS) filter")
@@ -50,16 +53,16 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--outage", type=_outage_arg, default=(15.0, 30.0), metavar="LEN:ON",
                    help="outage length and GNSS-on time between outages [s] (default 15:30)")
     g.add_argument("--no-outage", action="store_true", help="keep every GNSS fix")
-    rp.add_argument("--first-outage", type=float, default=40.0, help="first outage start after t0 [s]")
-    rp.add_argument("--end-margin", type=float, default=30.0, help="no outage starts later than tN minus this [s]")
-    rp.add_argument("--phases", type=_positive_int, default=1, metavar="N",
+    rp.add_argument("--first-outage", type=T.nonnegative_float, default=40.0, help="first outage start after t0 [s]")
+    rp.add_argument("--end-margin", type=T.nonnegative_float, default=30.0, help="no outage starts later than tN minus this [s]")
+    rp.add_argument("--phases", type=T.positive_int, default=1, metavar="N",
                     help="also run the protocol at N phases evenly spread over its period (first outage at "
                          "FIRST + k (LEN + ON) / N) and report each and all pooled (default 1: the protocol only)")
     rp.add_argument("--no-nhc", action="store_true", help="disable the non-holonomic constraint")
     rp.add_argument("--no-zupt", action="store_true", help="disable zero-velocity/zero-rate updates")
     rp.add_argument("--no-time-offset-estimation", action="store_true",
                     help="keep the IMU time offset fixed at --imu-time-offset")
-    rp.add_argument("--imu-time-offset", type=float, default=-0.125, help="initial IMU time offset [s]")
+    rp.add_argument("--imu-time-offset", type=T.finite_float, default=-0.125, help="initial IMU time offset [s]")
     rp.add_argument("--out", type=Path, default=Path("runs/replay"), help="output directory")
     rp.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
     pg = rp.add_argument_group("publishing onto the sensor topics (a live agent runs on the drive)")
@@ -67,12 +70,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="publish the drive's IMU and GNSS (outages withheld) on VEHICLE's sensor topics over Zenoh, "
                          "score the estimates the agent publishes back")
     pg.add_argument("--vehicle", default="V0", help="vehicle id of the topics (default V0)")
-    pg.add_argument("--speed", type=float, default=1.0, help="real-time factor of the publication (default 1)")
-    pg.add_argument("--start", type=float, default=0.0, help="start this long after the first GNSS epoch [s]")
-    pg.add_argument("--duration", type=float, default=None, help="publish this long [s] (default: to the end)")
-    pg.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
-    pg.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
-    pg.add_argument("--wait-agent", type=float, default=30.0,
+    pg.add_argument("--speed", type=T.positive_float, default=1.0, help="real-time factor of the publication (default 1)")
+    pg.add_argument("--start", type=T.nonnegative_float, default=0.0, help="start this long after the first GNSS epoch [s]")
+    pg.add_argument("--duration", type=T.positive_float, default=None, help="publish this long [s] (default: to the end)")
+    pg.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
+    pg.add_argument("--listen", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to listen on")
+    pg.add_argument("--wait-agent", type=T.positive_float, default=30.0,
                     help="wait this long for the vehicle's agent (liveliness) before publishing [s] (default 30)")
 
     ag = sub.add_parser("agent", help="run one vehicle agent (Zenoh)")
@@ -82,21 +85,21 @@ def build_parser() -> argparse.ArgumentParser:
                     help="lower this process's scheduling priority by N (default 0)")
     em = sub.add_parser("emulate", help="run the emulator service (sensors, UWB, V2V radio) over Zenoh")
     em.add_argument("scenario", help="shipped scenario name or .toml")
-    em.add_argument("--seed", type=int, default=0)
-    em.add_argument("--speed", type=float, default=None, help="real-time factor (default: as fast as agents keep up)")
-    em.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
-    em.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    em.add_argument("--seed", type=T.seed, default=0, help="run seed: sensor noise and where drivers stop (default 0)")
+    em.add_argument("--speed", type=T.positive_float, default=None, help="real-time factor (default: as fast as agents keep up)")
+    em.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
+    em.add_argument("--listen", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to listen on")
     em.add_argument("--mode", choices=("peer", "client"), default="peer",
                     help="Zenoh mode (default peer; client: through the router given by --connect only)")
     em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, see README)")
-    em.add_argument("--wait-agents", type=float, default=20.0,
+    em.add_argument("--wait-agents", type=T.positive_float, default=20.0,
                     help="wait up to this long for every vehicle's agent before starting [s] (default 20)")
-    em.add_argument("--start-at", type=float, default=None, metavar="T",
+    em.add_argument("--start-at", type=T.nonnegative_float, default=None, metavar="T",
                     help="resume the scenario at sensor time T [s] (a restarted emulator)")
     em.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory: connect with mutual TLS as identity 'emulator' (tls/ endpoints)")
     ro = sub.add_parser("router", help="run the infrastructure Zenoh router (TLS + ACL with --fleet)")
-    ro.add_argument("--listen", action="append", default=[],
+    ro.add_argument("--listen", action="append", type=T.endpoint, default=[],
                     help="endpoint (repeatable; default tls/127.0.0.1:7447 with --fleet, else tcp/127.0.0.1:7447)")
     ro.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory (slcp keys create): mutual TLS and an ACL in which a vehicle publishes only under its own keys")
@@ -110,29 +113,33 @@ def build_parser() -> argparse.ArgumentParser:
                     help="units of the IMU lines: m/s2|g|mg and rad/s|deg/s|mrad/s (default m/s2,rad/s)")
     se.add_argument("--imu-mount", default="0,0,0", metavar="ROLL,PITCH,YAW",
                     help="sensor-to-body rotation [deg] (default 0,0,0: the IMU axes are forward, right, down)")
-    se.add_argument("--imu-time-offset", type=float, default=0.0, help="added to the IMU time stamps [s]")
-    se.add_argument("--uere", type=float, default=2.5, help="NMEA without GST: horizontal sigma = HDOP x UERE [m]")
-    se.add_argument("--speed", type=float, default=1.0, help="pacing of log files (real-time factor, default 1)")
-    se.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
-    se.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    se.add_argument("--imu-time-offset", type=T.finite_float, default=0.0, help="added to the IMU time stamps [s]")
+    se.add_argument("--uere", type=T.positive_float, default=2.5, help="NMEA without GST: horizontal sigma = HDOP x UERE [m]")
+    se.add_argument("--speed", type=T.positive_float, default=1.0, help="pacing of log files (real-time factor, default 1)")
+    se.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
+    se.add_argument("--listen", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to listen on")
     se.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory: mutual TLS to the router as the vehicle (its .key/.crt)")
     rc = sub.add_parser("record", help="record every estimate and diagnostics message (JSON lines, appending)")
     rc.add_argument("--out", type=Path, required=True, help="recording file (appended to; a restart continues it)")
-    rc.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    rc.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
     rc.add_argument("--fleet", type=Path, default=None, help="fleet directory: mutual TLS as identity 'recorder'")
     rn = sub.add_parser("run", help="run a fleet on this machine over Zenoh and evaluate it")
     rn.add_argument("scenario", nargs="?", default="paper-1", help="scenario (default paper-1)")
     rn.add_argument("--methods", nargs="+", default=None, help="methods (default: SP SL-SP CP SL-CP)")
-    rn.add_argument("--speed", type=float, default=None, help="real-time factor (default: as fast as agents keep up)")
-    rn.add_argument("--seed", type=int, default=0)
+    rn.add_argument("--speed", type=T.positive_float, default=None, help="real-time factor (default: as fast as agents keep up)")
+    rn.add_argument("--seed", type=T.seed, default=0,
+                    help="run seed: sensor noise and where drivers stop (default 0; with --seeds, the first)")
     rn.add_argument("--out", type=Path, default=None,
-                    help="run directory (default runs/<scenario>-seed<S>, or runs/<scenario>-<N>seeds)")
+                    help="run directory (default runs/<scenario>-seed<S>, or runs/<scenario>-<N>seeds; "
+                         "-2, -3, ... appended when that exists)")
+    rn.add_argument("--force", action="store_true",
+                    help="with --out: replace the previous run in that folder (default: refuse a folder that is not empty)")
     rn.add_argument("--fusion", choices=FUSION_RULES, default=DEFAULT_FUSION,
                     help=f"how CP methods fuse ranges with beacons (default {DEFAULT_FUSION})")
-    rn.add_argument("--seeds", type=_positive_int, default=None, metavar="N",
+    rn.add_argument("--seeds", type=T.positive_int, default=None, metavar="N",
                     help="N seeded runs (seeds S..S+N-1) spread over the cores, with mean ± sd")
-    rn.add_argument("--jobs", type=_positive_int, default=None, help="parallel runs for --seeds (default: cores)")
+    rn.add_argument("--jobs", type=T.positive_int, default=None, help="parallel runs for --seeds (default: cores)")
     rn.add_argument("--strict", action="store_true",
                     help="with --seeds: exit 1 if a seed fails twice (default: report the others and exit 0)")
     rn.add_argument("--faults", type=Path, default=None,
@@ -149,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
     ae = sub.add_parser("attack-eval", help="misbehaviour detection against the VeReMi attacks, and false alarms on clean runs")
     ae.add_argument("scenario", nargs="?", default="paper-1")
-    ae.add_argument("--seeds", type=_positive_int, default=5, help="attack runs per kind (default 5)")
+    ae.add_argument("--seeds", type=T.positive_int, default=5, help="attack runs per kind (default 5)")
     ae.add_argument("--kinds", nargs="+", default=None, help="attack kinds (default: all)")
     ae.add_argument("--clean", nargs="*", default=None, metavar="SCENARIO",
                     help="also count false alarms on whole clean runs of these scenarios (seed 0)")
@@ -161,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     kc.add_argument("vehicles", nargs="+", help="vehicle ids")
     kc.add_argument("--router-host", action="append", default=None,
                     help="host name or address in the router certificate (repeatable; default 127.0.0.1, localhost)")
-    kc.add_argument("--days", type=_positive_int, default=365, help="certificate validity [days] (default 365)")
+    kc.add_argument("--days", type=T.positive_int, default=365, help="certificate validity [days] (default 365)")
     kc.add_argument("--force", action="store_true", help="replace existing CA, keys and certificates")
     kc.add_argument("--infra", action="append", default=None,
                     help="infrastructure identity (repeatable; default: emulator, recorder)")
@@ -180,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--vehicles", metavar="ID,ID,...",
                     help="a sub-fleet: the cooperative bounds process only these vehicles' information "
                          "(how much of a bound comes from which neighbours; default: all)")
-    bd.add_argument("--seed", type=int, default=None,
+    bd.add_argument("--seed", type=T.seed, default=None,
                     help="the drivers' stop draws of this run seed, as slcp run --seed draws them "
                          "(default: the scenario's draw)")
     bn = sub.add_parser("bench", help="per-step costs of an agent and the replay real-time factor")
@@ -190,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     bn.add_argument("--json", action="store_true", help="print one JSON object")
     bn.add_argument("--fleet", default=None, metavar="N,N,...",
                     help="also run the fleet scaling benchmark with these agent counts (e.g. 10,25,50,75)")
-    bn.add_argument("--fleet-duration", type=float, default=40.0, help="scenario length of each fleet point [s] (default 40)")
+    bn.add_argument("--fleet-duration", type=T.positive_float, default=40.0, help="scenario length of each fleet point [s] (default 40)")
     bn.add_argument("--fleet-method", default="SL-CP", help="the one method each agent runs (default SL-CP)")
     bn.add_argument("--fleet-fusion", choices=FUSION_RULES, default=DEFAULT_FUSION,
                     help=f"how the fleet's CP methods fuse ranges (as slcp run --fusion; default {DEFAULT_FUSION})")
@@ -204,20 +211,25 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("scenario", help="list or show emulation scenarios")
     ssub = sp.add_subparsers(dest="scenario_command", required=True)
     ssub.add_parser("list", help="list the shipped scenarios")
+    ex = ssub.add_parser("export", help="write a shipped scenario's TOML, to start a scenario of your own from it")
+    ex.add_argument("name", help="shipped scenario name")
+    ex.add_argument("--out", type=Path, default=None, metavar="FILE.toml",
+                    help="write here (default: print to the terminal); an existing file is kept unless --force")
+    ex.add_argument("--force", action="store_true", help="replace an existing --out file")
     show = ssub.add_parser("show", help="summarise a scenario (name or TOML file)")
     show.add_argument("name", help="shipped scenario name or path to a .toml file")
     show.add_argument("--plot", type=Path, metavar="FILE.png", help="write a map with trajectories")
     chk = ssub.add_parser("sp-check", help="SP RMSE on emulated sensors beside the paper's SP row")
     chk.add_argument("name", help="shipped scenario name or path to a .toml file")
-    chk.add_argument("--seeds", type=int, default=20, help="sensor seeds to average (default 20)")
+    chk.add_argument("--seeds", type=T.positive_int, default=20, help="sensor seeds to average (default 20)")
     chk.add_argument("--json", action="store_true", help="print one JSON object")
     gt = ssub.add_parser("gates", help="range-gate outcomes over many seeds (in process, spread over the cores)")
     gt.add_argument("name", help="shipped scenario name or path to a .toml file")
-    gt.add_argument("--seeds", type=_positive_int, default=25, help="seeds 0..N-1 (default 25)")
+    gt.add_argument("--seeds", type=T.positive_int, default=25, help="seeds 0..N-1 (default 25)")
     gt.add_argument("--json", action="store_true", help="print one JSON object")
     ev = ssub.add_parser("evaluate", help="run all vehicles and the four methods in one process (no bus)")
     ev.add_argument("name", help="shipped scenario name or path to a .toml file")
-    ev.add_argument("--seed", type=int, default=0, help="sensor seed (default 0)")
+    ev.add_argument("--seed", type=T.seed, default=0, help="sensor seed (default 0)")
     ev.add_argument("--json", action="store_true", help="print one JSON object")
     return p
 
@@ -229,6 +241,18 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
         for name in shipped_scenarios():
             scn = load_scenario(name)
             print(f"{name:12s} {len(scn.vehicles):3d} vehicles {scn.duration:6.0f} s  {scn.description}")
+        return 0
+    if args.scenario_command == "export":
+        from hw_emulation.scenario import shipped_scenario_text
+
+        text = shipped_scenario_text(args.name)
+        if args.out is None:
+            print(text, end="")
+            return 0
+        if args.out.exists() and not args.force:
+            raise FileExistsError(f"{args.out}: exists (use --force to replace it)")
+        args.out.write_text(text)
+        print(f"wrote {args.out} (scenario {args.name}; run it with: slcp run {args.out})")
         return 0
     from hw_emulation.events import event_times, window_bounds
     from hw_emulation.truth import build_truth
@@ -398,11 +422,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     for m in methods:
         MethodSpec.of(m)  # ValueError -> clear CLI error
     scn = load_scenario(args.scenario)
-    name = args.scenario.replace("/", "_").removesuffix(".toml")
+    if args.out is not None:
+        prepare_out(args.out, args.force)
+    stem = folder_stem(scn.name)
     if args.seeds:
         from .study import StudyError, run_study, study_markdown
 
-        out = args.out or Path("runs") / f"{name}-{args.seeds}seeds"
+        out = args.out or next_free(Path("runs"), f"{stem}-{args.seeds}seeds")
         seeds = list(range(args.seed, args.seed + args.seeds))
         print(f"slcp run {args.scenario}: {args.seeds} seeds, {', '.join(methods)}, fusion {args.fusion}; writing {out}")
 
@@ -417,6 +443,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         except StudyError as exc:
             print(f"slcp run: {exc}", file=sys.stderr)
             return 1
+        except KeyboardInterrupt:
+            done = sorted(p.name for p in out.glob("seed-*") if (p / "metrics.json").is_file())
+            print(f"\nslcp run: interrupted; the study's processes are stopped. {len(done)} of {args.seeds} seeds "
+                  f"finished in {out}" + (f" (`slcp report {out}` aggregates them)" if done else ""), file=sys.stderr)
+            return 130
         text = study_markdown(scn, study)
         (out / "report.md").write_text(text)
         print(text)
@@ -425,15 +456,44 @@ def _cmd_run(args: argparse.Namespace) -> int:
                   f"(seeds {', '.join(study['failed_seeds'])}; see {out}/failed-seed-*/logs)", file=sys.stderr)
             return 1 if args.strict else 0
         return 0
-    out = args.out or Path("runs") / f"{name}-seed{args.seed}"
+    out = args.out or next_free(Path("runs"), f"{stem}-seed{args.seed}")
     print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")
-    m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
-                  progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign,
-                  faults=args.faults, agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
-                  zenoh_mode=args.zenoh_mode)
+    try:
+        m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
+                      progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign,
+                      faults=args.faults, agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
+                      zenoh_mode=args.zenoh_mode)
+    except KeyboardInterrupt:
+        print("\nslcp run: interrupted; the fleet's processes are stopped", file=sys.stderr)
+        _report_partial_run(out)
+        return 130
     print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
     print((out / "report.md").read_text())
     return 0
+
+
+def _report_partial_run(out: Path) -> None:
+    """The report of what an interrupted run recorded, or one line on why there is none."""
+    from .launcher import rebuild_report
+
+    rec = out / "recorded" / "messages.jsonl"
+    last = None
+    with contextlib.suppress(OSError), rec.open() as fh:
+        for line in fh:
+            try:
+                t = float(json.loads(line)["t"])
+            except (ValueError, KeyError, TypeError):  # a line cut by the interruption
+                continue
+            last = t if last is None else max(last, t)
+    if last is None:
+        print(f"slcp run: nothing was recorded, so no report ({out})", file=sys.stderr)
+        return
+    try:
+        rebuild_report(out)
+    except (ValueError, OSError, KeyError, IndexError) as exc:
+        print(f"slcp run: recorded to t={last:.1f} s, but no report of it ({exc})", file=sys.stderr)
+        return
+    print(f"slcp run: recorded to t={last:.1f} s of sensor time; its report: {out / 'report.md'}", file=sys.stderr)
 
 
 def _cmd_infrastructure(args: argparse.Namespace) -> int:
@@ -791,6 +851,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"slcp: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        print(f"\nslcp {args.command}: interrupted", file=sys.stderr)
         return 130
     return 1
 

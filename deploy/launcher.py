@@ -99,6 +99,10 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
         (out / sub).mkdir(parents=True, exist_ok=True)
     if faults is not None:  # the run keeps its own copy of the schedule
         (out / "config" / "faults.toml").write_text(Path(faults).read_text())
+    # what `slcp report` needs to evaluate the recording of a run that never got to its evaluation
+    (out / "config" / "run.json").write_text(json.dumps({
+        "scenario": scenario, "seed": seed, "methods": list(methods), "fusion": fusion,
+        "lane_constraint": lane_constraint}, indent=2))
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     vehicles = [v.id for v in scn.vehicles]
@@ -606,6 +610,13 @@ def rebuild_report(run_dir: Path) -> dict:
             old = json.loads(mpath.read_text())
         except json.JSONDecodeError as exc:
             raise ValueError(f"{mpath}: unreadable metrics ({exc})") from None
+    run_cfg = run_dir / "config" / "run.json"
+    if "scenario" not in old and run_cfg.is_file():  # an interrupted run: what it was started with
+        try:
+            old = {k: v for k, v in json.loads(run_cfg.read_text()).items()
+                   if k in ("scenario", "seed", "fusion", "lane_constraint")}
+        except (json.JSONDecodeError, AttributeError) as exc:
+            raise ValueError(f"{run_cfg}: unreadable ({exc})") from None
     name = old.get("scenario")
     for cfg in sorted((run_dir / "config").glob("agent-*.toml")) if name is None else ():
         try:  # a run that stopped before its evaluation: the agents' configs name the scenario

@@ -84,6 +84,8 @@ def load_agent_config(path: Path, vehicle: str | None):
         data = tomllib.loads(Path(path).read_text())
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read ({exc.strerror})") from exc
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not an agent configuration (not UTF-8 text)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
     a = data.get("agent", {})
@@ -256,9 +258,11 @@ async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> i
     bus = ZenohBus(zcfg)
     agent = Agent(cfg, bus)
     settle_gc()
+    reach = asyncio.create_task(report_reachability(bus, zcfg.connect, cfg.vehicle))
     try:
         await agent.run(stop)
     finally:
+        reach.cancel()
         await bus.close()
     log.info("%s: stopped; counters %s", cfg.vehicle, agent.counters)
     return 0
@@ -279,6 +283,22 @@ async def router_main(zcfg: ZenohConfig) -> int:
     return 0
 
 
+async def report_reachability(bus, endpoints: tuple[str, ...], who: str, first: float = 2.0,
+                              every: float = 15.0) -> None:
+    """Say, one line at a time, that ``endpoints`` cannot be reached while the session has no link
+    (Zenoh keeps trying in the background), and once that it is connected after all."""
+    if not endpoints:
+        return
+    await asyncio.sleep(first)
+    warned = False
+    while not bus.connected():
+        log.warning("%s: cannot reach %s yet; retrying (Ctrl-C to stop)", who, ", ".join(endpoints))
+        warned = True
+        await asyncio.sleep(every)
+    if warned:
+        log.warning("%s: connected", who)
+
+
 async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
     """Record every estimate and diagnostics message to ``path`` (appending) until SIGINT/SIGTERM."""
     from transport.zenoh_bus import ZenohBus
@@ -289,7 +309,7 @@ async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
     _install_signals(stop)
     bus = ZenohBus(zcfg)
     rec = Recorder(path)
-    tasks = rec.start(bus)
+    tasks = [*rec.start(bus), asyncio.create_task(report_reachability(bus, zcfg.connect, "record"))]
     try:
         await stop.wait()
     finally:

@@ -133,6 +133,8 @@ def load_faults(path: Path | str, known_vehicles: set[str] | None = None) -> lis
         data = tomllib.loads(p.read_text())
     except OSError as exc:
         raise FaultError(f"{p}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError:
+        raise FaultError(f"{p}: not a fault schedule (not UTF-8 text)") from None
     except tomllib.TOMLDecodeError as exc:
         raise FaultError(f"{p}: not valid TOML ({exc})") from None
     return parse_faults(data, str(p), known_vehicles)

@@ -405,17 +405,24 @@ def load_scenario(path_or_name: str | Path) -> Scenario:
             text = p.read_text()
         except OSError as exc:
             raise ScenarioError(f"{p}: cannot read ({exc.strerror})") from exc
+        except UnicodeDecodeError:
+            raise ScenarioError(f"{p}: not a scenario file (not UTF-8 text)") from None
         source = str(p)
     else:
-        if str(path_or_name) not in shipped_scenarios():
-            raise ScenarioError(f"unknown scenario {str(path_or_name)!r}; shipped: {', '.join(shipped_scenarios())}")
-        text = resources.files("hw_emulation.scenarios").joinpath(f"{path_or_name}.toml").read_text()
+        text = shipped_scenario_text(str(path_or_name))
         source = f"{path_or_name}.toml"
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{source}: not valid TOML ({exc})") from exc
     return parse_scenario(data, source)
+
+
+def shipped_scenario_text(name: str) -> str:
+    """The TOML text of the shipped scenario ``name`` (:class:`ScenarioError` if there is none)."""
+    if name not in shipped_scenarios():
+        raise ScenarioError(f"unknown scenario {name!r}; shipped: {', '.join(shipped_scenarios())}")
+    return resources.files("hw_emulation.scenarios").joinpath(f"{name}.toml").read_text()
 
 
 def shipped_scenarios() -> list[str]:

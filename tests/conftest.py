@@ -35,6 +35,13 @@ if not (os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("SLCP_TEST_CACH
 SHARED_DRIVE = REPO.parent / "shared" / "data" / "rtklibexplorer_drive_0708"
 
 
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``-n auto``: one worker more than the cores this process may use. About a third of the
+    suite's time is spent waiting on processes, sockets and paced playback, which a spare worker
+    fills with CPU-bound tests."""
+    return len(os.sched_getaffinity(0)) + 1
+
+
 def short_scenario(folder: Path, name: str = "paper-1", duration: float = 25.0) -> Path:
     """A copy of the shipped scenario ``name`` in ``folder`` that ends after ``duration`` s of
     sensor time (for tests of mechanisms that need the fleet running, not the whole drive)."""

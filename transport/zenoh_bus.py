@@ -14,6 +14,7 @@ import asyncio
 import json
 import logging
 import os
+import re
 from dataclasses import dataclass, field
 
 import zenoh
@@ -99,6 +100,11 @@ class ZenohBus:
         conf = config.to_zenoh()
         try:
             self.session = zenoh.open(conf)
+        except zenoh.ZError as e:  # e.g. a client whose router is not there
+            # Zenoh's message ends with the Rust source line it came from: not the user's concern
+            msg = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", str(e)).strip()
+            where = ", ".join(config.connect or config.listen) or "Zenoh"
+            raise ConnectionError(f"cannot open a Zenoh session ({config.mode}) on {where}: {msg}") from None
         except BaseException as e:  # a Rust panic (pyo3 PanicException) is not an Exception
             if type(e).__name__ != "PanicException":
                 raise
@@ -109,6 +115,11 @@ class ZenohBus:
         self._subs: list[Subscription] = []
         self._tokens: list[object] = []
         self._closed = False
+
+    def connected(self) -> bool:
+        """Whether the session has a link to any router or peer right now."""
+        info = self.session.info
+        return any(True for _ in info.routers_zid()) or any(True for _ in info.peers_zid())
 
     async def publish(self, key: str, payload: bytes) -> None:
         pub = self._publishers.get(key)

@@ -125,6 +125,8 @@ def read_pos(path: str | Path) -> GnssLog:
         lines = path.read_text().splitlines()
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read solution file ({exc.strerror})") from exc
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not an RTKLIB solution file (not UTF-8 text)") from None
     rows = []
     for lineno, line in enumerate(lines, 1):
         if not line.strip() or line.startswith("%"):

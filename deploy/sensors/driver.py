@@ -267,16 +267,18 @@ async def sensors_main(zcfg, vehicle: str, gnss: SourceSpec | None, imu: SourceS
     """Run a :class:`SensorDriver` over Zenoh until its log files end or SIGINT/SIGTERM."""
     from transport.zenoh_bus import ZenohBus
 
-    from ..processes import _install_signals
+    from ..processes import _install_signals, report_reachability
 
     stop = asyncio.Event()
     _install_signals(stop)
     bus = ZenohBus(zcfg)
+    reach = asyncio.create_task(report_reachability(bus, zcfg.connect, f"sensors {vehicle}"))
     try:
         bus.declare_alive(keys.alive("sensors", vehicle))
         drv = SensorDriver(bus, vehicle, gnss, imu, adapter, *units, uere=uere, speed=speed)
         await drv.run(stop)
         return drv.all_counters()
     finally:
+        reach.cancel()
         await bus.close()
 

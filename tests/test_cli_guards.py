@@ -1,0 +1,258 @@
+"""The command line refuses what it cannot do right: one clear line and a non-zero exit for a
+wrong option, a bad endpoint or a bad file; run folders that are neither hidden nor written
+over; a version; a shipped scenario to start from; and an interrupted run that says what it
+stopped and reports what it recorded."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import short_scenario
+from deploy import cli_types
+from deploy.cli import build_parser, main
+from deploy.run_dirs import RunDirError, folder_stem, next_free, prepare_out
+
+CLI = [sys.executable, "-m", "deploy.cli"]
+
+
+def _refused(argv: list[str], capsys) -> str:
+    """Run the CLI on ``argv`` expecting argparse to refuse it; return its one-line message."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "Traceback" not in "\n".join(err)
+    return err[-1]
+
+
+@pytest.mark.parametrize(("argv", "says"), [
+    (["run", "--speed", "-1"], "above 0"),
+    (["run", "--speed", "0"], "above 0"),
+    (["run", "--speed", "nan"], "finite"),
+    (["run", "--speed", "fast"], "expected a number"),
+    (["run", "--seed", "-3"], "seed of 0 or more"),
+    (["run", "--seeds", "0"], "positive integer"),
+    (["run", "--jobs", "1.5"], "positive integer"),
+    (["emulate", "paper-1", "--wait-agents", "0"], "above 0"),
+    (["emulate", "paper-1", "--start-at", "-2"], "0 or more"),
+    (["replay", "rtklib", "x", "--imu-time-offset", "inf"], "finite"),
+    (["replay", "rtklib", "x", "--first-outage", "-1"], "0 or more"),
+    (["replay", "rtklib", "x", "--publish", "--duration", "0"], "above 0"),
+    (["sensors", "--vehicle", "V0", "--uere", "-2"], "above 0"),
+    (["scenario", "sp-check", "paper-1", "--seeds", "0"], "positive integer"),
+    (["bench", "--fleet-duration", "-5"], "above 0"),
+])
+def test_a_wrong_number_is_one_line_and_exit_2(argv, says, capsys) -> None:
+    line = _refused(argv, capsys)
+    assert says in line and line.startswith("slcp ") and "error: argument" in line
+
+
+@pytest.mark.parametrize("bad", ["127.0.0.1:7447", "tcp/127.0.0.1", "tcp/127.0.0.1:0", "tcp/127.0.0.1:70000",
+                                 "carrier-pigeon/127.0.0.1:7447", "tcp/:7447", "tcp/[::1:7447", ""])
+def test_a_malformed_endpoint_is_refused_before_zenoh_sees_it(bad, capsys) -> None:
+    for argv in (["record", "--out", "x.jsonl", "--connect", bad], ["router", "--listen", bad]):
+        line = _refused(argv, capsys)
+        assert "endpoint" in line or "port" in line or "protocol" in line or "brackets" in line, line
+
+
+def test_well_formed_endpoints_pass_as_given() -> None:
+    for ok in ("tcp/127.0.0.1:7447", "tls/localhost:7447", "udp/127.0.0.1:1", "tcp/[::1]:7447",
+               "unixsock-stream//tmp/zenoh.sock", "tcp/127.0.0.1:7447#iface=lo"):
+        assert cli_types.endpoint(ok) == ok
+
+
+def test_every_option_has_help_text() -> None:
+    """Every option of every command says what it does (the CLI reference is made from these)."""
+    import argparse
+
+    missing = []
+
+    def walk(parser: argparse.ArgumentParser, path: str) -> None:
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, f"{path} {name}")
+            elif action.option_strings and not action.help:
+                missing.append(f"{path} {'/'.join(action.option_strings)}")
+
+    walk(build_parser(), "slcp")
+    assert missing == []
+
+
+def test_version(capsys) -> None:
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"slcp {version('slcp')}"
+
+
+def test_a_shipped_scenario_exports_to_a_file_that_runs_as_it(tmp_path, capsys) -> None:
+    from hw_emulation.scenario import load_scenario
+
+    assert main(["scenario", "export", "paper-1"]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("#") and 'name = "paper-1"' in text
+    out = tmp_path / "mine.toml"
+    assert main(["scenario", "export", "paper-1", "--out", str(out)]) == 0
+    assert f"slcp run {out}" in capsys.readouterr().out
+    assert out.read_text() == text and load_scenario(out).name == "paper-1"
+    out.write_text("# my edits\n")
+    assert main(["scenario", "export", "paper-1", "--out", str(out)]) == 2  # kept
+    assert "exists" in capsys.readouterr().err and out.read_text() == "# my edits\n"
+    assert main(["scenario", "export", "paper-1", "--out", str(out), "--force"]) == 0
+    assert out.read_text() == text
+    assert main(["scenario", "export", "nope"]) == 2
+    assert "unknown scenario 'nope'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("what", ["scenario", "faults", "agent"])
+def test_a_file_of_garbage_bytes_is_an_error_that_names_it(what, tmp_path, capsys) -> None:
+    bad = tmp_path / f"garbage-{what}.toml"
+    bad.write_bytes(bytes(range(128, 256)) * 4)
+    argv = {"scenario": ["scenario", "show", str(bad)],
+            "faults": ["run", "paper-1", "--faults", str(bad), "--out", str(tmp_path / "run")],
+            "agent": ["agent", "--config", str(bad)]}[what]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("slcp: error: ") and str(bad) in err and "UTF-8" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "run").exists()
+
+
+def test_run_folders_are_named_after_the_scenario_never_hidden_never_reused(tmp_path) -> None:
+    assert folder_stem("paper-1") == "paper-1"
+    assert folder_stem("../mine/my 4cars") == "mine_my_4cars"
+    assert folder_stem(".hidden") == "hidden" and folder_stem("..") == "scenario"
+    assert next_free(tmp_path, "paper-1-seed0") == tmp_path / "paper-1-seed0"
+    (tmp_path / "paper-1-seed0").mkdir()
+    (tmp_path / "paper-1-seed0-2").mkdir()
+    assert next_free(tmp_path, "paper-1-seed0") == tmp_path / "paper-1-seed0-3"
+
+
+def test_an_explicit_out_folder_is_replaced_only_with_force_and_only_if_it_is_a_run(tmp_path) -> None:
+    prepare_out(tmp_path / "new", force=False)  # a new folder: fine
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    prepare_out(empty, force=False)
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "thesis.tex").write_text("precious")
+    with pytest.raises(RunDirError, match="not empty"):
+        prepare_out(notes, force=False)
+    with pytest.raises(RunDirError, match="not a slcp run folder"):
+        prepare_out(notes, force=True)
+    assert (notes / "thesis.tex").read_text() == "precious"
+    run = tmp_path / "run"
+    (run / "config").mkdir(parents=True)
+    (run / "config" / "agent-V0.toml").write_text("[agent]\n")
+    (run / "recorded").mkdir()
+    with pytest.raises(RunDirError, match="--force"):
+        prepare_out(run, force=False)
+    prepare_out(run, force=True)
+    assert not run.exists()
+    afile = tmp_path / "file"
+    afile.write_text("x")
+    with pytest.raises(RunDirError, match="not a folder"):
+        prepare_out(afile, force=True)
+
+
+def test_slcp_run_refuses_a_used_out_folder_before_starting_anything(tmp_path, capsys) -> None:
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "report.md").write_text("an earlier run's")
+    assert main(["run", "paper-1", "--out", str(used)]) == 2
+    err = capsys.readouterr().err
+    assert "not empty" in err and "--force" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in used.iterdir()) == ["report.md"]
+
+
+@pytest.mark.fleet
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_ctrl_c_stops_the_fleet_says_so_and_reports_what_was_recorded(tmp_path) -> None:
+    """SIGINT to `slcp run` once the fleet has recorded a few seconds: exit 130, one line saying
+    the processes are stopped and up to which sensor time it recorded, a report of that partial
+    recording, and no process left behind."""
+    out = tmp_path / "run"
+    scn = short_scenario(tmp_path, "paper-1", 25.0)
+    p = subprocess.Popen([*CLI, "run", str(scn), "--seed", "3", "--out", str(out)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        rec = out / "recorded" / "messages.jsonl"
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            time.sleep(0.2)
+            if rec.exists() and rec.stat().st_size > 200_000:
+                break
+        assert rec.exists(), "nothing recorded"
+        os.kill(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        subprocess.run(["pkill", "-KILL", "-f", str(out)], check=False)
+    assert p.returncode == 130, err[-2000:]
+    assert "interrupted; the fleet's processes are stopped" in err
+    assert "recorded to t=" in err and "report.md" in err and "Traceback" not in err
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["seed"] == 3  # the run's own seed, from config/run.json, not the scenario's draw
+    assert (out / "report.md").is_file()
+    left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()
+    assert left == [], left
+
+
+@pytest.mark.fleet
+@pytest.mark.slow
+def test_record_from_an_endpoint_nobody_listens_on_says_so_and_retries(tmp_path) -> None:
+    """`slcp record --connect` to a port where no router listens: one line saying it cannot reach
+    it and keeps trying (it does not hang silently); Ctrl-C then ends it cleanly."""
+    from conftest import free_port
+
+    port = free_port()
+    p = subprocess.Popen([*CLI, "record", "--connect", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "r.jsonl")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        time.sleep(6.0)
+        os.kill(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=20)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert any(f"cannot reach tcp/127.0.0.1:{port}" in x and "retrying" in x for x in lines), err
+    assert "Traceback" not in err and ".rs" not in err
+    assert p.returncode in (0, 130)
+
+
+
+@pytest.mark.fleet
+def test_a_client_whose_router_is_not_there_is_one_clean_error(tmp_path, capsys) -> None:
+    """A Zenoh client (an agent or the recorder of a deployed fleet) cannot start without its
+    router: the error names the endpoint and carries no Rust source path."""
+    import asyncio
+
+    from conftest import free_port
+    from transport.zenoh_bus import ZenohBus, ZenohConfig
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+
+    async def open_client() -> None:
+        ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
+
+    with pytest.raises(ConnectionError) as exc:
+        asyncio.run(open_client())
+    text = str(exc.value)
+    assert ep in text and "client" in text and ".rs" not in text
+    cfg = tmp_path / "agent.toml"
+    cfg.write_text(f'[agent]\nvehicle = "V0"\nscenario = "paper-1"\n\n[zenoh]\nmode = "client"\nconnect = ["{ep}"]\n')
+    assert main(["agent", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("slcp: error: cannot open a Zenoh session") and ep in err[0]
