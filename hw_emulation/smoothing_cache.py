@@ -1,11 +1,11 @@
 """Smoothing splines whose GCV fit is remembered, in memory and on disk.
 
-Choosing a smoothing spline's penalty by generalised cross-validation (``scipy``'s
-``make_smoothing_spline`` without ``lam``) costs about a second per turning route, and every
-process that builds a scenario's truth (the emulator, the launcher's evaluation, each seed of a
-study) fits the same routes again. The fit is a pure function of its samples, so its knots and
-coefficients are kept under a key made of the samples' bytes and the scipy version: a spline read
-back is bit for bit the one the fit would give.
+Choosing a smoothing spline's penalty by generalised cross-validation
+(:func:`hw_emulation.gcv_spline.gcv_lambda`) costs a few tenths of a second per turning route,
+and every process that builds a scenario's truth (the emulator, the launcher's evaluation, each
+seed of a study) fits the same routes again. The fit is a pure function of its samples, so its
+knots and coefficients are kept under a key made of the samples' bytes and the scipy version: a
+spline read back is bit for bit the one the fit would give.
 
 The disk cache lives in ``$SLCP_CACHE_DIR``, else ``$XDG_CACHE_HOME/slcp``, else
 ``~/.cache/slcp``; ``SLCP_CACHE_DIR=none`` turns it off. A cache that cannot be read or written is
@@ -40,7 +40,7 @@ def cache_dir() -> Path | None:
 def _key(x: np.ndarray, y: np.ndarray) -> str:
     import scipy
 
-    h = hashlib.sha256(f"gcv-smoothing-spline/1/scipy-{scipy.__version__}/{x.shape}/{y.shape}/".encode())
+    h = hashlib.sha256(f"gcv-smoothing-spline/2/scipy-{scipy.__version__}/{x.shape}/{y.shape}/".encode())
     h.update(np.ascontiguousarray(x, "<f8").tobytes())
     h.update(np.ascontiguousarray(y, "<f8").tobytes())
     return h.hexdigest()
@@ -78,9 +78,12 @@ def _write(path: Path, t: np.ndarray, c: np.ndarray) -> None:
 
 
 def gcv_smoothing_spline(x: np.ndarray, y: np.ndarray):
-    """``scipy.interpolate.make_smoothing_spline(x, y)`` (penalty chosen by GCV) for 1-D ``y``,
-    from the cache when these samples were fitted before."""
+    """The cubic smoothing spline of 1-D ``y`` whose penalty minimises the GCV criterion
+    (``scipy.interpolate.make_smoothing_spline(x, y)``, to the search's tolerance), from the
+    cache when these samples were fitted before."""
     from scipy.interpolate import BSpline, make_smoothing_spline
+
+    from .gcv_spline import gcv_lambda
 
     x, y = np.asarray(x, float), np.asarray(y, float)
     if y.ndim != 1:
@@ -92,7 +95,7 @@ def gcv_smoothing_spline(x: np.ndarray, y: np.ndarray):
     if hit is None and path is not None:
         hit = _read(path, len(x))
     if hit is None:
-        spl = make_smoothing_spline(x, y)
+        spl = make_smoothing_spline(x, y, lam=gcv_lambda(x, y))
         hit = (np.asarray(spl.t, float), np.asarray(spl.c, float))
         if path is not None:
             _write(path, *hit)

@@ -10,6 +10,7 @@ from scipy.interpolate import make_smoothing_spline
 from scipy.spatial.transform import Rotation
 
 from hw_emulation import smoothing_cache
+from hw_emulation.gcv_spline import gcv_lambda
 from hw_emulation.geometry import Path as RoutePath
 from hw_emulation.geometry import bezier_turn
 from hw_emulation.kinematics import _dcm_bn
@@ -31,7 +32,7 @@ def disk(tmp_path, monkeypatch):
 
 def test_a_cached_spline_is_the_fitted_one_bit_for_bit(samples, disk) -> None:
     x, y = samples
-    fresh = make_smoothing_spline(x, y)
+    fresh = make_smoothing_spline(x, y, lam=gcv_lambda(x, y))
     first = smoothing_cache.gcv_smoothing_spline(x, y)
     files = list(disk.glob("*.npz"))
     assert len(files) == 1
@@ -63,7 +64,7 @@ def test_a_damaged_cache_entry_is_refitted_and_replaced(samples, disk, damage) -
     smoothing_cache._MEMORY.clear()
     spl = smoothing_cache.gcv_smoothing_spline(x, y)
     q = np.linspace(0.0, 80.0, 101)
-    assert np.array_equal(spl(q), make_smoothing_spline(x, y)(q))
+    assert np.array_equal(spl(q), make_smoothing_spline(x, y, lam=gcv_lambda(x, y))(q))
     smoothing_cache._MEMORY.clear()
     assert smoothing_cache._read(entry, x.size) is not None  # rewritten whole
 
@@ -85,7 +86,8 @@ def test_an_unwritable_cache_fits_and_goes_on(samples, tmp_path, monkeypatch) ->
     monkeypatch.setattr(smoothing_cache, "_MEMORY", {})
     x, y = samples
     q = np.linspace(0.0, 80.0, 11)
-    assert np.array_equal(smoothing_cache.gcv_smoothing_spline(x, y)(q), make_smoothing_spline(x, y)(q))
+    assert np.array_equal(smoothing_cache.gcv_smoothing_spline(x, y)(q),
+                          make_smoothing_spline(x, y, lam=gcv_lambda(x, y))(q))
 
 
 def test_a_turn_s_heading_and_curvature_follow_the_bezier(disk) -> None:
@@ -109,3 +111,61 @@ def test_the_trajectory_dcms_are_scipys_euler_rotations() -> None:
                              rng.uniform(-np.pi, np.pi, 500)])
     ref = Rotation.from_euler("ZYX", euler[:, ::-1]).as_matrix()
     assert np.allclose(_dcm_bn(euler), ref, atol=1e-14, rtol=0)
+
+
+@pytest.mark.parametrize("case", ["noisy-curve", "turn-headings"])
+def test_the_fast_gcv_penalty_is_scipys(case) -> None:
+    """Two ways to the GCV penalty: scipy's own search (make_smoothing_spline without lam) and
+    gcv_lambda's, the same criterion with a faster inverse-band recursion. Same penalty to the
+    minimiser's tolerance (the criterion is flat at its minimum: the two searches stop 1e-5
+    apart), the same spline to a microradian."""
+    from hw_emulation.gcv_spline import _inverse_bands
+
+    if case == "noisy-curve":
+        rng = np.random.default_rng(2)
+        x = np.sort(rng.uniform(0.0, 50.0, 120))
+        y = np.sin(x / 6.0) + rng.normal(0.0, 0.05, x.size)
+    else:  # the chord headings of a resampled 90° turn (what a route's heading is fitted to)
+        east = bezier_turn(np.array([0.0, 0.0]), 0.0, np.array([20.0, 20.0]), np.pi / 2)
+        pts = np.vstack([[[-40.0, 0.0]], east, [[20.0, 60.0]]])
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        ss = np.linspace(0.0, s[-1], int(np.ceil(s[-1] / 0.5)) + 1)
+        xy = np.column_stack([np.interp(ss, s, pts[:, 0]), np.interp(ss, s, pts[:, 1])])
+        d = np.diff(xy, axis=0)
+        y = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+        x = 0.5 * (ss[1:] + ss[:-1])
+    import scipy.interpolate._bsplines as scipy_bsplines
+
+    found = []
+    search = scipy_bsplines.minimize_scalar
+
+    def spy(*a, **k):  # scipy's own penalty, as its search returns it
+        r = search(*a, **k)
+        found.append(float(r.x))
+        return r
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(scipy_bsplines, "minimize_scalar", spy)
+        ref = make_smoothing_spline(x, y)
+    lam = gcv_lambda(x, y)
+    assert found and lam == pytest.approx(found[0], rel=1e-4)
+    mine = make_smoothing_spline(x, y, lam=lam)
+    q = np.linspace(x[0], x[-1], 2001)
+    assert np.max(np.abs(mine(q) - ref(q))) < 1e-6
+    # the inverse bands against a dense inverse
+    rng = np.random.default_rng(4)
+    n = 12
+    a = np.zeros((n, n))
+    for k in range(4):
+        v = rng.uniform(-0.2, 0.2, n - k) if k else rng.uniform(3.0, 4.0, n)
+        a += np.diag(v, k) + (np.diag(v, -k) if k else 0.0)
+    band = np.zeros((4, n))
+    for k in range(4):
+        band[3 - k, k:] = np.diag(a, k)
+    inv = np.linalg.inv(a)
+    got = _inverse_bands(band)
+    for k in range(3):
+        np.testing.assert_allclose(got[3 - k, k:], np.diag(inv, k), rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match="increasing"):
+        gcv_lambda(x[::-1], y)

@@ -323,5 +323,6 @@ def test_a_study_with_a_failed_seed_exits_non_zero_only_when_strict(strict, code
         raise study_mod.StudyError("no seed of the study finished: seed 0: RuntimeError: stalled")
 
     monkeypatch.setattr(study_mod, "run_study", none)
+    argv[argv.index("--out") + 1] = str(tmp_path / "s2")  # the first study's folder is not reused
     assert main(argv) == 1
     assert "no seed of the study finished" in capsys.readouterr().err
