@@ -26,6 +26,8 @@ def runner(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion:
         real = launcher._slcp
         launcher._slcp = lambda *a: ([sys.executable, "-c", "import time; time.sleep(600)", *real(*a)]
                                      if "emulate" in a else real(*a))
-        launcher._supervise = functools.partial(launcher._supervise, stall_s=2.0)
+        launcher._supervise = functools.partial(launcher._supervise, stall_s=1.0)
+    # the bad seed's watchdog fires after wait_agents + stall_s without a report: kept short
     return launcher.run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice,
-                              lane_constraint=lane_constraint, zenoh_mode=zenoh_mode, wait_agents=3.0)
+                              lane_constraint=lane_constraint, zenoh_mode=zenoh_mode,
+                              wait_agents=1.0 if seed == BAD_SEED else 3.0)

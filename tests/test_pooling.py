@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import short_scenario
+
 from deploy.pooling import main, pool_translation
 
 
@@ -55,10 +57,10 @@ def test_nothing_to_pool_and_bad_arguments_are_refused(capsys) -> None:
 
 @pytest.mark.slow
 @pytest.mark.timeout(180)
-def test_the_reference_on_paper_1_in_process(capsys) -> None:
-    """paper-1 seed 0: rows for the vehicles that stand (V1, V2; V0 never does), the pooled
-    reference beside SL-SP and SL-CP, over the same records."""
-    assert main(["paper-1", "--seeds", "0"]) == 0
+def test_the_reference_on_paper_1_in_process(capsys, tmp_path) -> None:
+    """paper-1 (to 25 s) seed 0: rows for the vehicles that stand (V1, V2; V0 never does), the
+    pooled reference beside SL-SP and SL-CP, over the same records."""
+    assert main([str(short_scenario(tmp_path, "paper-1", 25.0)), "--seeds", "0"]) == 0
     out = capsys.readouterr().out.splitlines()
     rows = {line.split()[0]: line for line in out[2:]}
     assert set(rows) == {"V1", "V2"}
