@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ag = sub.add_parser("agent", help="run one vehicle agent (Zenoh)")
     ag.add_argument("--vehicle", help="vehicle id (overrides the config file)")
-    ag.add_argument("--config", type=Path, required=True, help="agent TOML (see README)")
+    ag.add_argument("--config", type=Path, required=True, help="agent TOML (docs/cli.md, agent configuration)")
     ag.add_argument("--nice", type=int, choices=range(0, 20), default=0, metavar="0-19",
                     help="lower this process's scheduling priority by N (default 0)")
     em = sub.add_parser("emulate", help="run the emulator service (sensors, UWB, V2V radio) over Zenoh")
@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     em.add_argument("--listen", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to listen on")
     em.add_argument("--mode", choices=("peer", "client"), default="peer",
                     help="Zenoh mode (default peer; client: through the router given by --connect only)")
-    em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, see README)")
+    em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, docs/security.md)")
     em.add_argument("--wait-agents", type=T.positive_float, default=20.0,
                     help="wait up to this long for every vehicle's agent before starting [s] (default 20)")
     em.add_argument("--start-at", type=T.nonnegative_float, default=None, metavar="T",

@@ -7,7 +7,7 @@ covariance, under a relative geometry taken as known exactly (one translation of
 fitted to all of them). No estimator can do that: UWB does not give every pair's vector, the
 common-mode error is shared, and nothing is carried over time. So it shows what one-shot pooling
 of what each vehicle knows by itself is worth, beside the joint bound that also pools over time
-(README, *The physical limit*).
+(docs/algorithms.md, *The physical limit*).
 
 ``python -m deploy.pooling rush-hour --seeds 0,1`` runs the fleet in process and prints, per
 vehicle, the RMSE, ANEES and RMSE over the SL-CP bound while it truly stands: the pooled

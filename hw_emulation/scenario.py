@@ -1,6 +1,6 @@
 """Scenario files (TOML): map, signals, vehicles, sensors, radio, events and evaluation windows.
 
-The format is documented in the README ("Scenario format"). Units: metres, seconds, m/s;
+The format is documented in docs/scenario-format.md. Units: metres, seconds, m/s;
 the geodetic origin in degrees (converted here). Sensor sections use the field names of
 :class:`~hw_emulation.sensors.imu.ImuModel`, :class:`~hw_emulation.sensors.gnss.GnssModel`,
 :class:`~hw_emulation.sensors.uwb.UwbModel` and :class:`~hw_emulation.sensors.radio.RadioModel`
@@ -115,7 +115,7 @@ class VehicleSpec:
 
 @dataclass(frozen=True)
 class EventSpec:
-    """A named instant defined from the truth (see README, "Scenario format")."""
+    """A named instant defined from the truth (see docs/scenario-format.md)."""
 
     name: str
     kind: str

@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -256,3 +257,27 @@ def test_a_client_whose_router_is_not_there_is_one_clean_error(tmp_path, capsys)
     assert main(["agent", "--config", str(cfg)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("slcp: error: cannot open a Zenoh session") and ep in err[0]
+
+
+def test_the_docs_site_builds_strictly(tmp_path) -> None:
+    """`mkdocs build --strict`: every page in the navigation, no broken link or anchor."""
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
+    r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q", "-f", str(repo / "mkdocs.yml"),
+                        "-d", str(tmp_path / "site")], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert (tmp_path / "site" / "index.html").is_file() and (tmp_path / "site" / "cli" / "index.html").is_file()
+
+
+def test_the_readme_is_a_front_page() -> None:
+    """At most 200 lines, no dates or commit hashes, and every link in it resolves."""
+    import re
+
+    repo = Path(__file__).resolve().parents[1]
+    text = (repo / "README.md").read_text()
+    assert len(text.splitlines()) <= 200
+    assert not re.search(r"\b20\d\d-\d\d-\d\d\b", text), "a date in the README"
+    assert not re.search(r"\b[0-9a-f]{7,40}\b", text), "a commit hash in the README"
+    for target in re.findall(r"\]\(([^)#]+)", text):
+        if "://" not in target:
+            assert (repo / target).exists(), target

@@ -60,7 +60,7 @@ def test_real_drive_accuracy(replay_result) -> None:
     assert m["outage_h_rms_m"] <= 2.0
     assert m["outage_h_end_mean_m"] <= 4.0
     # acceptance asks <= 8.0 m; one outage (t0+85 s, straight road at 11 m/s) reaches ~9.7 m:
-    # this guards the present figure against regression, see README "Known limits"
+    # this guards the present figure against regression, see docs/known-limits.md
     assert m["outage_h_max_m"] <= 10.0
     # the online IMU-GNSS time-offset estimate converges near -0.25 s
     assert -0.3 < m["imu_time_offset_s"] < -0.2
