@@ -52,6 +52,26 @@ class FaultError(ValueError):
 
 @dataclass(frozen=True)
 class Fault:
+    """One fault of a schedule (the module's docstring lists the kinds).
+
+    Attributes
+    ----------
+    kind : str
+        One of the link, sensor and process kinds (``v2v_blackout``, ..., ``emulator_kill``).
+    start : float
+        Sensor time at which it begins [s].
+    end : float
+        Sensor time at which it ends [s] (``agent_freeze``: the freeze lasts ``end - start`` s of
+        wall time; kills: equal to ``start``).
+    vehicles : tuple of str
+        One vehicle: all its links or its sensors; two: the link or pair between them; none:
+        every vehicle.
+    loss : float
+        ``burst_loss``: the probability that a beacon on an affected link is lost.
+    latency : float
+        ``latency_spike``: the latency added to each beacon on an affected link [s].
+    """
+
     kind: str
     start: float
     end: float

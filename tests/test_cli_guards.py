@@ -87,6 +87,32 @@ def test_every_option_has_help_text() -> None:
     assert missing == []
 
 
+def test_the_cli_reference_page_is_the_parsers(monkeypatch) -> None:
+    """docs/reference-cli.md is what the parsers generate (regenerate it with the command in its
+    header after changing an option)."""
+    from deploy.cli_reference import cli_reference_markdown
+
+    monkeypatch.setenv("COLUMNS", "100")
+    page = Path(__file__).resolve().parents[1] / "docs" / "reference-cli.md"
+    assert page.read_text() == cli_reference_markdown(build_parser()), \
+        "docs/reference-cli.md is out of date: python -m deploy.cli_reference > docs/reference-cli.md"
+
+
+def test_the_config_reference_page_is_the_dataclasses() -> None:
+    """docs/reference-config.md is what the dataclasses generate, and every field is described."""
+    import dataclasses
+
+    from deploy.config_reference import _tables, config_reference_markdown, field_docs
+
+    for _, _, cls in _tables():
+        undocumented = [f.name for f in dataclasses.fields(cls) if not f.name.startswith("_")
+                        and not field_docs(cls).get(f.name)]
+        assert undocumented == [], f"{cls.__name__}: {undocumented} have no description"
+    page = Path(__file__).resolve().parents[1] / "docs" / "reference-config.md"
+    assert page.read_text() == config_reference_markdown(), \
+        "docs/reference-config.md is out of date: python -m deploy.config_reference > docs/reference-config.md"
+
+
 def test_version(capsys) -> None:
     from importlib.metadata import version
 

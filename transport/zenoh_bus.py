@@ -43,6 +43,8 @@ class ZenohConfig:
     Attributes
     ----------
     mode : {"peer", "client", "router"}
+        The session's role: a peer (dials and accepts), a client (through a router only) or a
+        router.
     listen, connect : tuple of str
         Endpoints such as ``tcp/127.0.0.1:7447``.
     multicast_scouting : bool
@@ -59,6 +61,9 @@ class ZenohConfig:
     config_file : str, optional
         A Zenoh JSON5 configuration file (TLS, ACL, ...) loaded first; the fields above
         override it.
+    extra : dict
+        Further Zenoh configuration keys (JSON5 paths, e.g. ``transport/link/tx/lease``) and
+        their values, inserted last.
     """
 
     mode: str = "peer"

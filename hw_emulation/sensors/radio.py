@@ -30,6 +30,8 @@ class RadioModel:
         Mean of the exponential jitter [s].
     stale_prob : float
         Probability that a delivered packet is held back 100-300 ms (``stale_min``-``stale_max``).
+    stale_min, stale_max : float
+        The range of a stale packet's extra delay [s].
     max_range : float
         No delivery beyond this distance [m].
     """
