@@ -467,8 +467,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print("\nslcp run: interrupted; the fleet's processes are stopped", file=sys.stderr)
         _report_partial_run(out)
         return 130
-    print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}")
-    print((out / "report.md").read_text())
+    from .summary import terminal_summary
+
+    print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}\n")
+    print(terminal_summary(scn, m, out / "report.md"))
     return 0
 
 
@@ -702,7 +704,13 @@ def _cmd_report(args: argparse.Namespace) -> int:
         study = rebuild_study(args.run_dir)
         (args.run_dir / "report.md").write_text(study_markdown(load_scenario(study["scenario"]), study))
     else:
-        rebuild_report(args.run_dir)
+        from hw_emulation.scenario import load_scenario
+
+        from .summary import terminal_summary
+
+        m = rebuild_report(args.run_dir)
+        print(terminal_summary(load_scenario(m["scenario_source"]), m, args.run_dir / "report.md"))
+        return 0
     print((args.run_dir / "report.md").read_text())
     return 0
 

@@ -100,8 +100,9 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     if faults is not None:  # the run keeps its own copy of the schedule
         (out / "config" / "faults.toml").write_text(Path(faults).read_text())
     # what `slcp report` needs to evaluate the recording of a run that never got to its evaluation
+    source = str(Path(scenario).resolve()) if Path(scenario).is_file() else str(scenario)
     (out / "config" / "run.json").write_text(json.dumps({
-        "scenario": scenario, "seed": seed, "methods": list(methods), "fusion": fusion,
+        "scenario": source, "seed": seed, "methods": list(methods), "fusion": fusion,
         "lane_constraint": lane_constraint}, indent=2))
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -129,6 +130,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
                                  lane_constraint)
     metrics["wall_s"] = wall
     metrics["seed"] = seed
+    metrics["scenario_source"] = source
     metrics["fusion"] = fusion
     metrics["lane_constraint"] = lane_constraint
     metrics["processes"] = stats
@@ -471,7 +473,8 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
         plot_run_errors(series, windows, methods, out / "errors.png",
                         f"{truth.scenario.name}: horizontal error per vehicle and method", sig_h, bound,
                         faults=faults)
-        plot_scenario(truth, out / "map.png", event_times(truth))
+        shown = next((m for m in ("SL-CP", "CP", "SL-SP", "SP") if m in methods), None)
+        plot_scenario(truth, out / "map.png", event_times(truth), map_estimates(est, truth, shown), shown)
     except ImportError:  # pragma: no cover - matplotlib is a dependency
         log.warning("matplotlib unavailable: no plots")
     for (vid, m), (ts, eh) in series.items():
@@ -595,6 +598,21 @@ def report_markdown(scn, metrics: dict) -> str:
     return "\n".join(lines)
 
 
+def map_estimates(est: dict, truth, method: str | None) -> dict:
+    """The recorded estimates of ``method`` per vehicle in the map frame, for the map:
+    {vehicle: (t, north/east (n, 2), north/east covariance (n, 2, 2))}."""
+    out = {}
+    o = truth.scenario.origin_llh
+    for vid in truth.vehicles:
+        recs = sorted(est.get((vid, method), []), key=lambda r: r["t"])
+        if not recs:
+            continue
+        ne = np.array([earth.ned_offset(*r["llh"], *o)[:2] for r in recs])
+        cov = np.array([np.asarray(r["cov_pos"], float)[:2, :2] for r in recs])
+        out[vid] = (np.array([r["t"] for r in recs]), ne, cov)
+    return out
+
+
 def rebuild_report(run_dir: Path) -> dict:
     """Re-evaluate a single run directory from its recording (``slcp report``)."""
     import tomllib
@@ -611,11 +629,11 @@ def rebuild_report(run_dir: Path) -> dict:
         except json.JSONDecodeError as exc:
             raise ValueError(f"{mpath}: unreadable metrics ({exc})") from None
     run_cfg = run_dir / "config" / "run.json"
-    if "scenario" not in old and run_cfg.is_file():  # an interrupted run: what it was started with
+    if run_cfg.is_file():  # what the run was started with: the scenario's file, not only its name
         try:
-            old = {k: v for k, v in json.loads(run_cfg.read_text()).items()
-                   if k in ("scenario", "seed", "fusion", "lane_constraint")}
-        except (json.JSONDecodeError, AttributeError) as exc:
+            started = json.loads(run_cfg.read_text())
+            old.update({k: v for k, v in started.items() if k == "scenario" or k not in old})
+        except (json.JSONDecodeError, AttributeError, TypeError) as exc:
             raise ValueError(f"{run_cfg}: unreadable ({exc})") from None
     name = old.get("scenario")
     for cfg in sorted((run_dir / "config").glob("agent-*.toml")) if name is None else ():
@@ -638,6 +656,7 @@ def rebuild_report(run_dir: Path) -> dict:
     for k in ("wall_s", "seed", "fusion", "lane_constraint", "processes"):
         if k in old:
             metrics[k] = old[k]
+    metrics["scenario_source"] = name
     mpath.write_text(json.dumps(metrics, indent=2))
     (run_dir / "report.md").write_text(report_markdown(scn, metrics))
     return metrics

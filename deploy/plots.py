@@ -34,9 +34,28 @@ def plot_replay_error(res, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_scenario(truth, path: Path, events: dict[str, float] | None = None) -> None:
-    """Map of a scenario: lanes, lane lines, stop lines, trajectories coloured by vehicle,
-    stop events marked."""
+#: half the width of the map's view around the scenario's origin [m]
+VIEW_M = 120.0
+
+
+def sigma_ellipse(cov_ne, k: float = 2.0, n: int = 48):
+    """Points (east, north), shape (n, 2), of the k-σ ellipse of a north/east covariance (2, 2),
+    centred on the origin."""
+    import numpy as np
+
+    w, v = np.linalg.eigh(np.asarray(cov_ne, float))
+    a = np.linspace(0.0, 2.0 * np.pi, n)
+    pts = (v @ (np.sqrt(np.maximum(w, 0.0))[:, None] * np.vstack([np.cos(a), np.sin(a)]))).T * k
+    return pts[:, ::-1]  # (north, east) -> (east, north)
+
+
+def plot_scenario(truth, path: Path, events: dict[str, float] | None = None, estimates: dict | None = None,
+                  method: str | None = None, ellipse_every: float = 5.0) -> None:
+    """Map of a scenario: lanes, lane lines, stop lines, true trajectories coloured by vehicle
+    with their start (○, labelled), direction of travel (arrows), first stop (■) and first-stopped
+    instant (★). With ``estimates`` ({vehicle: (t [s], north/east [m] (n, 2), covariance (n, 2, 2))}
+    of one ``method``) the estimated tracks are drawn dashed beside the truth, with their 2σ
+    ellipses every ``ellipse_every`` seconds."""
     import numpy as np
 
     from agent.nav import earth
@@ -60,8 +79,31 @@ def plot_scenario(truth, path: Path, events: dict[str, float] | None = None) -> 
         llh = vt.truth.llh
         ne = np.array([earth.ned_offset(*p, *scn.origin_llh)[:2] for p in llh[::20]])
         col = cmap(i % cmap.N)
-        ax.plot(ne[:, 1], ne[:, 0], color=col, lw=1.5, label=vid, zorder=4)
-        ax.plot(ne[0, 1], ne[0, 0], "o", color=col, ms=4, zorder=5)
+        # later vehicles of a shared lane are drawn under earlier ones, a little wider
+        ax.plot(ne[:, 1], ne[:, 0], color=col, lw=1.5 + 1.2 * (len(truth.vehicles) - i - 1) / len(truth.vehicles),
+                label=f"{vid} truth", zorder=4 + 0.01 * i, alpha=0.9)
+        ax.plot(ne[0, 1], ne[0, 0], "o", mfc="white", mec=col, mew=1.5, ms=6, zorder=5)
+        # named where it starts, or where it enters the map's view
+        inside = np.flatnonzero(np.all(np.abs(ne) <= 0.95 * VIEW_M, axis=1))
+        if inside.size:
+            j = int(inside[0])
+            ax.annotate(vid, (ne[j, 1], ne[j, 0]), textcoords="offset points", xytext=(6, 4 + 9 * (i % 2)),
+                        fontsize=8, color=col, weight="bold")
+        seg = np.hypot(*np.diff(ne, axis=0).T)
+        s_along = np.concatenate([[0.0], np.cumsum(seg)])
+        for s_mark in np.arange(30.0, s_along[-1], 60.0):  # direction of travel
+            j = min(int(np.searchsorted(s_along, s_mark)), len(ne) - 2)
+            if seg[j] > 1e-3:
+                ax.annotate("", xy=(ne[j + 1, 1], ne[j + 1, 0]), xytext=(ne[j, 1], ne[j, 0]), zorder=5,
+                            arrowprops={"arrowstyle": "-|>", "color": col, "lw": 1.2, "mutation_scale": 12})
+        if estimates and vid in estimates:
+            t_est, ne_est, cov_est = estimates[vid]
+            if len(t_est):
+                ax.plot(ne_est[:, 1], ne_est[:, 0], color=col, lw=0.8, ls="--", zorder=4.5,
+                        label=f"{vid} {method or 'estimate'}")
+                for j in np.flatnonzero(np.diff(np.floor(np.asarray(t_est) / ellipse_every), prepend=-1.0) > 0):
+                    el = sigma_ellipse(cov_est[j]) + ne_est[j, ::-1]
+                    ax.plot(el[:, 0], el[:, 1], color=col, lw=0.6, alpha=0.8, zorder=4.6)
         fs = np.flatnonzero(vt.first_stopped[::20])
         st = np.flatnonzero(vt.stopped[::20])
         if st.size:
@@ -71,10 +113,11 @@ def plot_scenario(truth, path: Path, events: dict[str, float] | None = None) -> 
     ax.set_aspect("equal")
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
-    lim = 120.0
-    ax.set_xlim(-lim, lim)
-    ax.set_ylim(-lim, lim)
-    title = f"{scn.name}: ■ stopped, ★ first stopped"
+    ax.set_xlim(-VIEW_M, VIEW_M)
+    ax.set_ylim(-VIEW_M, VIEW_M)
+    title = f"{scn.name}: ○ start, ■ stopped, ★ first stopped"
+    if estimates:
+        title += f"; dashed: {method or 'estimate'} with 2σ ellipses every {ellipse_every:g} s"
     if events:
         title += "\n" + ", ".join(f"{k}={v:.1f}s" for k, v in events.items())
     ax.set_title(title, fontsize=9)
@@ -116,9 +159,10 @@ def plot_run_errors(series: dict, windows: dict, methods, path: Path, title: str
         ax.set_ylabel(f"{vid} error [m]")
         ax.set_yscale("symlog", linthresh=0.5)
         ax.grid(alpha=0.3)
+    shade = "shaded: " + ", ".join(windows) if windows else ""
+    key = "solid: error, dotted: reported σ, dashed: bound" if bound is not None else "solid: error"
     axes[0, 0].legend(loc="upper right", ncol=len(methods), fontsize=8,
-                      title="solid: error, dotted: reported σ, dashed: bound" if bound is not None else None,
-                      title_fontsize=7)
+                      title=key + (f"; {shade}" if shade else ""), title_fontsize=7)
     axes[-1, 0].set_xlabel("time [s]")
     axes[0, 0].set_title(title)
     fig.tight_layout()

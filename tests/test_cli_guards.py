@@ -307,3 +307,27 @@ def test_the_readme_is_a_front_page() -> None:
     for target in re.findall(r"\]\(([^)#]+)", text):
         if "://" not in target:
             assert (repo / target).exists(), target
+
+
+def test_the_terminal_summary_is_a_compact_plain_table_that_flags_nees(tmp_path) -> None:
+    from deploy.summary import NEES_BAND, terminal_summary
+    from hw_emulation.scenario import load_scenario
+
+    scn = load_scenario("paper-1")
+
+    def cell(rmse, nees):
+        return {"rmse_m": rmse, "along_rmse_m": rmse, "cross_rmse_m": rmse, "nees_h": nees, "bound_rms_m": 0.1}
+
+    metrics = {"seed": 4, "rmse": {"t_s1-t_e": {
+        "V1": {"SP": cell(4.05, 1.2), "SL-SP": cell(0.15, 1.5), "CP": cell(3.35, 0.8), "SL-CP": cell(0.15, 9.0)},
+        "V2": {"SP": cell(3.6, 0.01), "SL-SP": cell(3.4, 1.2), "CP": cell(2.5, 0.7), "SL-CP": cell(0.06, 0.2)}}},
+        "first_stopped": {"V1": {"SL-SP": {"precision": 1.0, "recall": 0.98}}}}
+    text = terminal_summary(scn, metrics, tmp_path / "report.md")
+    print(text)
+    assert "<br>" not in text and "|" not in text and max(len(x) for x in text.splitlines()) < 120
+    v1 = next(x for x in text.splitlines() if x.strip().startswith("V1"))
+    v2 = next(x for x in text.splitlines() if x.strip().startswith("V2"))
+    assert "0.15 [0.25] !" in v1 and "4.05 [5.18]" in v1 and "4.05 [5.18] !" not in v1  # 9.0 > band
+    assert "3.60 [4.91] !" in v2 and "0.06 [3.84]" in v2 and "0.06 [3.84] !" not in v2  # 0.01 < band
+    assert NEES_BAND[0] < 0.2 < 7.0 < NEES_BAND[1]
+    assert "V1 SL-SP precision 1.000, recall 0.980" in text and str(tmp_path / "report.md") in text
