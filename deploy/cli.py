@@ -458,11 +458,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return 0
     out = args.out or next_free(Path("runs"), f"{stem}-seed{args.seed}")
     print(f"slcp run {args.scenario}: {', '.join(methods)}, fusion {args.fusion}; writing {out}")
+    from .progress import ProgressView
+
     try:
-        m = run_fleet(args.scenario, methods, args.speed, args.seed, out,
-                      progress=lambda s: print(s + "\n", flush=True), fusion=args.fusion, sign=not args.no_sign,
-                      faults=args.faults, agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
-                      zenoh_mode=args.zenoh_mode)
+        with ProgressView() as view:
+            m = run_fleet(args.scenario, methods, args.speed, args.seed, out, progress=view, fusion=args.fusion,
+                          sign=not args.no_sign, faults=args.faults, agent_nice=args.agent_nice,
+                          lane_constraint=not args.no_lane_constraint, zenoh_mode=args.zenoh_mode)
     except KeyboardInterrupt:
         print("\nslcp run: interrupted; the fleet's processes are stopped", file=sys.stderr)
         _report_partial_run(out)

@@ -49,6 +49,7 @@ from transport.security import create_fleet
 from .bound import posterior_crlb
 from .detection import score_first_stopped
 from .processes import SUPERVISOR_ENV
+from .progress import FleetProgress
 from .recorder import Recorder
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
               zenoh_mode: str = "client") -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
-    ``progress`` (optional) is called every 2 s with a multi-line status text. With ``sign``
+    ``progress`` (optional) is called about twice a second with a
+    :class:`deploy.progress.FleetProgress` (and once more before the evaluation). With ``sign``
     a fleet CA and per-vehicle keys are created in ``out/keys`` and every beacon is signed and
     verified. ``monitor`` (optional, see :class:`deploy.fleet_bench.FleetMonitor`) gets
     ``attach(bus, procs)`` once every process is started and ``sample(recorder)`` every 0.2 s.
@@ -121,10 +123,14 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
-                                   agent_nice=agent_nice, zenoh_mode=zenoh_mode, end_t=scn.duration))
+                                   agent_nice=agent_nice, zenoh_mode=zenoh_mode, end_t=scn.duration,
+                                   title=scn.name))
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}
+    if progress:
+        progress(FleetProgress(scn.name, "evaluating", scn.duration, scn.duration, 0, len(vehicles),
+                               stats["recorded"], wall))
     truth = build_truth(scn, stop_seed=seed)
     metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods, schedule,
                                  lane_constraint)
@@ -155,7 +161,8 @@ def _check_resume_progressed(restarts: list[dict], t_now: float, how: str, out: 
 async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Path, progress,
                      max_restarts: int = 3, faults: list | None = None, monitor=None,
                      wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client",
-                     end_t: float | None = None, stall_s: float = 30.0, exit_grace_s: float = 15.0) -> dict:
+                     end_t: float | None = None, stall_s: float = 30.0, exit_grace_s: float = 15.0,
+                     title: str = "") -> dict:
     """Run the fleet's processes until the emulator has played the scenario; return their statistics.
 
     A process that dies is restarted (at most ``max_restarts`` times each; the emulator resumes
@@ -202,7 +209,9 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
         emu_started = time.monotonic()
         if monitor is not None:
             monitor.attach(router, procs)
-        last = 0.0
+        last = last_table = 0.0
+        table = ""
+        play0: float | None = None  # wall time of the first recorded estimate
         prev_diag: dict = {}
         silenced: float | None = None  # the watchdog killed the emulator after this long [s] of silence
         while True:
@@ -272,10 +281,18 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 if r["rejoined_after_s"] is None and seen > r["_t"]:
                     r["rejoined_after_s"] = seen - r["_t"]
                     log.warning("%s rejoined %.2f s after its restart", r["process"], r["rejoined_after_s"])
-            if progress and time.monotonic() - last > 2.0:
+            if progress and time.monotonic() - last > 0.5:
                 last = time.monotonic()
-                progress(status_table(vehicles, rec.latest_t, rec.diag, prev_diag) + f"\nrecorded {rec.recorded} messages")
-                prev_diag = dict(rec.diag)
+                if time.monotonic() - last_table > 2.0:  # rates over two seconds
+                    last_table, table = time.monotonic(), status_table(vehicles, rec.latest_t, rec.diag, prev_diag)
+                    prev_diag = dict(rec.diag)
+                now_w = time.monotonic()
+                if play0 is None and rec.recorded:
+                    play0 = now_w
+                progress(FleetProgress(
+                    title or str(scenario), "playing" if rec.recorded else "starting", max(rec.latest_t.values(), default=0.0), end_t,
+                    sum(now_w - w < 3.0 for w in rec.last_wall.values()), len(vehicles), rec.recorded,
+                    now_w - wall0, table, now_w - play0 if play0 is not None else 0.0))
         await asyncio.sleep(0.5)  # last estimates in flight
     finally:
         for p in procs.values():  # a frozen process would not see the SIGTERM
