@@ -250,7 +250,7 @@ def test_agent_paced_play_with_longer_imu_batches_does_not_wait_for_itself() -> 
     sensor data, and every agent reports throughout."""
     import dataclasses
 
-    scn = dataclasses.replace(load_scenario("paper-1"), imu_batch=20)
+    scn = dataclasses.replace(load_scenario("paper-1"), imu_batch=20, duration=25.0)  # the clock, not the drive
     truth = build_truth(scn)
 
     async def main():
