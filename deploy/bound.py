@@ -143,6 +143,12 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
     return Bound(ts, out)
 
 
+I2 = np.eye(2)
+#: the information of one GNSS position fix on (position, multipath, common mode), per unit weight:
+#: the fix sees their sum, axis by axis
+GNSS_ROWS = np.kron(np.ones((3, 3)), I2)
+
+
 def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use_ranges: bool,
          lmap: LaneMap | None = None, offset_per_lane: bool = False) -> dict:
     n_v = len(ids)
@@ -184,8 +190,10 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
                 b = _NV * i
                 g, imu = specs[vid].gnss, specs[vid].imu
                 F[b:b + 2, b + 2:b + 4] = np.eye(2) * dt
-                q = imu.vrw**2
-                Q[b:b + 4, b:b + 4] = np.kron(np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]) * q, np.eye(2))
+                q = imu.vrw**2  # white acceleration: [[dt³/3, dt²/2], [dt²/2, dt]] q on (p, v), per axis
+                Q[b:b + 2, b:b + 2] = I2 * (dt**3 / 3 * q)
+                Q[b:b + 2, b + 2:b + 4] = Q[b + 2:b + 4, b:b + 2] = I2 * (dt**2 / 2 * q)
+                Q[b + 2:b + 4, b + 2:b + 4] = I2 * (dt * q)
                 tau = g.multipath_tau_moving if moving[vid][k] else g.multipath_tau_static
                 a = np.exp(-dt / tau)
                 F[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * a
@@ -200,7 +208,7 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
             g = specs[vid].gnss
             # GNSS position: z = p + multipath + common + white (rows on p, m, c)
             cols = np.r_[b:b + 2, b + 4:b + 6, ic]
-            info[np.ix_(cols, cols)] += np.kron(np.ones((3, 3)), np.eye(2)) / max(g.white_h, 0.05) ** 2
+            info[np.ix_(cols, cols)] += GNSS_ROWS / max(g.white_h, 0.05) ** 2
             info[b + 2:b + 4, b + 2:b + 4] += np.eye(2) / max(g.velocity_white, 0.02) ** 2
             if use_sl and first[vid][k] and str(lane[vid][k]) in lanes:
                 sg = specs[vid]
