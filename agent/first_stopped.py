@@ -306,10 +306,9 @@ class StopTracker:
             if st is not None:
                 nbs.append(NeighbourView(v, p, st.stopped_since is not None, st.claims_first, st.stopped_since,
                                          (neighbour_cov or {}).get(v), self.beside(v, t)))
-        # moving_decision returned None without a veto: at rest (below stop_speed) since self.since
-        # for at least min_stationary; a claim ends as soon as the vehicle moves (moving_decision)
-        assert self.since is not None
-        still = t - self.since
+        # a claim ends as soon as the vehicle moves (the stop itself has hysteresis): a vehicle
+        # whose veto the ranges just lifted may be creeping within that hysteresis
+        still = t - self.since if self.since is not None and speed < self.s.stop_speed else 0.0
         marks = self._stop_marks or self.markings.settled(t)
         dec = self.detector.decide(ne, cov_ne, yaw, still, nbs, self.since, marks)
         if dec.vetoed_by is not None:

@@ -2,10 +2,11 @@
 
 Choosing a smoothing spline's penalty by generalised cross-validation
 (:func:`hw_emulation.gcv_spline.gcv_lambda`) costs a few tenths of a second per turning route,
-and every process that builds a scenario's truth (the emulator, the launcher's evaluation, each
-seed of a study) fits the same routes again. The fit is a pure function of its samples, so its
+and every process that builds the same truth (the emulator, the launcher's evaluation, `slcp
+report`, the tests) fits the same routes again. The fit is a pure function of its samples, so its
 knots and coefficients are kept under a key made of the samples' bytes and the scipy version: a
-spline read back is bit for bit the one the fit would give.
+spline read back is bit for bit the one the fit would give. (A run seed that redraws a driver's
+lateral offset makes new samples, and a new entry of about 30 kB.)
 
 The disk cache lives in ``$SLCP_CACHE_DIR``, else ``$XDG_CACHE_HOME/slcp``, else
 ``~/.cache/slcp``; ``SLCP_CACHE_DIR=none`` turns it off. A cache that cannot be read or written is
@@ -52,7 +53,7 @@ def _read(path: Path, n: int) -> tuple[np.ndarray, np.ndarray] | None:
             t, c = np.array(z["t"], float), np.array(z["c"], float)
     except FileNotFoundError:
         return None
-    except (OSError, ValueError, KeyError) as e:
+    except Exception as e:  # empty, truncated or corrupt (EOFError, BadZipFile, ...): never an error
         log.debug("spline cache %s unreadable (%s); fitting again", path, e)
         return None
     # a cubic spline through n samples has n + 6 knots and n + 2 coefficients
@@ -89,17 +90,19 @@ def gcv_smoothing_spline(x: np.ndarray, y: np.ndarray):
     if y.ndim != 1:
         raise ValueError(f"y must be one-dimensional, got shape {y.shape}")
     key = _key(x, y)
-    hit = _MEMORY.get(key)
+    hit = _MEMORY.pop(key, None)  # re-inserted below: the dict's order is the use order
     where = cache_dir()
     path = where / f"{key}.npz" if where is not None else None
     if hit is None and path is not None:
         hit = _read(path, len(x))
     if hit is None:
         spl = make_smoothing_spline(x, y, lam=gcv_lambda(x, y))
-        hit = (np.asarray(spl.t, float), np.asarray(spl.c, float))
+        hit = (np.array(spl.t, float), np.array(spl.c, float))
         if path is not None:
             _write(path, *hit)
-    if len(_MEMORY) >= _MEMORY_MAX:
-        _MEMORY.pop(next(iter(_MEMORY)))
+    for a in hit:
+        a.flags.writeable = False  # shared by every spline made from this entry
+    while len(_MEMORY) >= _MEMORY_MAX:
+        _MEMORY.pop(next(iter(_MEMORY)))  # the least recently used
     _MEMORY[key] = hit
     return BSpline(hit[0], hit[1], 3, extrapolate=True)

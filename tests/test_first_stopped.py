@@ -349,3 +349,27 @@ def test_a_speed_within_the_stop_hysteresis_is_moving_for_the_decision() -> None
     assert quick is not None and quick[0].reason == "moving" and quick[1]
     assert tr.since == 0.0  # kept: a return below stop_speed continues this stop
     assert tr.moving_decision(2.2, 0.0) is None  # at rest for 2.2 s
+
+
+def test_a_veto_lifted_while_the_vehicle_creeps_does_not_make_it_first() -> None:
+    """Held off by E1 (possibly ahead in its lane), E3 creeps at a speed within the stop's
+    hysteresis (above stop_speed, below twice it) when ranges show E1 beside it: the veto goes,
+    but a vehicle that moves is not at rest, so no claim until it stands again."""
+    e3, e1 = np.array([-5.25, -12.0]), np.array([-1.75, -12.0])
+    cov = np.diag([9.0, 1.0])
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    for k in range(10):
+        tr.observe_neighbour("E1", 0.1 * k, 0.0, True)
+        dec, _ = tr.decide(0.1 * k, e3, cov, math.pi / 2, 0.0, {"E1": e1})
+    assert not dec.first and tr.vetoed == "E1"
+    creep = 1.5 * tr.s.stop_speed
+    claims = []
+    for k in range(10, 20):
+        t = 0.1 * k
+        tr.observe_neighbour("E1", t, 0.0, True)
+        tr.observe_range("E1", t, 3.5, 0.1)
+        dec, _ = tr.decide(t, e3, cov, math.pi / 2, creep, {"E1": e1})
+        claims.append(dec.first)
+    assert tr.vetoed is None and not any(claims)  # not even at the step that lifts the veto
+    dec, _ = tr.decide(2.0, e3, cov, math.pi / 2, 0.0, {"E1": e1})
+    assert dec.first  # at rest again (its stop kept its start through the creep)

@@ -47,13 +47,17 @@ def test_a_cached_spline_is_the_fitted_one_bit_for_bit(samples, disk) -> None:
     assert len(list(disk.glob("*.npz"))) == 2
 
 
-@pytest.mark.parametrize("damage", ["garbage", "wrong-size", "nan"])
+@pytest.mark.parametrize("damage", ["garbage", "empty", "truncated", "wrong-size", "nan"])
 def test_a_damaged_cache_entry_is_refitted_and_replaced(samples, disk, damage) -> None:
     x, y = samples
     smoothing_cache.gcv_smoothing_spline(x, y)
     (entry,) = disk.glob("*.npz")
     if damage == "garbage":
         entry.write_bytes(b"\x00not a numpy archive")
+    elif damage == "empty":
+        entry.write_bytes(b"")
+    elif damage == "truncated":  # a write cut short (a power loss)
+        entry.write_bytes(entry.read_bytes()[:200])
     elif damage == "wrong-size":
         np.savez(entry, t=np.zeros(3), c=np.zeros(2))
     else:
