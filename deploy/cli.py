@@ -74,9 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
     pg.add_argument("--start", type=T.nonnegative_float, default=0.0, help="start this long after the first GNSS epoch [s]")
     pg.add_argument("--duration", type=T.positive_float, default=None, help="publish this long [s] (default: to the end)")
     pg.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
-    pg.add_argument("--listen", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to listen on")
-    pg.add_argument("--wait-agent", type=T.positive_float, default=30.0,
-                    help="wait this long for the vehicle's agent (liveliness) before publishing [s] (default 30)")
+    pg.add_argument("--listen", action="append", type=T.listen_endpoint, default=[], help="Zenoh endpoint to listen on")
+    pg.add_argument("--wait-agent", type=T.nonnegative_float, default=30.0,
+                    help="wait this long for the vehicle's agent (liveliness) before publishing [s] (default 30; "
+                         "0: do not wait)")
 
     ag = sub.add_parser("agent", help="run one vehicle agent (Zenoh)")
     ag.add_argument("--vehicle", help="vehicle id (overrides the config file)")
@@ -88,18 +89,18 @@ def build_parser() -> argparse.ArgumentParser:
     em.add_argument("--seed", type=T.seed, default=0, help="run seed: sensor noise and where drivers stop (default 0)")
     em.add_argument("--speed", type=T.positive_float, default=None, help="real-time factor (default: as fast as agents keep up)")
     em.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
-    em.add_argument("--listen", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to listen on")
+    em.add_argument("--listen", action="append", type=T.listen_endpoint, default=[], help="Zenoh endpoint to listen on")
     em.add_argument("--mode", choices=("peer", "client"), default="peer",
                     help="Zenoh mode (default peer; client: through the router given by --connect only)")
     em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, docs/security.md)")
-    em.add_argument("--wait-agents", type=T.positive_float, default=20.0,
-                    help="wait up to this long for every vehicle's agent before starting [s] (default 20)")
+    em.add_argument("--wait-agents", type=T.nonnegative_float, default=20.0,
+                    help="wait up to this long for every vehicle's agent before starting [s] (default 20; 0: start at once)")
     em.add_argument("--start-at", type=T.nonnegative_float, default=None, metavar="T",
                     help="resume the scenario at sensor time T [s] (a restarted emulator)")
     em.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory: connect with mutual TLS as identity 'emulator' (tls/ endpoints)")
     ro = sub.add_parser("router", help="run the infrastructure Zenoh router (TLS + ACL with --fleet)")
-    ro.add_argument("--listen", action="append", type=T.endpoint, default=[],
+    ro.add_argument("--listen", action="append", type=T.listen_endpoint, default=[],
                     help="endpoint (repeatable; default tls/127.0.0.1:7447 with --fleet, else tcp/127.0.0.1:7447)")
     ro.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory (slcp keys create): mutual TLS and an ACL in which a vehicle publishes only under its own keys")
@@ -117,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--uere", type=T.positive_float, default=2.5, help="NMEA without GST: horizontal sigma = HDOP x UERE [m]")
     se.add_argument("--speed", type=T.positive_float, default=1.0, help="pacing of log files (real-time factor, default 1)")
     se.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
-    se.add_argument("--listen", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to listen on")
+    se.add_argument("--listen", action="append", type=T.listen_endpoint, default=[], help="Zenoh endpoint to listen on")
     se.add_argument("--fleet", type=Path, default=None,
                     help="fleet directory: mutual TLS to the router as the vehicle (its .key/.crt)")
     rc = sub.add_parser("record", help="record every estimate and diagnostics message (JSON lines, appending)")
@@ -422,6 +423,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     for m in methods:
         MethodSpec.of(m)  # ValueError -> clear CLI error
     scn = load_scenario(args.scenario)
+    if args.faults is not None:  # read before --force removes anything
+        from hw_emulation.faults import load_faults
+
+        load_faults(args.faults, {v.id for v in scn.vehicles})
     if args.out is not None:
         prepare_out(args.out, args.force)
     stem = folder_stem(scn.name)
@@ -446,7 +451,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             done = sorted(p.name for p in out.glob("seed-*") if (p / "metrics.json").is_file())
             print(f"\nslcp run: interrupted; the study's processes are stopped. {len(done)} of {args.seeds} seeds "
-                  f"finished in {out}" + (f" (`slcp report {out}` aggregates them)" if done else ""), file=sys.stderr)
+                  f"finished in {out}" + (f" ({', '.join(done)})" if done else ""), file=sys.stderr)
             return 130
         text = study_markdown(scn, study)
         (out / "report.md").write_text(text)
@@ -494,8 +499,9 @@ def _report_partial_run(out: Path) -> None:
         return
     try:
         rebuild_report(out)
-    except (ValueError, OSError, KeyError, IndexError) as exc:
-        print(f"slcp run: recorded to t={last:.1f} s, but no report of it ({exc})", file=sys.stderr)
+    except Exception as exc:  # a recording cut anywhere: one line, never a traceback after Ctrl-C
+        print(f"slcp run: recorded to t={last:.1f} s, but no report of it ({type(exc).__name__}: {exc})",
+              file=sys.stderr)
         return
     print(f"slcp run: recorded to t={last:.1f} s of sensor time; its report: {out / 'report.md'}", file=sys.stderr)
 

@@ -7,8 +7,10 @@ import argparse
 import math
 import re
 
-#: Zenoh endpoint protocols slcp's processes are tested with
-ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream")
+#: Zenoh's endpoint protocols (link types)
+ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
+#: protocols whose address is not HOST:PORT
+_PATH_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
 _ENDPOINT = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^#?]+)(?P<rest>[#?].*)?$")
 
 
@@ -63,9 +65,18 @@ def seed(text: str) -> int:
     return _integer(text, "a seed of 0 or more (an integer)", 0)
 
 
+def listen_endpoint(text: str) -> str:
+    """An endpoint to listen on: as :func:`endpoint`, and port 0 (any free port) is allowed."""
+    return _endpoint(text, listen=True)
+
+
 def endpoint(text: str) -> str:
-    """A Zenoh endpoint ``PROTOCOL/HOST:PORT`` (``unixsock-stream/PATH``), checked before Zenoh
-    sees it: Zenoh's own error for a malformed one is a Rust backtrace."""
+    """A Zenoh endpoint ``PROTOCOL/HOST:PORT`` (``unixsock-stream/PATH``, ...) to connect to,
+    checked before Zenoh sees it: Zenoh's own error for a malformed one is a Rust backtrace."""
+    return _endpoint(text, listen=False)
+
+
+def _endpoint(text: str, listen: bool) -> str:
     m = _ENDPOINT.match(text.strip())
     if m is None:
         raise argparse.ArgumentTypeError(f"expected a Zenoh endpoint PROTOCOL/HOST:PORT (e.g. tcp/127.0.0.1:7447), "
@@ -74,11 +85,12 @@ def endpoint(text: str) -> str:
     if proto not in ENDPOINT_PROTOCOLS:
         raise argparse.ArgumentTypeError(f"unknown protocol {proto!r} in {text!r} "
                                          f"(one of {', '.join(ENDPOINT_PROTOCOLS)})")
-    if proto == "unixsock-stream":
+    if proto in _PATH_PROTOCOLS:
         return text.strip()
     host, sep, port = addr.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT with a port from 1 to 65535 after {proto}/, "
+    low = 0 if listen else 1
+    if not sep or not host or not port.isdigit() or not low <= int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT with a port from {low} to 65535 after {proto}/, "
                                          f"got {text!r}")
     if host.startswith("[") != host.endswith("]"):
         raise argparse.ArgumentTypeError(f"unbalanced brackets around the IPv6 address in {text!r}")

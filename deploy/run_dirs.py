@@ -29,9 +29,16 @@ def next_free(root: Path, stem: str) -> Path:
 
 
 def looks_like_a_run(path: Path) -> bool:
-    """Whether ``path`` holds a previous slcp run or study (what ``--force`` may replace)."""
-    return ((path / "metrics.json").is_file() or (path / "study.json").is_file()
-            or any((path / "config").glob("agent-*.toml")) or any(path.glob("seed-*/config")))
+    """Whether ``path`` holds a previous slcp run or study (what ``--force`` may replace): a
+    run's recording or start record, or a study's summary beside its seed folders."""
+    return ((path / "recorded" / "messages.jsonl").is_file() or (path / "config" / "run.json").is_file()
+            or ((path / "study.json").is_file() and any(path.glob("seed-*"))))
+
+
+def _too_wide(path: Path) -> bool:
+    """The working folder, the home folder or a folder above either: never removed whole."""
+    p = path.resolve()
+    return any(p == q or p in q.parents for q in (Path.cwd().resolve(), Path.home().resolve()))
 
 
 def prepare_out(path: Path, force: bool) -> None:
@@ -46,7 +53,7 @@ def prepare_out(path: Path, force: bool) -> None:
     if not force:
         raise RunDirError(f"{path}: exists and is not empty; choose another --out, or add --force to replace "
                           "the run in it")
-    if not looks_like_a_run(path):
-        raise RunDirError(f"{path}: not a slcp run folder (no metrics.json, study.json or config/agent-*.toml); "
-                          "--force replaces only runs")
+    if not looks_like_a_run(path) or _too_wide(path):
+        raise RunDirError(f"{path}: not a slcp run folder (no recorded/messages.jsonl, config/run.json, or study.json "
+                          "beside seed-* folders), or the working or home folder; --force replaces only runs")
     shutil.rmtree(path)

@@ -41,7 +41,7 @@ def _refused(argv: list[str], capsys) -> str:
     (["run", "--seed", "-3"], "seed of 0 or more"),
     (["run", "--seeds", "0"], "positive integer"),
     (["run", "--jobs", "1.5"], "positive integer"),
-    (["emulate", "paper-1", "--wait-agents", "0"], "above 0"),
+    (["emulate", "paper-1", "--wait-agents", "-1"], "0 or more"),
     (["emulate", "paper-1", "--start-at", "-2"], "0 or more"),
     (["replay", "rtklib", "x", "--imu-time-offset", "inf"], "finite"),
     (["replay", "rtklib", "x", "--first-outage", "-1"], "0 or more"),
@@ -55,7 +55,7 @@ def test_a_wrong_number_is_one_line_and_exit_2(argv, says, capsys) -> None:
     assert says in line and line.startswith("slcp ") and "error: argument" in line
 
 
-@pytest.mark.parametrize("bad", ["127.0.0.1:7447", "tcp/127.0.0.1", "tcp/127.0.0.1:0", "tcp/127.0.0.1:70000",
+@pytest.mark.parametrize("bad", ["127.0.0.1:7447", "tcp/127.0.0.1", "tcp/127.0.0.1:70000",
                                  "carrier-pigeon/127.0.0.1:7447", "tcp/:7447", "tcp/[::1:7447", ""])
 def test_a_malformed_endpoint_is_refused_before_zenoh_sees_it(bad, capsys) -> None:
     for argv in (["record", "--out", "x.jsonl", "--connect", bad], ["router", "--listen", bad]):
@@ -63,10 +63,14 @@ def test_a_malformed_endpoint_is_refused_before_zenoh_sees_it(bad, capsys) -> No
         assert "endpoint" in line or "port" in line or "protocol" in line or "brackets" in line, line
 
 
-def test_well_formed_endpoints_pass_as_given() -> None:
+def test_well_formed_endpoints_pass_as_given(capsys) -> None:
     for ok in ("tcp/127.0.0.1:7447", "tls/localhost:7447", "udp/127.0.0.1:1", "tcp/[::1]:7447",
-               "unixsock-stream//tmp/zenoh.sock", "tcp/127.0.0.1:7447#iface=lo"):
+               "tcp/[fe80::1%eth0]:7447", "unixsock-stream//tmp/zenoh.sock", "tcp/127.0.0.1:7447#iface=lo",
+               "serial//dev/ttyUSB0#baudrate=115200", "vsock/VMADDR_CID_ANY:7447"):
         assert cli_types.endpoint(ok) == ok
+    # port 0 (any free port) is for listening only
+    assert cli_types.listen_endpoint("tcp/127.0.0.1:0") == "tcp/127.0.0.1:0"
+    assert "port from 1" in _refused(["record", "--out", "x.jsonl", "--connect", "tcp/127.0.0.1:0"], capsys)
 
 
 def test_every_option_has_help_text() -> None:
@@ -164,7 +168,7 @@ def test_run_folders_are_named_after_the_scenario_never_hidden_never_reused(tmp_
     assert next_free(tmp_path, "paper-1-seed0") == tmp_path / "paper-1-seed0-3"
 
 
-def test_an_explicit_out_folder_is_replaced_only_with_force_and_only_if_it_is_a_run(tmp_path) -> None:
+def test_an_explicit_out_folder_is_replaced_only_with_force_and_only_if_it_is_a_run(tmp_path, monkeypatch) -> None:
     prepare_out(tmp_path / "new", force=False)  # a new folder: fine
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -177,14 +181,22 @@ def test_an_explicit_out_folder_is_replaced_only_with_force_and_only_if_it_is_a_
     with pytest.raises(RunDirError, match="not a slcp run folder"):
         prepare_out(notes, force=True)
     assert (notes / "thesis.tex").read_text() == "precious"
+    (notes / "metrics.json").write_text("{}")  # another tool's file of that name does not make a run
+    with pytest.raises(RunDirError, match="not a slcp run folder"):
+        prepare_out(notes, force=True)
     run = tmp_path / "run"
     (run / "config").mkdir(parents=True)
-    (run / "config" / "agent-V0.toml").write_text("[agent]\n")
+    (run / "config" / "run.json").write_text("{}")
     (run / "recorded").mkdir()
     with pytest.raises(RunDirError, match="--force"):
         prepare_out(run, force=False)
     prepare_out(run, force=True)
     assert not run.exists()
+    monkeypatch.chdir(run.parent)  # the working folder itself is never removed whole
+    (tmp_path / "recorded").mkdir()
+    (tmp_path / "recorded" / "messages.jsonl").write_text("")
+    with pytest.raises(RunDirError, match="working or home folder"):
+        prepare_out(tmp_path, force=True)
     afile = tmp_path / "file"
     afile.write_text("x")
     with pytest.raises(RunDirError, match="not a folder"):
