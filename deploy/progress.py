@@ -51,8 +51,9 @@ class ProgressView:
     """Shows :class:`FleetProgress` updates: in place on a terminal, else a line every ``every``
     seconds and at each change of phase. Use as a context manager; call it with each update."""
 
-    def __init__(self, stream=None, every: float = 10.0, live: bool | None = None) -> None:
+    def __init__(self, stream=None, every: float = 10.0, live: bool | None = None, clock=time.monotonic) -> None:
         self.stream = stream or sys.stdout
+        self.clock = clock
         self.every = every
         self.live = self.stream.isatty() if live is None else live
         self._live = None
@@ -76,7 +77,7 @@ class ProgressView:
 
             self._live.update(Group(Text(p.line(), style="bold"), Text(p.table)) if p.table else Text(p.line()))
             return
-        now = time.monotonic()
+        now = self.clock()
         if p.phase != self._phase or now - self._last >= self.every:
             self._phase, self._last = p.phase, now
             print(p.line(), file=self.stream, flush=True)

@@ -39,7 +39,8 @@ def pytest_xdist_auto_num_workers(config) -> int:
     """``-n auto``: one worker more than the cores this process may use. About a third of the
     suite's time is spent waiting on processes, sockets and paced playback, which a spare worker
     fills with CPU-bound tests."""
-    return len(os.sched_getaffinity(0)) + 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return cores + 1
 
 
 def short_scenario(folder: Path, name: str = "paper-1", duration: float = 25.0) -> Path:

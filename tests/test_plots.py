@@ -35,5 +35,7 @@ def test_the_map_draws_estimates_beside_the_truth(tmp_path) -> None:
         ne = np.column_stack([np.linspace(-100.0, 0.0, t.size), np.full(t.size, 1.75)])
         est[vid] = (t, ne + 0.5, np.tile(np.diag([4.0, 1.0]), (t.size, 1, 1)))
     plot_scenario(truth, tmp_path / "map.png", {"t_0": 0.0}, est, "SL-CP")
+    plot_scenario(truth, tmp_path / "truth.png", {"t_0": 0.0})
     data = (tmp_path / "map.png").read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
+    assert data != (tmp_path / "truth.png").read_bytes()  # the estimates and ellipses are drawn

@@ -22,11 +22,10 @@ def test_the_line_says_phase_time_share_agents_and_time_left() -> None:
     assert _p("playing", 80.0).fraction == 1.0
 
 
-def test_off_a_terminal_a_line_at_each_phase_and_every_few_seconds(monkeypatch) -> None:
+def test_off_a_terminal_a_line_at_each_phase_and_every_few_seconds() -> None:
     out = io.StringIO()
     clock = iter([0.0, 1.0, 2.0, 12.5, 13.0, 14.0])
-    monkeypatch.setattr("deploy.progress.time.monotonic", lambda: next(clock))
-    with ProgressView(stream=out, every=10.0, live=False) as view:
+    with ProgressView(stream=out, every=10.0, live=False, clock=lambda: next(clock)) as view:
         for p in (_p("starting", 0.0), _p("starting", 0.0), _p("playing", 5.0), _p("playing", 9.0),
                   _p("playing", 9.5), _p("evaluating", 50.0)):
             view(p)
