@@ -90,6 +90,7 @@ def test_a_claimed_position_off_the_measured_range_is_flagged() -> None:
             det.beacon("V9", "CP", t, at(60.0, 0.0), np.zeros(3), cov)  # claims 60 m north of me
         det.range("V9", t, 20.0, at(0.0, 0.0), np.diag([0.25, 0.25, 1.0]), 0.1)  # measured: 20 m
     assert det.excluded("V9", 0.9) and det.flagged["V9"][1] == "range inconsistent"
+    assert det.counters["range_strikes"] == 10  # every range of the ten counted, not just the last
     # an NLOS-length excess (a longer range, within the allowance) is no evidence
     det2 = MisbehaviourDetector(nlos_bias=3.0)
     det2.beacon("V9", "CP", 0.0, at(20.0, 0.0), np.zeros(3), cov)
