@@ -295,16 +295,19 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                     now_w - wall0, table, now_w - play0 if play0 is not None else 0.0))
         await asyncio.sleep(0.5)  # last estimates in flight
     finally:
-        for p in procs.values():  # a frozen process would not see the SIGTERM
-            if p.poll() is None:
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(p.pid, signal.SIGCONT)
-        _stop_all(procs)
-        for t in tasks:
-            t.cancel()
-        rec.close()
-        for lf in logs:
-            lf.close()
+        # a second Ctrl-C while the children are stopped waits until they are (they run in
+        # their own sessions: the terminal's signal never reaches them)
+        with _termination_deferred():
+            for p in procs.values():  # a frozen process would not see the SIGTERM
+                if p.poll() is None:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(p.pid, signal.SIGCONT)
+            _stop_all(procs)
+            for t in tasks:
+                t.cancel()
+            rec.close()
+            for lf in logs:
+                lf.close()
         await router.close()
     stats["exit_codes"] = {n: p.returncode for n, p in procs.items()}
     stats["restarts"] = [{k: v for k, v in r.items() if not k.startswith("_")} for r in restarts]
@@ -649,7 +652,7 @@ def rebuild_report(run_dir: Path) -> dict:
     if run_cfg.is_file():  # what the run was started with: the scenario's file, not only its name
         try:
             started = json.loads(run_cfg.read_text())
-            old.update({k: v for k, v in started.items() if k == "scenario" or k not in old})
+            old.update({k: v for k, v in started.items() if k in ("scenario", "methods") or k not in old})
         except (json.JSONDecodeError, AttributeError, TypeError) as exc:
             raise ValueError(f"{run_cfg}: unreadable ({exc})") from None
     name = old.get("scenario")
@@ -669,7 +672,8 @@ def rebuild_report(run_dir: Path) -> dict:
     schedule = load_faults(fpath, {v.id for v in scn.vehicles}) if fpath.exists() else []
     seed = old.get("seed")
     truth = build_truth(scn, stop_seed=seed if isinstance(seed, int) and seed >= 0 else None)
-    metrics = evaluate_recording(truth, rec, run_dir, METHODS, schedule, old.get("lane_constraint", True) is not False)
+    methods = tuple(m for m in old.get("methods", METHODS) if m in METHODS) or METHODS  # the run's own
+    metrics = evaluate_recording(truth, rec, run_dir, methods, schedule, old.get("lane_constraint", True) is not False)
     for k in ("wall_s", "seed", "fusion", "lane_constraint", "processes"):
         if k in old:
             metrics[k] = old[k]

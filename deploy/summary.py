@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import math
 
-from scipy.stats import chi2
-
 from agent.methods import METHODS
 
+from .study import anees_band
+
 #: a single run's window: its errors are correlated over the whole window, so its mean
-#: horizontal NEES is treated as one 2-degree-of-freedom draw; outside this two-sided 95 %
-#: band a filter is flagged as over- or under-confident
-NEES_BAND = (float(chi2.ppf(0.025, 2)), float(chi2.ppf(0.975, 2)))
+#: horizontal NEES is treated as one 2-degree-of-freedom draw (a study of one run); outside this
+#: two-sided 95 % band a filter is flagged as over- or under-confident
+NEES_BAND = anees_band(1)
 
 
 def _cell(c: dict | None, paper: float | None) -> str:

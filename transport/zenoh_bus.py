@@ -108,7 +108,8 @@ class ZenohBus:
         except zenoh.ZError as e:  # e.g. a client whose router is not there
             # Zenoh's message ends with the Rust source line it came from: not the user's concern
             msg = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", str(e)).strip()
-            where = ", ".join(config.connect or config.listen) or "Zenoh"
+            where = ", ".join([*(f"connect {e}" for e in config.connect), *(f"listen {e}" for e in config.listen)])
+            where = where or "Zenoh's defaults"
             raise ConnectionError(f"cannot open a Zenoh session ({config.mode}) on {where}: {msg}") from None
         except BaseException as e:  # a Rust panic (pyo3 PanicException) is not an Exception
             if type(e).__name__ != "PanicException":
