@@ -1,144 +1,50 @@
-"""The agent: an asyncio shell around the pure engine, one per vehicle.
+"""The agent: the asyncio host of one vehicle's engine (:mod:`agent.engine`).
 
-It subscribes to its own IMU, GNSS and UWB topics and to the beacons the V2V radio delivers to
-it; orders measurements by sensor time against the IMU (:mod:`agent.sequencer`); runs the
-configured methods side by side (CP-family filters use only beacons of the same method);
-decides "first stopped" from its own data, the map and the beacons; and publishes beacons
-(5 Hz), estimates (10 Hz) and diagnostics (1 Hz) on sensor time. Bad payloads are counted and
-dropped; nothing received can crash the agent.
+It subscribes to its own IMU, GNSS, lane-camera and UWB topics and to the beacons the V2V radio
+delivers to it, decodes each payload, hands the message to the engine, and publishes what the
+engine sends (signing its beacons when configured). Bad payloads are counted and dropped;
+nothing received can crash the agent.
 """
 
 from __future__ import annotations
 
 import asyncio
-import bisect
 import logging
-import math
-from collections import deque
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
-import numpy as np
+from typing import Any
 
 from transport import keys
 from transport.bus import Bus, Subscription, Waker, drain_in_arrival_order
 from transport.codec import CodecError, decode, encode
-from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRange, UwbRound
+from transport.messages import Beacon, Diagnostics, Estimate, Message
 
-from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
-from .integrity import OWN_TWIN, check_separation
-from .lane_map import LaneMap
-from .misbehaviour import MisbehaviourDetector
-from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
-from .nav import earth
-from .nav.measurements.stop_line import StopGapModel
-from .nav.motion import StationarityMonitor, ZuptGate, speed_sigma
-from .nav.rotation import quat_to_euler
-from .neighbours import NeighbourTable
-from .sequencer import Apply, Propagate, Sequencer
+from .engine import AgentConfig, VehicleEngine
 
-if TYPE_CHECKING:  # the shell's security objects (transport.security); typing only
-    from transport.security import BeaconSigner, TrustStore
+__all__ = ["Agent", "AgentConfig"]
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class AgentConfig:
-    """Everything an agent needs (SI units; built at the config edge)."""
-
-    vehicle: str
-    methods: tuple[str, ...]
-    settings: FilterSettings
-    gap: StopGapModel
-    lanes: dict[str, ApproachLane]
-    origin_llh: tuple[float, float, float]
-    beacon_rate: float = 5.0
-    estimate_rate: float = 10.0
-    decision_rate: float = 10.0
-    queue_size: int = 4096
-    #: IMU batches are processed only once this much newer IMU data has arrived [s], so that
-    #: GNSS/UWB of earlier times, travelling on other topics, are applied in order
-    imu_hold: float = 0.25
-    #: a UWB range waits up to this long (filter time) for the neighbour's beacon of its time,
-    #: then is fused with the nearest beacon (or counted stale) [s]
-    range_defer: float = 1.0
-    #: signs this agent's beacons (None: unsigned)
-    signer: "BeaconSigner | None" = None
-    #: when set, only beacons signed by a key of this store for the sending vehicle are accepted
-    trust: "TrustStore | None" = None
-    #: a beacon generated more than this before the agent's filter time is refused as stale, and
-    #: one more than ``max_beacon_future`` after it as from the future [s]. (Fusion itself uses a
-    #: beacon only within 0.3 s of the range time, see :class:`agent.neighbours.NeighbourTable`.)
-    max_beacon_age: float = 1.0
-    max_beacon_future: float = 2.0
-    #: a neighbour silent this long [s of sensor time] is gone (also when its liveliness token
-    #: vanishes, which is usually sooner)
-    neighbour_timeout: float = 1.5
-    #: an IMU batch starting more than this after the newest IMU time is a time jump, dropped
-    #: unless ``jump_confirm`` consecutive batches continue it (then the stream re-synchronises);
-    #: a GNSS fix or range this far ahead of the newest IMU time is dropped too [s]
-    max_time_jump: float = 5.0
-    jump_confirm: int = 5
-    #: check every neighbour's beacons and ranges for misbehaviour and exclude the flagged ones
-    #: (:mod:`agent.misbehaviour`); ``nlos_bias_max`` is the largest NLOS range bias expected [m]
-    misbehaviour_detection: bool = True
-    nlos_bias_max: float = 3.0
-    #: a neighbour lost (not excluded) counts, for ``ghost_memory`` seconds or until heard
-    #: again, as standing where it was last heard, with its covariance grown at ``ghost_speed``
-    #: [m/s]: a vehicle that cannot hear the queue ahead does not take the stop line
-    ghost_memory: float = 30.0
-    ghost_speed: float = 1.0
-    #: every lane of the site, for the SL methods' lane-keeping row (None: no lane map)
-    lane_map: LaneMap | None = None
-
-
 class Agent:
+    """Subscribe → decode → engine → encode → publish, for one vehicle.
+
+    The engine's state (``filters``, ``counters``, ``tables``, ``lost``, ...) reads through the
+    agent, so a host's user sees one vehicle.
+    """
+
     def __init__(self, cfg: AgentConfig, bus: Bus) -> None:
         keys.check_name(cfg.vehicle)
-        for m in cfg.methods:
-            MethodSpec.of(m)
+        self.engine = VehicleEngine(cfg)
+        self.engine.extra_counters = self._queue_counters
         self.cfg = cfg
         self.bus = bus
-        self.seq = Sequencer()
-        self.filters: dict[str, MethodFilter] = {}
-        self.tables = {m: NeighbourTable(timeout=cfg.neighbour_timeout) for m in cfg.methods}
-        self.detector = FirstStoppedDetector(cfg.lanes, cfg.gap)
-        self.trackers = {m: StopTracker(self.detector) for m in cfg.methods if MethodSpec.of(m).stop_line}
-        self.counters: dict[str, int] = {"imu_batches": 0, "gnss": 0, "lane": 0, "uwb": 0, "beacons_rx": 0,
-                                         "beacons_tx": 0, "estimates_tx": 0, "codec_errors": 0,
-                                         "not_for_me": 0, "before_init": 0, "decisions": 0}
-        self.decision_log: list[tuple[float, str, str]] = []
-        #: GNSS fixes received before the filters start (the newest few)
-        self._pending_fixes: deque[GnssFix] = deque(maxlen=32)
-        self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
         self._subs: dict[str, Subscription] = {}
-        self.rest = StationarityMonitor()
-        self.zupt_gate = ZuptGate()
-        self._imu_buffer: list[ImuBatch] = []
-        self._imu_newest: float | None = None  #: newest accepted IMU time [s]
-        self._jump_run: list[float] = []  #: ends of consecutive batches that jumped ahead
-        self._recent: deque = deque(maxlen=1024)  #: keys of the latest sensor messages (duplicates)
-        self._recent_set: set = set()
-        self._next = {"beacon": None, "estimate": None, "decision": None, "diag": None}
-        self._timer_due = math.inf  #: earliest of ``_next`` [s sensor time]
-        self._rest_checked = -math.inf  #: sensor time of the last rest/ZUPT check [s]
-        self._beacon_seq = 0
-        #: neighbours gone: vehicle -> (sensor time [s], "liveliness" | "silence")
-        self.lost: dict[str, tuple[float, str]] = {}
-        #: method -> neighbour lost -> (last llh, last covariance, time lost [s])
-        self._ghosts: dict[str, dict[str, tuple[np.ndarray, np.ndarray, float]]] = {}
-        #: the latest departures: (sensor time [s], vehicle, how)
-        self.departures: deque = deque(maxlen=20)
-        #: verified, fresh beacons received / excluded as misbehaving, per sender
-        self.beacons_from: dict[str, int] = {}
-        self.excluded_from: dict[str, int] = {}
-        self.misbehaviour = (MisbehaviourDetector(nlos_bias=cfg.nlos_bias_max)
-                             if cfg.misbehaviour_detection else None)
-        untested = [m for m in cfg.methods if m in OWN_TWIN and OWN_TWIN[m] not in cfg.methods]
-        if untested and cfg.settings.separation_false_alarm:
-            log.warning("%s: no cooperative integrity test for %s: it needs %s among the methods too",
-                        cfg.vehicle, ", ".join(untested), ", ".join(OWN_TWIN[m] for m in untested))
+        self.dropped: dict[str, int] = {}
+
+    def __getattr__(self, name: str) -> Any:
+        # only called for names the agent itself lacks: the engine's state
+        if name == "engine":
+            raise AttributeError(name)
+        return getattr(self.engine, name)
 
     # ----------------------------------------------------------------- lifecycle
     async def run(self, stop: asyncio.Event) -> None:
@@ -168,36 +74,15 @@ class Agent:
             except asyncio.CancelledError:
                 pass
         await self._drain(subs)  # what arrived before the stop
-        while self._imu_buffer:  # flush held IMU data
-            await self._imu(self._imu_buffer.pop(0))
-        if self.filters:
-            self._fuse_ranges(final=True)
+        self.engine.finish()
+        await self._publish_outbox()
         self.dropped = {k: s.dropped for k, s in subs.items()}
 
     def _on_alive(self, key: str, alive: bool) -> None:
-        other = key.rsplit("/", 1)[-1]
-        if other == self.cfg.vehicle:
-            return
-        if alive:
-            self.lost.pop(other, None)
-            return
-        self._lose(other, "liveliness")
+        self.engine.neighbour_alive(key.rsplit("/", 1)[-1], alive)
 
-    def _lose(self, other: str, how: str) -> None:
-        """Stop using neighbour ``other`` (gone: its liveliness token vanished, or silent for the
-        table timeout); remembered in ``lost`` as (sensor time, how) for the diagnostics, and its
-        last beacon per method as a ghost for the first-stopped decisions (``ghost_memory``)."""
-        t = self.seq.t if self.seq.t is not None else math.nan
-        for m, tab in self.tables.items():
-            e = tab.entries.get(other)
-            if e is not None:
-                self._ghosts.setdefault(m, {})[other] = (e.llh, e.cov, t)
-        self._drop(other)
-        if other not in self.lost:
-            self.lost[other] = (self.seq.t if self.seq.t is not None else math.nan, how)
-            self.departures.append((self.lost[other][0], other, how))
-            self._count(f"neighbour_lost_{how}")
-            log.info("%s: neighbour %s gone (%s) at t=%.2f", self.cfg.vehicle, other, how, self.lost[other][0])
+    def _queue_counters(self) -> dict[str, int]:
+        return {f"queue_dropped_{k}": s.dropped for k, s in self._subs.items()}
 
     async def _consume(self, waker: Waker, subs: dict[str, Subscription]) -> None:
         while True:
@@ -212,397 +97,24 @@ class Agent:
         try:
             msg = decode(payload)
         except CodecError as exc:
-            self.counters["codec_errors"] += 1
+            self.engine.counters["codec_errors"] += 1
             log.debug("%s: dropped bad %s payload: %s", self.cfg.vehicle, kind, exc)
             return
-        try:
-            await self.handle(msg)
-        except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-            # a well-formed but unusable message (e.g. a range to ourselves): count, go on
-            self._count(f"rejected_{type(msg).__name__}")
-            log.debug("%s: rejected %s: %s", self.cfg.vehicle, type(msg).__name__, exc)
+        await self.handle(msg)
 
-    # ----------------------------------------------------------------- messages
-    def _duplicate(self, kind: str, key: tuple) -> bool:
-        """True (counted ``duplicate_<kind>``) for a sensor message seen already (same stream, seq
-        and time); the last ``recent`` keys are remembered."""
-        k = (kind, *key)
-        if k in self._recent_set:
-            self._count(f"duplicate_{kind}")
-            return True
-        if len(self._recent) == self._recent.maxlen:
-            self._recent_set.discard(self._recent[0])
-        self._recent.append(k)
-        self._recent_set.add(k)
-        return False
+    async def handle(self, msg: Message) -> None:
+        """Hand one decoded message to the engine and publish what it sends."""
+        self.engine.handle(msg)
+        await self._publish_outbox()
 
-    async def handle(self, msg) -> None:
+    async def _publish_outbox(self) -> None:
         v = self.cfg.vehicle
-        if isinstance(msg, ImuBatch):
-            if msg.vehicle != v:
-                self.counters["not_for_me"] += 1
-                return
-            if self._duplicate("imu", (msg.seq, float(msg.t[0]))):
-                return
-            if not self._imu_in_time(msg):
-                return
-            self.counters["imu_batches"] += 1
-            # held in time order (a batch delivered late is put back in its place), processed once
-            # imu_hold newer data has arrived
-            bisect.insort(self._imu_buffer, msg, key=lambda b: float(b.t[-1]))
-            newest = self._imu_newest
-            while self._imu_buffer and float(self._imu_buffer[0].t[-1]) <= newest - self.cfg.imu_hold:
-                await self._imu(self._imu_buffer.pop(0))
-        elif isinstance(msg, (GnssFix, LaneMarkings)):  # own sensors, one sample per message
-            kind = "gnss" if isinstance(msg, GnssFix) else "lane"
-            if msg.vehicle != v:
-                self.counters["not_for_me"] += 1
-                return
-            if self._ahead(msg.t, kind) or self._duplicate(kind, (msg.seq, msg.t)):
-                return
-            self.counters[kind] += 1
-            if self.filters:
-                self._apply_now(self.seq.push(msg.t, kind, msg))
-            elif kind == "gnss":  # the filters start from these
-                self._pending_fixes.append(msg)
-        elif isinstance(msg, UwbRange):
-            if v not in (msg.a, msg.b) or msg.a == msg.b:
-                self.counters["not_for_me"] += 1
-                return
-            if self._ahead(msg.t, "uwb") or self._duplicate("uwb", (msg.a, msg.b, msg.seq, msg.t)):
-                return
-            self.counters["uwb"] += 1
-            if self.filters:
-                self._apply_now(self.seq.push(msg.t, "uwb", msg))
-        elif isinstance(msg, UwbRound):
-            if msg.vehicle != v:
-                self.counters["not_for_me"] += 1
-                return
-            if self._ahead(msg.t, "uwb") or self._duplicate("uwb", (msg.seq, msg.t)):
-                return
-            # each range as the UwbRange of its pair would be (the same sequencer path)
-            for peer, r in zip(msg.peers, msg.ranges.tolist()):
-                if peer == v:
-                    self.counters["not_for_me"] += 1
-                    continue
-                self.counters["uwb"] += 1
-                if self.filters:
-                    self._apply_now(self.seq.push(msg.t, "uwb", UwbRange(v, peer, msg.seq, msg.t, r)))
-        elif isinstance(msg, Beacon):
-            if msg.vehicle == v or msg.method not in self.tables:
-                self.counters["not_for_me"] += 1
-                return
-            self.counters["beacons_rx"] += 1
-            refused = self._refuse_beacon(msg)
-            if refused:
-                self._count(f"beacon_{refused}")
-                return
-            tab = self.tables[msg.method]
-            newest = tab.newest_time(msg.vehicle)
-            if newest is not None and msg.t <= newest:  # a duplicate or replay: not newer than the last
-                tab.counters["duplicate_or_old"] += 1
-                return
-            self.lost.pop(msg.vehicle, None)
-            for g in self._ghosts.values():
-                g.pop(msg.vehicle, None)
-            self.beacons_from[msg.vehicle] = self.beacons_from.get(msg.vehicle, 0) + 1
-            if self._untrusted(msg):
-                self.excluded_from[msg.vehicle] = self.excluded_from.get(msg.vehicle, 0) + 1
-                return
-            now = self.seq.t if self.seq.t is not None else msg.t
-            tab.update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos, msg.method, now,
-                       msg.sources, msg.constants)
-            if self._deferred:
-                self._fuse_ranges()
-            if msg.method in self.trackers:
-                self.trackers[msg.method].observe_neighbour(msg.vehicle, msg.t, float(np.hypot(*msg.v_ned[:2])),
-                                                            msg.first_stopped)
-        else:
-            self.counters["not_for_me"] += 1
-
-    def _untrusted(self, msg: Beacon) -> bool:
-        """Misbehaviour check of a verified beacon; True (counted ``beacon_excluded``) while its
-        sender is flagged, in which case the sender is also dropped from the tables."""
-        mb = self.misbehaviour
-        if mb is None:
-            return False
-        was = msg.vehicle in mb.flagged
-        mb.beacon(msg.vehicle, msg.method, msg.t, msg.llh, msg.v_ned, msg.cov_pos)
-        if not mb.excluded(msg.vehicle, msg.t):
-            return False
-        if not was:
-            self._exclude(msg.vehicle)
-        self._count("beacon_excluded")
-        return True
-
-    def _exclude(self, other: str) -> None:
-        t, reason = self.misbehaviour.flagged[other]
-        log.warning("%s: neighbour %s flagged at t=%.2f (%s); excluded", self.cfg.vehicle, other, t, reason)
-        self._drop(other)
-
-    def _drop(self, other: str) -> None:
-        """Forget neighbour ``other`` in every method's table and first-stopped tracker."""
-        for tab in self.tables.values():
-            tab.remove(other)
-        for tr in self.trackers.values():
-            tr.forget(other)
-
-    def _imu_in_time(self, msg: ImuBatch) -> bool:
-        """False (counted ``imu_time_jump``) for a batch that jumps ahead of the stream; a jump
-        that ``jump_confirm`` consecutive batches continue is accepted as the new timeline."""
-        t0, t1 = float(msg.t[0]), float(msg.t[-1])
-        if self._imu_newest is None or t0 - self._imu_newest <= self.cfg.max_time_jump:
-            self._imu_newest = t1 if self._imu_newest is None else max(self._imu_newest, t1)
-            self._jump_run = []
-            return True
-        if self._jump_run and 0.0 < t0 - self._jump_run[-1] <= self.cfg.max_time_jump:
-            self._jump_run.append(t1)
-        else:
-            self._jump_run = [t1]
-        if len(self._jump_run) >= self.cfg.jump_confirm:
-            log.warning("%s: IMU time jumped from %.3f to %.3f s; following it", self.cfg.vehicle,
-                        self._imu_newest, t0)
-            self._imu_newest, self._jump_run = t1, []
-            self._count("imu_time_resync")
-            return True
-        self._count("imu_time_jump")
-        return False
-
-    def _ahead(self, t: float, kind: str) -> bool:
-        """True (counted ``<kind>_time_jump``) for a measurement too far ahead of the IMU stream."""
-        if self._imu_newest is not None and t - self._imu_newest > self.cfg.max_time_jump:
-            self._count(f"{kind}_time_jump")
-            return True
-        return False
-
-    def _refuse_beacon(self, msg: Beacon) -> str | None:
-        """Why a beacon is refused (signature, then freshness against the filter time), or None."""
-        if self.cfg.trust is not None:
-            outcome = self.cfg.trust.verify(msg)
-            if outcome != "ok":
-                return outcome
-        now = self.seq.t
-        if now is not None:
-            if now - msg.t > self.cfg.max_beacon_age:
-                return "stale"
-            if msg.t - now > self.cfg.max_beacon_future:
-                return "future"
-        return None
-
-    def _count(self, name: str, n: int = 1) -> None:
-        self.counters[name] = self.counters.get(name, 0) + n
-
-    async def _imu(self, msg: ImuBatch) -> None:
-        if not self.filters:
-            if not self._init(msg):
-                self.counters["before_init"] += 1
-                return
-        ref = next(iter(self.filters.values()))
-        filters = list(self.filters.values())
-        seq = self.seq
-        ts, dts = msg.t.tolist(), msg.dt.tolist()
-        ths, dvs = msg.dtheta.tolist(), msg.dvel.tolist()
-        rest_from = 0  # first sample not yet in the rest detector
-        for k in range(len(ts)):
-            t = ts[k]
-            if seq.t is not None and t <= seq.t:  # behind the filter: not used at all
-                seq.counters["imu_out_of_order"] += 1
-                continue
-            if not seq.pending_by(t):  # the common case: no measurement inside the interval
-                dt = seq.imu_plain(t, dts[k])
-                if dt is not None:
-                    for f in filters:
-                        f.propagate(ths[k], dvs[k], dt)
-            else:
-                for step in seq.imu(t, ths[k], dvs[k], dts[k]):
-                    if isinstance(step, Propagate):
-                        for f in filters:
-                            f.propagate(step.dtheta, step.dvel, step.dt)
-                    else:
-                        self._apply(step)
-            # rest detection and ZUPT at the gate's rate, on the samples since the last check
-            if k == len(ts) - 1 or t - self._rest_checked >= self.zupt_gate.interval:
-                self._rest_checked = t
-                self.rest.push_batch(msg.dtheta[rest_from:k + 1], msg.dvel[rest_from:k + 1],
-                                     msg.dt[rest_from:k + 1], ref.filter.state.dcm)
-                rest_from = k + 1
-                v = ref.filter.state.v
-                if self.zupt_gate.due(t, self.rest, math.hypot(v[0], v[1]),
-                                      lambda: speed_sigma(ref.filter.state.v, ref.filter.velocity_cov)):
-                    for f in filters:
-                        f.zupt()
-            if t >= self._timer_due:
-                await self._timers(t)
-        if self._deferred:
-            self._fuse_ranges()
-
-    #: the GNSS fix that starts the filters is at most this far from the IMU start [s]
-    INIT_FIX_WINDOW = 1.0
-
-    def _init(self, batch: ImuBatch) -> bool:
-        """Start the filters at the start of IMU ``batch`` from the GNSS fix nearest in time,
-        moved to that time with its velocity (which fixes had arrived when the first batch is
-        processed depends on message timing; this choice does not); later fixes are applied as
-        measurements. False (nothing started) without a fix within ``INIT_FIX_WINDOW``."""
-        t0 = float(batch.t[0] - batch.dt[0])
-        near = [g for g in self._pending_fixes if abs(g.t - t0) <= self.INIT_FIX_WINDOW]
-        if not near:
-            return False
-        fix = min(near, key=lambda g: (abs(g.t - t0), g.t))
-        later = sorted((g for g in self._pending_fixes if g.t > t0 and g is not fix), key=lambda g: g.t)
-        self._pending_fixes.clear()
-        f_b = batch.dvel.sum(axis=0) / max(float(batch.dt.sum()), 1e-3)
-        llh0 = earth.offset_llh(fix.llh, np.asarray(fix.v_ned, float) * (t0 - fix.t))
-        st0 = initial_state(llh0, fix.v_ned, f_b)
-        moving = math.hypot(fix.v_ned[0], fix.v_ned[1]) > 1.0
-        for m in self.cfg.methods:
-            self.filters[m] = MethodFilter(MethodSpec.of(m), st0.copy(), fix.sigma_ned, self.cfg.settings,
-                                           t0, self.cfg.gap, self.cfg.origin_llh, heading_known=moving,
-                                           vehicle=self.cfg.vehicle)
-        self.seq.t = t0
-        for name, rate in (("beacon", self.cfg.beacon_rate), ("estimate", self.cfg.estimate_rate),
-                           ("decision", self.cfg.decision_rate), ("diag", 1.0)):
-            self._next[name] = self.seq.t + 1.0 / rate
-        self._timer_due = min(self._next.values())
-        log.info("%s: initialised %s at t=%.2f", self.cfg.vehicle, ",".join(self.cfg.methods), self.seq.t)
-        for g in later:
-            self._apply_now(self.seq.push(g.t, "gnss", g))
-        return True
-
-    def _apply_now(self, steps: list[Apply]) -> None:
-        for s in steps:
-            self._apply(s)
-
-    def _apply(self, step: Apply) -> None:
-        msg = step.payload
-        if step.kind == "gnss":
-            self.zupt_gate.gnss(step.t)
-            for f in self.filters.values():
-                f.gnss(msg.llh, msg.v_ned, msg.sigma_ned, msg.sigma_v)
-        elif step.kind == "lane":
-            for tr in self.trackers.values():
-                tr.observe_markings(step.t, msg.left, msg.right)
-        elif step.kind == "uwb":
-            other = msg.b if msg.a == self.cfg.vehicle else msg.a
-            mb = self.misbehaviour
-            if mb is not None:
-                own = self.filters.get("SP") or next(iter(self.filters.values()))  # own sensors only
-                was = other in mb.flagged
-                mb.range(other, step.t, msg.range_m, own.filter.state.llh, own.position_cov,
-                         self.cfg.settings.sigma_uwb)
-                if mb.excluded(other, step.t):
-                    if not was:
-                        self._exclude(other)
-                    self._count("range_excluded")
-                    return
-            for tr in self.trackers.values():  # who stands beside me (first-stopped decisions)
-                tr.observe_range(other, step.t, msg.range_m, self.cfg.settings.sigma_uwb)
-            for m, f in self.filters.items():
-                if f.spec.ranges:
-                    self._deferred.append((step.t, m, other, msg.range_m))
-            self._fuse_ranges()
-
-    def _fuse_ranges(self, final: bool = False) -> None:
-        """Fuse the ranges whose neighbour beacon of that time has arrived (or that waited
-        ``range_defer``); the others keep waiting."""
-        keep = []
-        for item in self._deferred:
-            t, m, other, r = item
-            f, tab = self.filters[m], self.tables[m]
-            newest = tab.newest_time(other)
-            if final or (newest is not None and newest >= t) or f.t - t >= self.cfg.range_defer:
-                nb = tab.at(other, t)
-                if nb is None:
-                    continue
-                try:
-                    f.range(nb, r, t)
-                except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-                    # an unusable range (e.g. both estimates at one point): counted, dropped
-                    self._count("rejected_range")
-                    log.debug("%s: range to %s dropped: %s", self.cfg.vehicle, other, exc)
-            else:
-                keep.append(item)
-        self._deferred = keep
-
-    # ----------------------------------------------------------------- sensor-time timers
-    async def _timers(self, t: float) -> None:
-        try:
-            await self._run_timers(t)
-        finally:
-            self._timer_due = min((v for v in self._next.values() if v is not None), default=math.inf)
-
-    async def _run_timers(self, t: float) -> None:
-        if self._next["decision"] is not None and t >= self._next["decision"]:
-            self._next["decision"] += 1.0 / self.cfg.decision_rate
-            self._decide(t)
-        if self._next["beacon"] is not None and t >= self._next["beacon"]:
-            self._next["beacon"] += 1.0 / self.cfg.beacon_rate
-            self._beacon_seq += 1
-            for m, f in self.filters.items():
-                if f.spec.ranges or f.spec.stop_line:
-                    llh, v, cov = f.beacon()
-                    b = Beacon(self.cfg.vehicle, self._beacon_seq, m, t, llh, v, cov,
-                               first_stopped=self.claim(m), sources=f.beacon_sources(),
-                               constants=f.beacon_constants())
-                    if self.cfg.signer is not None:
-                        b = self.cfg.signer.sign(b)
-                    await self.bus.publish(keys.radio_tx(self.cfg.vehicle), encode(b))
-                    self.counters["beacons_tx"] += 1
-        if self._next["estimate"] is not None and t >= self._next["estimate"]:
-            self._next["estimate"] += 1.0 / self.cfg.estimate_rate
-            for m, f in self.filters.items():
-                s = f.filter.state
-                e = Estimate(self.cfg.vehicle, m, t, s.llh.copy(), s.v.copy(), quat_to_euler(s.q),
-                             f.position_cov, self.claim(m))
-                await self.bus.publish(keys.estimate(self.cfg.vehicle, m), encode(e))
-                self.counters["estimates_tx"] += 1
-        if self._next["diag"] is not None and t >= self._next["diag"]:
-            self._next["diag"] += 1.0
-            counters = dict(self.counters)
-            counters.update({f"seq_{k}": v for k, v in self.seq.counters.items()})
-            for m, tab in self.tables.items():
-                counters.update({f"{m}_{k}": v for k, v in tab.counters.items()})
-            for m, f in self.filters.items():
-                counters.update({f"{m}_{k}": v for k, v in f.counters.items()})
-            counters.update({f"queue_dropped_{k}": s.dropped for k, s in self._subs.items()})
-            status = {"t": t, "neighbours": len(set().union(*(tab.vehicles() for tab in self.tables.values()))),
-                      "first_stopped": [m for m in self.trackers if self.claim(m)],
-                      "lost": {v: [lt, how] for v, (lt, how) in self.lost.items()},
-                      "departures": [list(d) for d in self.departures],
-                      "flagged": ({v: [ft, why] for v, (ft, why) in self.misbehaviour.flagged.items()}
-                                  if self.misbehaviour else {})}
-            if self.misbehaviour:
-                counters.update({f"mb_{k}": v for k, v in self.misbehaviour.counters.items()})
-            await self.bus.publish(keys.diag(self.cfg.vehicle), encode(Diagnostics(self.cfg.vehicle, t, counters, status)))
-
-    def claim(self, method: str) -> bool:
-        """Whether ``method``'s filter currently claims "first stopped"."""
-        tr = self.trackers.get(method)
-        return tr is not None and tr.claim
-
-    def _decide(self, t: float) -> None:
-        for m, tab in self.tables.items():  # neighbours not heard for the table's timeout are gone
-            last = dict(tab.entries)
-            for other in tab.expire(t):
-                self._ghosts.setdefault(m, {})[other] = (last[other].llh, last[other].cov, t)
-                self._lose(other, "silence")
-        for m, tr in self.trackers.items():
-            ghosts = {}
-            for o, (llh, cov, lost_at) in list(self._ghosts.get(m, {}).items()):
-                age = t - lost_at
-                if not age <= self.cfg.ghost_memory:  # also NaN (lost before the filter started)
-                    del self._ghosts[m][o]
-                    continue
-                ghosts[o] = (llh, cov + np.eye(3) * (self.cfg.ghost_speed * age) ** 2)
-            dec, changed = first_stopped_step(tr, self.filters[m], self.tables[m], self.cfg.lanes,
-                                              self.cfg.origin_llh, t, ghosts, self.cfg.lane_map)
-            if changed:
-                self.decision_log.append((t, m, dec.reason))
-                log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,
-                         "first stopped" if dec.first else "not first", t, dec.reason)
-            self.counters["decisions"] += 1
-        for m, f in self.filters.items():  # cooperative integrity against the own-sensor twin
-            own = self.filters.get(OWN_TWIN.get(m, ""))
-            if own is not None and check_separation(f, own):
-                log.warning("%s %s: separated from %s beyond its integrity gate at t=%.1f; position widened",
-                            self.cfg.vehicle, m, OWN_TWIN[m], t)
+        for out in self.engine.take_outbox():
+            if isinstance(out, Beacon):
+                if self.cfg.signer is not None:
+                    out = self.cfg.signer.sign(out)
+                await self.bus.publish(keys.radio_tx(v), encode(out))
+            elif isinstance(out, Estimate):
+                await self.bus.publish(keys.estimate(v, out.method), encode(out))
+            elif isinstance(out, Diagnostics):
+                await self.bus.publish(keys.diag(v), encode(out))

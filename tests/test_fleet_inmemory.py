@@ -89,10 +89,10 @@ def test_an_unusable_range_is_counted_and_the_agent_goes_on() -> None:
         def range(self, *a):
             raise ValueError("vehicles coincide: range direction undefined")
 
-    agent.filters = {"CP": Boom()}
+    agent.engine.filters = {"CP": Boom()}
     agent.tables["CP"].update("V2", 1, 10.0, np.array([0.7, 2.0, 50.0]), np.zeros(3), np.eye(3), "CP", 10.0)
-    agent._deferred = [(10.0, "CP", "V2", 7.0)]
-    agent._fuse_ranges()
+    agent.engine._deferred = [(10.0, "CP", "V2", 7.0)]
+    agent.engine._fuse_ranges()
     assert agent._deferred == [] and agent.counters["rejected_range"] == 1
     assert isinstance(agent.tables["CP"].at("V2", 10.0), NeighbourState)
 
@@ -106,8 +106,8 @@ def test_a_ranging_round_reaches_the_filters_as_its_single_ranges_would() -> Non
 
     def sequenced(messages):
         agent = Agent(agent_config(scn, "V1"), InMemoryNetwork().bus())
-        agent.filters = {"CP": object()}  # initialised: measurements go to the sequencer
-        agent._imu_newest = 10.0
+        agent.engine.filters = {"CP": object()}  # initialised: measurements go to the sequencer
+        agent.engine._imu_newest = 10.0
         pushed = []
         agent.seq.push = lambda t, kind, msg: pushed.append(
             (t, kind, msg.b if msg.a == "V1" else msg.a, msg.range_m)) or []
@@ -185,7 +185,7 @@ def test_the_filters_start_from_the_fix_nearest_the_first_imu_sample_whatever_ha
         a = Agent(cfg, InMemoryNetwork().bus())
         for g in fixes:
             await a.handle(g)
-        await a._imu(batch)
+        a.engine._imu(batch)
         return a
 
     starts = [asyncio.run(start(fs)) for fs in ([fix(0, 0.0)], [fix(0, 0.0), fix(1, 0.2), fix(2, 0.4)],

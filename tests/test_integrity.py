@@ -138,11 +138,11 @@ def test_an_agent_without_the_twin_method_warns_that_it_has_no_integrity_test(ca
     from transport.bus import InMemoryNetwork
 
     scn = load_scenario("paper-1")
-    with caplog.at_level(logging.WARNING, logger="agent.runtime"):
+    with caplog.at_level(logging.WARNING, logger="agent.engine"):
         Agent(agent_config(scn, "V1", methods=("SP", "SL-CP")), InMemoryNetwork().bus())
     assert [r.getMessage() for r in caplog.records] == [
         "V1: no cooperative integrity test for SL-CP: it needs SL-SP among the methods too"]
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="agent.runtime"):
+    with caplog.at_level(logging.WARNING, logger="agent.engine"):
         Agent(agent_config(scn, "V1", methods=("SP", "CP", "SL-SP", "SL-CP")), InMemoryNetwork().bus())
     assert caplog.records == []

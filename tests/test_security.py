@@ -174,13 +174,14 @@ def test_an_agent_signs_what_it_sends(fleet) -> None:
 
     agent.bus = Bus()
     g = np.array([0.3, 0.0, 0.0])  # one random constant's sensitivity, m
-    agent.filters = {"CP": type("F", (), {"spec": type("S", (), {"ranges": True, "stop_line": False})(),
+    agent.engine.filters = {"CP": type("F", (), {"spec": type("S", (), {"ranges": True, "stop_line": False})(),
                                           "beacon": lambda self: (np.array([0.7, 2.0, 5.0]), np.zeros(3), np.eye(3)),
                                           "beacon_sources": lambda self: ((("V2",), 0.75 * np.eye(3)),
                                                                           (("V0", "~common"), 0.25 * np.eye(3) - np.outer(g, g))),
                                           "beacon_constants": lambda self: (("V2~1.5", g),)})()}
-    agent._next["beacon"] = 10.0
-    asyncio.run(agent._timers(10.0))
+    agent.engine._next["beacon"] = 10.0
+    agent.engine._timers(10.0)
+    asyncio.run(agent._publish_outbox())
     store = TrustStore.from_dir(fleet)
     assert len(sent) == 1 and store.verify(decode(sent[0])) == "ok"
     # the breakdown by source is signed with the rest
