@@ -1,34 +1,31 @@
 """All vehicles and methods of a scenario in one process, in lockstep on sensor time.
 
-This is the reference evaluation of the methods before the distributed fleet: the same emulated
-sensors, beacons through the V2V radio model (loss, latency, range) into per-method neighbour
-tables, UWB ranges fused by both ends, and first-stopped decisions from each filter's own
-estimate and its neighbours' beacons (no truth).
+The vehicles run the engine a vehicle computer runs (:class:`agent.engine.VehicleEngine`), fed
+the emulator's own messages (:class:`hw_emulation.playback.SensorPlayback`) and each other's
+beacons through the emulator's V2V radio (:class:`hw_emulation.playback.Radio`); only the bus is
+missing. Every sensor event is handed to the engines in sensor-time order, after the beacons the
+radio has delivered by then; the estimates the engines send (10 Hz) are scored against the truth.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
-from agent.first_stopped import FirstStoppedDetector, StopTracker
-from agent.integrity import OWN_TWIN, check_separation
-from agent.methods import DEFAULT_FUSION, METHODS, MethodFilter, MethodSpec, first_stopped_step, initial_state
+from agent.engine import VehicleEngine
+from agent.methods import DEFAULT_FUSION, METHODS
 from agent.nav import earth
-from agent.nav.motion import StationarityMonitor, ZuptGate, speed_sigma
-from agent.neighbours import NeighbourTable
-from hw_emulation.emulate import emulate_uwb, emulate_vehicle_sensors
-from hw_emulation.sensors.radio import simulate_link
+from hw_emulation.playback import Radio, SensorPlayback
 from hw_emulation.truth import ScenarioTruth
+from transport.messages import Beacon, Estimate, Message
 
-from .agent_configs import agent_config, approach_lanes, lane_map
+from .agent_configs import agent_config
 
-
-BEACON_RATE = 5.0
-DECISION_RATE = 10.0
-RECORD_STEP = 10
+#: the common record grid [s]: the engines' estimate period
+RECORD_PERIOD = 0.1
 
 
 @dataclass
@@ -52,168 +49,103 @@ class RunResult:
 
 
 def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = METHODS,
-                  fusion: str = DEFAULT_FUSION) -> RunResult:
+                  fusion: str = DEFAULT_FUSION,
+                  on_message: Callable[[str, Message], None] | None = None,
+                  on_output: Callable[[str, Message], None] | None = None) -> RunResult:
+    """One seeded run of every vehicle's engine. ``on_message(vehicle, msg)`` sees every message
+    handed to an engine, in order, and ``on_output(vehicle, msg)`` every message an engine sends
+    (to play the same run to another host and compare)."""
     scn = truth.scenario
-    rng = np.random.default_rng(seed)
-    sensors = emulate_vehicle_sensors(truth, rng)
-    ranges = emulate_uwb(truth, rng)
-    lanes = approach_lanes(scn)
-    lmap = lane_map(scn)
-    ids = sorted(truth.vehicles)
-    t = truth.vehicles[ids[0]].truth.t
-    dt = np.diff(t)
-
-    filters: dict[tuple[str, str], MethodFilter] = {}
-    detectors = {}
-    sigma_uwb: dict[str, float] = {}
-    for vid in ids:
-        g = sensors[vid].gnss
-        f_b = sensors[vid].imu.dvel[:10].mean(axis=0) / dt[0]
-        st0 = initial_state(g.llh[0], g.v_ned[0], f_b)
-        cfg = agent_config(scn, vid, methods, fusion)
-        gap, settings = cfg.gap, cfg.settings
-        detectors[vid] = FirstStoppedDetector(lanes, gap)
-        sigma_uwb[vid] = settings.sigma_uwb
-        for m in methods:
-            filters[(vid, m)] = MethodFilter(MethodSpec.of(m), st0.copy(), g.sigma_ned[0], settings, float(t[0]),
-                                             gap, scn.origin_llh, heading_known=np.hypot(*g.v_ned[0, :2]) > 1.0,
-                                             vehicle=vid)
-    tables = {(vid, m): NeighbourTable() for vid in ids for m in methods}
-    trackers = {(vid, m): StopTracker(detectors[vid]) for vid in ids for m in methods if MethodSpec.of(m).stop_line}
-
-    rest = {vid: StationarityMonitor() for vid in ids}
-    zupt_gate = {vid: ZuptGate() for vid in ids}
-    decisions: list[tuple[float, str, str, str]] = []
+    playback = SensorPlayback(truth, seed)
+    radio = Radio(truth, seed)
+    ids = playback.ids
+    engines = {vid: VehicleEngine(agent_config(scn, vid, methods, fusion)) for vid in ids}
+    estimates: dict[tuple[str, str], list[Estimate]] = {(v, m): [] for v in ids for m in methods}
     range_outcomes: dict[str, dict[str, dict[str, int]]] = {}
+    kinds = _injected_kinds(playback)
+    for vid, eng in engines.items():
+        eng.range_observer = _tally(vid, kinds, range_outcomes)
+    now = float(truth.vehicles[ids[0]].truth.t[0])
 
-    def claim_of(vid: str, m: str) -> bool:
-        tr = trackers.get((vid, m))
-        return tr is not None and tr.claim
+    def deliver(vid: str, msg: Message) -> None:
+        if on_message is not None:
+            on_message(vid, msg)
+        eng = engines[vid]
+        eng.handle(msg)
+        for out in eng.take_outbox():
+            if on_output is not None:
+                on_output(vid, out)
+            if isinstance(out, Beacon):
+                radio.send(out, out, now)
+            elif isinstance(out, Estimate):
+                estimates[(vid, out.method)].append(out)
 
-    # beacon schedule and radio fates per directed pair
-    step = int(round(scn.imu_rate / BEACON_RATE))
-    b_idx = np.arange(step, len(t), step)
-    fates = {}
-    for a in ids:
-        for b in ids:
-            if a != b:
-                la, lb = truth.vehicles[a].truth.llh[b_idx], truth.vehicles[b].truth.llh[b_idx]
-                rm, rn = earth.radii(float(la[0, 0]))
-                dist = np.hypot((la[:, 0] - lb[:, 0]) * rm, (la[:, 1] - lb[:, 1]) * rn * np.cos(la[:, 0]))
-                fates[(a, b)] = simulate_link(scn.radio, t[b_idx], dist, rng)
-    pending: list[tuple[float, str, str, str, tuple]] = []  # (arrive, sender, receiver, method, beacon)
-    uwb_step = int(round(scn.imu_rate / scn.uwb.rate))
-    dec_step = int(round(scn.imu_rate / DECISION_RATE))
-    gnss_i = {vid: 0 for vid in ids}
-    lane_i = {vid: 0 for vid in ids}
-    imu = {vid: (sensors[vid].imu.dtheta.tolist(), sensors[vid].imu.dvel.tolist()) for vid in ids}
-    dts = dt.tolist()
-    rec_t, err, sig, first = [], {k: [] for k in filters}, {k: [] for k in filters}, {k: [] for k in filters}
-    along: dict[tuple[str, str], list[float]] = {k: [] for k in filters}
-    nees: dict[tuple[str, str], list[float]] = {k: [] for k in filters}
-    err_ne: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in filters}
-    cov_ne: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in filters}
+    for now, messages in playback.messages():
+        for _, rx, beacon in radio.due(now):
+            deliver(rx, beacon)
+        for msg in messages:
+            deliver(msg.vehicle, msg)
+    for vid, eng in engines.items():  # what the engines still hold back
+        eng.finish()
+        for out in eng.take_outbox():
+            if on_output is not None:
+                on_output(vid, out)
+            if isinstance(out, Estimate):
+                estimates[(vid, out.method)].append(out)
+    decisions = sorted((t, vid, m, why) for vid, eng in engines.items() for t, m, why in eng.decision_log)
+    counters = {(vid, m): dict(f.counters) for vid, eng in engines.items() for m, f in eng.filters.items()}
+    return _score(truth, estimates, counters, decisions, range_outcomes)
 
-    for k in range(len(dts)):
-        tk = float(t[k + 1])
-        for vid in ids:
-            th, dv = imu[vid][0][k], imu[vid][1][k]
-            for m in methods:
-                filters[(vid, m)].propagate(th, dv, dts[k])
-            g = sensors[vid].gnss
-            while gnss_i[vid] < len(g.t) and g.t[gnss_i[vid]] <= tk + 1e-6:
-                i = gnss_i[vid]
-                if g.t[i] > t[0] + 1e-6:
-                    zupt_gate[vid].gnss(float(g.t[i]))
-                    for m in methods:
-                        filters[(vid, m)].gnss(g.llh[i], g.v_ned[i], g.sigma_ned[i], float(g.sigma_v[i]))
-                gnss_i[vid] += 1
-            cam = sensors[vid].lane
-            while cam is not None and lane_i[vid] < len(cam.t) and cam.t[lane_i[vid]] <= tk + 1e-6:
-                i = lane_i[vid]
-                for m in methods:
-                    if (vid, m) in trackers:
-                        trackers[(vid, m)].observe_markings(float(cam.t[i]), int(cam.classes[i, 0]),
-                                                            int(cam.classes[i, 1]))
-                lane_i[vid] += 1
-            rest[vid].push(th, dv, dts[k], filters[(vid, methods[0])].filter.state.dcm)
-            ref = filters[(vid, methods[0])].filter
-            v = ref.state.v
-            if zupt_gate[vid].due(tk, rest[vid], math.hypot(v[0], v[1]),
-                                  lambda: speed_sigma(ref.state.v, ref.velocity_cov)):
-                for m in methods:
-                    filters[(vid, m)].zupt()
-        # beacons: send at the schedule, deliver after the radio latency
-        if (k + 1) % step == 0:
-            j = (k + 1) // step - 1
-            for a in ids:
-                for m in methods:
-                    spec = MethodSpec.of(m)
-                    if not (spec.ranges or spec.stop_line):  # SL methods need beacons to detect "first"
-                        continue
-                    llh, v, cov = filters[(a, m)].beacon()
-                    src = (filters[(a, m)].beacon_sources(), filters[(a, m)].beacon_constants())
-                    for b in ids:
-                        if b != a and fates[(a, b)].delivered[j]:
-                            pending.append((float(fates[(a, b)].t_arrive[j]), a, b, m,
-                                            (j, tk, llh, v, cov, claim_of(a, m), src)))
-        if pending:
-            still = []
-            for item in pending:
-                arrive, a, b, m, (seq, tb, llh, v, cov, claim_at_send, src) = item
-                if arrive <= tk:
-                    if tables[(b, m)].update(a, seq, tb, llh, v, cov, m, tk, *src) and (b, m) in trackers:
-                        trackers[(b, m)].observe_neighbour(a, tb, float(np.hypot(v[0], v[1])), claim_at_send)
-                else:
-                    still.append(item)
-            pending = still
-        # UWB: one value per pair, fused by both ends
-        if (k + 1) % uwb_step == 0:
-            r_i = (k + 1) // uwb_step
-            for (a, b), rr in ranges.items():
-                if r_i >= len(rr.t) or not np.isfinite(rr.range[r_i]):
-                    continue
-                for me, other in ((a, b), (b, a)):
-                    for m in methods:
-                        if (me, m) in trackers:
-                            trackers[(me, m)].observe_range(other, tk, float(rr.range[r_i]), sigma_uwb[me])
-                        if MethodSpec.of(m).ranges:
-                            nb = tables[(me, m)].at(other, tk)
-                            if nb is not None:
-                                outcome = filters[(me, m)].range(nb, float(rr.range[r_i]))
-                                kind = "outlier" if rr.outlier[r_i] else "nlos" if rr.nlos[r_i] else "clean"
-                                tally = range_outcomes.setdefault(m, {}).setdefault(kind, {})
-                                tally[outcome] = tally.get(outcome, 0) + 1
-        # first-stopped decisions and stop-line fixes
-        if (k + 1) % dec_step == 0:
-            for key, tr in trackers.items():
-                dec, changed = first_stopped_step(tr, filters[key], tables[key], lanes, scn.origin_llh, tk,
-                                                  lane_map=lmap)
-                if changed:
-                    decisions.append((tk, key[0], key[1], dec.reason))
-            for (vid, m), f in filters.items():  # cooperative integrity against the own-sensor twin
-                own = filters.get((vid, OWN_TWIN.get(m, "")))
-                if own is not None:
-                    check_separation(f, own)
-        if (k + 1) % RECORD_STEP == 0:
-            rec_t.append(tk)
-            for (vid, m), f in filters.items():
-                s = f.filter.state
-                e = earth.ned_offset(s.lat, s.lon, s.h, *truth.vehicles[vid].truth.llh[k + 1])
-                p = f.filter.position_cov
-                err[(vid, m)].append(math.hypot(e[0], e[1]))
-                yaw = truth.vehicles[vid].truth.euler[k + 1, 2]
-                along[(vid, m)].append(e[0] * math.cos(yaw) + e[1] * math.sin(yaw))
-                sig[(vid, m)].append(math.sqrt(p[0, 0] + p[1, 1]))
-                eh = np.array([e[0], e[1]])
-                nees[(vid, m)].append(float(eh @ np.linalg.solve(p[:2, :2], eh)))
-                err_ne[(vid, m)].append(eh)
-                cov_ne[(vid, m)].append(np.array(p[:2, :2]))
-                first[(vid, m)].append(claim_of(vid, m))
-    return RunResult(np.array(rec_t), {k: np.array(v) for k, v in err.items()},
-                     {k: np.array(v) for k, v in sig.items()}, {k: np.array(v) for k, v in first.items()},
-                     {k: dict(f.counters) for k, f in filters.items()}, decisions=decisions,
-                     range_outcomes=range_outcomes, along={k: np.array(v) for k, v in along.items()},
-                     nees={k: np.array(v) for k, v in nees.items()},
-                     err_ne={k: np.array(v).reshape(-1, 2) for k, v in err_ne.items()},
-                     cov_ne={k: np.array(v).reshape(-1, 2, 2) for k, v in cov_ne.items()})
+
+def _injected_kinds(playback: SensorPlayback) -> dict[tuple[frozenset, float], str]:
+    """(pair, range time) -> the error the emulator injected: "clean", "nlos" or "outlier"."""
+    out = {}
+    for (a, b), rr in playback.ranges.items():
+        for i in np.flatnonzero(np.isfinite(rr.range)):
+            kind = "outlier" if rr.outlier[i] else "nlos" if rr.nlos[i] else "clean"
+            out[(frozenset((a, b)), float(rr.t[i]))] = kind
+    return out
+
+
+def _tally(vid: str, kinds: dict, outcomes: dict[str, dict[str, dict[str, int]]]):
+    def observe(method: str, other: str, t: float, outcome: str | None) -> None:
+        kind = kinds.get((frozenset((vid, other)), t), "clean")
+        tally = outcomes.setdefault(method, {}).setdefault(kind, {})
+        tally[outcome] = tally.get(outcome, 0) + 1
+    return observe
+
+
+def _score(truth: ScenarioTruth, estimates: dict[tuple[str, str], list[Estimate]], counters: dict,
+           decisions: list, range_outcomes: dict) -> RunResult:
+    """Each (vehicle, method)'s estimates against the truth at their own times, held on a
+    common grid of ``RECORD_PERIOD`` (the latest estimate at or before each grid time)."""
+    firsts = [es[0].t for es in estimates.values() if es]
+    lasts = [es[-1].t for es in estimates.values() if es]
+    if not firsts or len(firsts) < len(estimates):
+        raise ValueError("a vehicle sent no estimate: its filters never started")
+    grid = np.arange(max(firsts), min(lasts) + 1e-9, RECORD_PERIOD)
+    res = RunResult(grid, {}, {}, {}, counters, decisions=decisions, range_outcomes=range_outcomes)
+    for (vid, m), es in estimates.items():
+        vt = truth.vehicles[vid].truth
+        te = np.array([e.t for e in es])
+        pick = np.searchsorted(te, grid + 1e-9, side="right") - 1
+        idx = np.clip(np.searchsorted(vt.t, te - 1e-9), 0, len(vt.t) - 1)
+        err_ne, cov_ne, along, first = [], [], [], []
+        for j in pick.tolist():
+            e, k = es[j], int(idx[j])
+            d = earth.ned_offset(float(e.llh[0]), float(e.llh[1]), float(e.llh[2]), *vt.llh[k])
+            yaw = vt.euler[k, 2]
+            err_ne.append((d[0], d[1]))
+            along.append(d[0] * math.cos(yaw) + d[1] * math.sin(yaw))
+            cov_ne.append(e.cov_pos[:2, :2])
+            first.append(e.first_stopped)
+        en = np.array(err_ne).reshape(-1, 2)
+        cn = np.array(cov_ne).reshape(-1, 2, 2)
+        key = (vid, m)
+        res.err[key] = np.hypot(en[:, 0], en[:, 1])
+        res.sigma[key] = np.sqrt(np.array([e.cov_pos[0, 0] + e.cov_pos[1, 1] for e in es])[pick])
+        res.first[key] = np.array(first, bool)
+        res.along[key] = np.array(along)
+        res.nees[key] = np.einsum("ni,nij,nj->n", en, np.linalg.inv(cn), en)
+        res.err_ne[key], res.cov_ne[key] = en, cn
+    return res

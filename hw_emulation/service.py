@@ -22,29 +22,16 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import pymap3d
 
 from transport import keys
 from transport.bus import Bus
 from transport.codec import CodecError, decode, encode
-from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRound
+from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
 
-from .emulate import emulate_uwb, emulate_vehicle_sensors
-from .faults import LINK_FAULTS
-from .sensors.radio import RadioModel
+from .playback import Radio, RadioStats, SensorPlayback
 from .truth import ScenarioTruth
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class RadioStats:
-    sent: int = 0
-    delivered: int = 0
-    lost: int = 0
-    out_of_range: int = 0
-    stale: int = 0
-    codec_errors: int = 0
 
 
 @dataclass
@@ -95,31 +82,17 @@ class EmulatorService:
         period = self.batch / self.truth.scenario.imu_rate
         need = period + math.ceil(self.agent_hold / period - 1e-9) * period + max(0.0, 0.1 - period)
         self._lead = float(self.lead) if self.lead is not None else need + 0.1 + max(0.0, period - 0.1)
-        rng = np.random.default_rng(self.seed)
-        self.sensors = emulate_vehicle_sensors(self.truth, rng)
-        self.ranges = emulate_uwb(self.truth, rng)
-        self.radio_rng = np.random.default_rng(self.seed + 1_000_003)
-        self.attack_rng = np.random.default_rng(self.seed + 2_000_003)
-        self.radio: RadioModel = self.truth.scenario.radio
-        self.ids = sorted(self.truth.vehicles)
-        self._index = {vid: k for k, vid in enumerate(self.ids)}
-        lat0, lon0, h0 = self.truth.scenario.origin_llh
-        self._ne = []  # per vehicle: its truth north, east [m] of the origin, (n, 2)
-        for vid in self.ids:
-            llh = self.truth.vehicles[vid].truth.llh
-            n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], lat0, lon0, h0, deg=False)
-            self._ne.append(np.stack([n, e], 1))
-        # the vehicles share one time grid (as build_truth makes them): positions stacked
-        # (n, N, 2), one search per clock value instead of one per vehicle
-        t_all = [self.truth.vehicles[vid].truth.t for vid in self.ids]
-        self._grid_t = t_all[0] if all(t.shape == t_all[0].shape and np.array_equal(t, t_all[0])
-                                       for t in t_all) else None
-        self._ne_grid = np.stack(self._ne, 1) if self._grid_t is not None else None
-        if self._ne_grid is not None:  # one copy: the per-vehicle rows as views of the stack
-            self._ne = [self._ne_grid[:, k] for k in range(len(self.ids))]
-        self._ne_at: tuple[float, np.ndarray] | None = None
-        self._pending: list[tuple[float, str, bytes]] = []  # (deliver at, receiver, payload)
-        self._ge_bad: dict[tuple[str, str], bool] = {}
+        self.playback = SensorPlayback(self.truth, self.seed, self.batch, self.faults, self.fault_stats,
+                                       self.published)
+        self.sensors, self.ranges, self.ids = self.playback.sensors, self.playback.ranges, self.playback.ids
+        signers = self.signers
+
+        def resign(b: Beacon) -> Beacon:
+            signer = signers.get(b.vehicle)
+            return signer.sign(b) if signer is not None else b
+
+        self.radio = Radio(self.truth, self.seed, self.attacks, self.faults, self.fault_stats, self.radio_stats,
+                           resign=resign, reencode=encode)
         self.now = float(next(iter(self.truth.vehicles.values())).truth.t[0])
         self.done = asyncio.Event()
         self._subs: tuple | None = None
@@ -129,80 +102,20 @@ class EmulatorService:
         self.stalled: dict[str, float] = {}
 
     # ----------------------------------------------------------------- radio
-    def _radio_positions(self) -> np.ndarray:
-        """True horizontal positions of ``self.ids`` at the radio's clock ``self.now``, shape
-        (N, 2) [m] north and east of the scenario's origin (computed once per clock value)."""
-        if self._ne_at is None or self._ne_at[0] != self.now:
-            if self._ne_grid is not None:
-                t = self._grid_t
-                ne = self._ne_grid[min(int(np.searchsorted(t, self.now)), len(t) - 1)]
-            else:
-                rows = []
-                for vid, ne in zip(self.ids, self._ne):
-                    t = self.truth.vehicles[vid].truth.t
-                    rows.append(ne[min(int(np.searchsorted(t, self.now)), len(t) - 1)])
-                ne = np.array(rows)
-            self._ne_at = (self.now, ne)
-        return self._ne_at[1]
-
     def _radio_send(self, payload: bytes) -> None:
         try:
             b = decode(payload)
         except CodecError:
             self.radio_stats.codec_errors += 1
             return
-        if not isinstance(b, Beacon) or b.vehicle not in self.truth.vehicles:
+        if not isinstance(b, Beacon):
             self.radio_stats.codec_errors += 1
             return
-        self.radio_stats.sent += 1
-        for attack in self.attacks:
-            forged = attack.apply(b, self.truth.scenario.origin_llh, self.attack_rng)
-            if forged is not b:
-                signer = self.signers.get(b.vehicle)
-                forged = signer.sign(forged) if signer is not None else forged
-                payload, b = encode(forged), forged
-        r = self.radio
-        ne = self._radio_positions()
-        d = np.hypot(*(ne - ne[self._index[b.vehicle]]).T)
-        self.radio_stats.out_of_range += int(np.count_nonzero(d > r.max_range))
-        for k in np.flatnonzero(d <= r.max_range):  # receivers in range, in id order
-            rx = self.ids[k]
-            if rx == b.vehicle:
-                continue
-            active = [f for f in self.faults if f.kind in LINK_FAULTS and f.active(b.t) and f.hits_link(b.vehicle, rx)]
-            if any(f.kind == "v2v_blackout" for f in active):
-                self._fault_count("v2v_blackout")
-                continue
-            if any(f.kind == "burst_loss" and self.radio_rng.random() < f.loss for f in active):
-                self._fault_count("burst_loss")
-                continue
-            link = (b.vehicle, rx)
-            bad = self._ge_bad.get(link, False)
-            u = self.radio_rng.random()
-            bad = (u >= r.ge_p_bad_to_good) if bad else (u < r.ge_p_good_to_bad)
-            self._ge_bad[link] = bad
-            if self.radio_rng.random() < (r.ge_loss_bad if bad else r.loss):
-                self.radio_stats.lost += 1
-                continue
-            if self.radio_rng.random() < r.stale_prob:
-                lat = self.radio_rng.uniform(r.stale_min, r.stale_max)
-                self.radio_stats.stale += 1
-            else:
-                lat = min(r.latency_min + self.radio_rng.exponential(r.jitter_mean), r.latency_max)
-            spike = sum(f.latency for f in active if f.kind == "latency_spike")
-            if spike:
-                self._fault_count("latency_spike")
-            # the radio works in sensor time: the beacon reaches rx at its own time plus latency
-            self._pending.append((b.t + lat + spike, rx, payload))
+        self.radio.send(b, payload, self.now)
 
     async def _radio_deliver(self) -> None:
-        due = [p for p in self._pending if p[0] <= self.now]
-        if not due:
-            return
-        self._pending = [p for p in self._pending if p[0] > self.now]
-        for _, rx, payload in sorted(due, key=lambda p: p[0]):
+        for _, rx, payload in self.radio.due(self.now):
             await self.bus.publish(keys.radio_rx(rx), payload)
-            self.radio_stats.delivered += 1
 
     async def _radio_loop(self) -> None:
         sub = self._subs[0]
@@ -242,17 +155,6 @@ class EmulatorService:
             del self.stalled[vehicle]
         self.agent_time[vehicle] = max(self.agent_time.get(vehicle, -np.inf), t)
 
-    def _fault_count(self, kind: str) -> None:
-        self.fault_stats[kind] = self.fault_stats.get(kind, 0) + 1
-
-    def _sensor_fault(self, kind: str, t: float, who) -> bool:
-        """Whether a GNSS fix (``who`` a vehicle) or a range (``who`` a pair) is withheld at ``t``."""
-        for f in self.faults:
-            if f.kind == kind and f.active(t) and (f.hits_pair(*who) if kind == "uwb_outage" else f.hits_vehicle(who)):
-                self._fault_count(kind)
-                return True
-        return False
-
     def forget_agent(self, vehicle: str) -> None:
         """The agent of ``vehicle`` left (its liveliness token went away): stop pacing on it. In
         agent-paced mode the clock waits up to ``rejoin_grace`` (wall) for it to come back, as it
@@ -266,32 +168,8 @@ class EmulatorService:
 
     # ----------------------------------------------------------------- playback
     def _events(self):
-        """(time, kind, vehicle or pair, index) in sensor-time order."""
-        ev = []
-        stagger = self.truth.scenario.imu_stagger
-        for k, vid in enumerate(self.ids):
-            t = self.sensors[vid].imu_t
-            # staggered: vehicle k's batches end ``k * batch / n`` samples later than the first's
-            first = self.batch + ((k * self.batch) // len(self.ids) if stagger else 0)
-            for j in range(first, len(t), self.batch):
-                ev.append((float(t[j]), 1, "imu", vid, j))
-            g = self.sensors[vid].gnss
-            for i in range(len(g.t)):
-                if g.t[i] > t[0] + 1e-9:
-                    ev.append((float(g.t[i]), 0, "gnss", vid, i))
-            cam = self.sensors[vid].lane
-            if cam is not None:
-                ev.extend((float(tc), 0, "lane", vid, i) for i, tc in enumerate(cam.t) if tc > t[0] + 1e-9)
-        # one event per ranging round: every pair with a range at that time, (pair, index)
-        rounds: dict[float, list[tuple[tuple[str, str], int]]] = {}
-        for pair, rr in self.ranges.items():
-            for i in np.flatnonzero(np.isfinite(rr.range)):
-                if rr.t[i] > 0:
-                    rounds.setdefault(float(rr.t[i]), []).append((pair, int(i)))
-        for t, members in rounds.items():
-            ev.append((t, 0, "uwb", members, members[0][1]))
-        ev.sort(key=lambda e: (e[0], e[1]))
-        return ev
+        """(time, order, kind, vehicle or ranging round, index) in sensor-time order."""
+        return self.playback.events()
 
     def prepare(self) -> None:
         """Subscribe to the agents' beacons and, in agent-paced mode, to their estimates. Call it
@@ -312,59 +190,15 @@ class EmulatorService:
             self.now = max(self.now, float(self.start_at))
             log.warning("resuming the scenario at t=%.2f s", self.now)
         wall0, t0 = time.monotonic(), self.now
-        seq: dict[str, int] = {}
         try:
-            for t, _, kind, who, idx in self._events():
+            for t, messages in self.playback.messages(start_at=t0):
                 if stop.is_set():
                     break
-                if t < t0:
-                    continue  # played before a restart
-                if kind == "imu":  # batch numbers as an uninterrupted emulator would have them
-                    seq.setdefault(who, idx // self.batch - 1)
                 await self._pace(t, wall0, t0, stop)
                 self.now = t
                 await self._radio_deliver()
-                if kind == "imu":
-                    s = self.sensors[who]
-                    j0 = idx - self.batch
-                    msg = ImuBatch(who, seq.setdefault(who, 0), s.imu_t[j0 + 1: idx + 1],
-                                   np.diff(s.imu_t[j0: idx + 1]), s.imu.dtheta[j0: idx], s.imu.dvel[j0: idx])
-                    seq[who] += 1
-                    await self.bus.publish(keys.imu(who), encode(msg))
-                    self.published["imu"] += 1
-                elif kind == "gnss":
-                    if self._sensor_fault("gnss_outage", t, who):
-                        continue
-                    g = self.sensors[who].gnss
-                    msg = GnssFix(who, idx, float(g.t[idx]), g.llh[idx], g.v_ned[idx], g.sigma_ned[idx],
-                                   float(g.sigma_v[idx]))
-                    await self.bus.publish(keys.gnss(who), encode(msg))
-                    self.published["gnss"] += 1
-                elif kind == "lane":
-                    cam = self.sensors[who].lane
-                    left, right = (int(c) for c in cam.classes[idx])
-                    await self.bus.publish(keys.lane(who), encode(LaneMarkings(who, idx, float(cam.t[idx]), left, right)))
-                    self.published["lane"] += 1
-                else:
-                    # a ranging round: each vehicle gets one message with its ranges of the round
-                    # (a range goes to both ends of its pair)
-                    per: dict[str, tuple[list[str], list[float]]] = {}
-                    for pair, i in who:
-                        if self._sensor_fault("uwb_outage", t, pair):
-                            continue
-                        r = float(self.ranges[pair].range[i])
-                        a, b = pair
-                        pa, pb = per.setdefault(a, ([], [])), per.setdefault(b, ([], []))
-                        pa[0].append(b)
-                        pa[1].append(r)
-                        pb[0].append(a)
-                        pb[1].append(r)
-                        self.published["uwb"] += 1
-                    for vid in sorted(per):
-                        peers, rs = per[vid]
-                        msg = UwbRound(vid, idx, t, tuple(peers), np.array(rs))
-                        await self.bus.publish(keys.uwb(vid), encode(msg))
-                        self.published["uwb_rounds"] += 1
+                for msg in messages:
+                    await self.bus.publish(_topic(msg), encode(msg))
             # let the last beacons and estimates through (agents hold back a fraction of a second)
             await self._pace(self.now, wall0, t0, stop, final=True)
         finally:
@@ -410,3 +244,16 @@ class EmulatorService:
                 break
             await asyncio.sleep(0.001)
         await asyncio.sleep(0)
+
+
+def _topic(msg: Message) -> str:
+    """The bus key a sensor message of the playback goes out on."""
+    if isinstance(msg, ImuBatch):
+        return keys.imu(msg.vehicle)
+    if isinstance(msg, GnssFix):
+        return keys.gnss(msg.vehicle)
+    if isinstance(msg, LaneMarkings):
+        return keys.lane(msg.vehicle)
+    if isinstance(msg, UwbRound):
+        return keys.uwb(msg.vehicle)
+    raise TypeError(f"no sensor topic for {type(msg).__name__}")

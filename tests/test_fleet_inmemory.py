@@ -208,20 +208,19 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
 
     import pymap3d
 
-    from transport.codec import encode
+    from hw_emulation.playback import Radio
     from transport.messages import Beacon
 
     truth = build_truth(load_scenario("rush-hour"))
-    emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0)
-    ids = emu.ids
-    assert emu._ne_grid is not None  # build_truth's vehicles share one time grid: stacked
+    radio = Radio(truth, seed=0)
+    ids = radio.ids
+    assert radio._ne_grid is not None  # build_truth's vehicles share one time grid: stacked
     for now in (5.0, 31.7, 60.0, 88.8):
-        emu.now = now
-        ne = emu._radio_positions()
+        ne = radio.positions(now)
         # the same as the per-vehicle search (vehicles on different grids)
-        stacked, emu._ne_grid, emu._ne_at = emu._ne_grid, None, None
-        np.testing.assert_array_equal(emu._radio_positions(), ne)
-        emu._ne_grid = stacked
+        stacked, radio._ne_grid, radio._ne_at = radio._ne_grid, None, None
+        np.testing.assert_array_equal(radio.positions(now), ne)
+        radio._ne_grid = stacked
         llh = {}
         for v in ids:
             t = truth.vehicles[v].truth.t
@@ -234,13 +233,16 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
         sender = ids[len(ids) // 2]
         dist = {v: float(np.hypot(*(ne[ids.index(v)] - ne[ids.index(sender)]))) for v in ids if v != sender}
         reach = float(np.median(list(dist.values())))
-        emu.radio = dataclasses.replace(emu.radio, loss=0.0, ge_p_good_to_bad=0.0, stale_prob=0.0, max_range=reach)
-        emu._pending.clear()
-        before = emu.radio_stats.out_of_range
-        emu._radio_send(encode(Beacon(sender, 1, "SL-CP", now, llh[sender], np.zeros(3), np.eye(3))))
-        got = [rx for _, rx, _ in emu._pending]
+        radio.model = dataclasses.replace(radio.model, loss=0.0, ge_p_good_to_bad=0.0, stale_prob=0.0,
+                                          max_range=reach)
+        radio._pending.clear()
+        before = radio.stats.out_of_range
+        b = Beacon(sender, 1, "SL-CP", now, llh[sender], np.zeros(3), np.eye(3))
+        radio.send(b, b, now)
+        got = [rx for _, rx, _ in radio._pending]
         assert got == sorted(v for v, d in dist.items() if d <= reach) and got
-        assert emu.radio_stats.out_of_range - before == sum(d > reach for d in dist.values()) > 0
+        assert radio.stats.out_of_range - before == sum(d > reach for d in dist.values()) > 0
+        assert sorted(rx for _, rx, _ in radio.due(now + 1.0)) == got and radio.stats.delivered >= len(got)
 
 
 @pytest.mark.timeout(300)
