@@ -18,7 +18,7 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -30,20 +30,29 @@ from .integrity import OWN_TWIN, check_separation
 from .lane_map import LaneMap
 from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from .misbehaviour import MisbehaviourDetector
-from .nav import earth
+from geo import earth
 from .nav.measurements.stop_line import StopGapModel
 from .nav.motion import StationarityMonitor, ZuptGate, speed_sigma
 from .nav.rotation import quat_to_euler
 from .neighbours import NeighbourTable
 from .sequencer import Apply, Propagate, Sequencer
 
-if TYPE_CHECKING:  # the shell's security objects (transport.security); typing only
-    from transport.security import BeaconSigner, TrustStore
-
 log = logging.getLogger(__name__)
 
 #: (method, neighbour, range time [s], outcome) of every range a filter weighed
 RangeObserver = Callable[[str, str, float, "str | None"], None]
+
+
+class BeaconSigner(Protocol):
+    """Signs beacons (the host's; e.g. :class:`transport.security.BeaconSigner`)."""
+
+    def sign(self, beacon: Beacon) -> Beacon: ...
+
+
+class BeaconVerifier(Protocol):
+    """Checks a beacon's signature: "ok" or why not (e.g. :class:`transport.security.TrustStore`)."""
+
+    def verify(self, beacon: Beacon) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -67,9 +76,9 @@ class AgentConfig:
     #: then is fused with the nearest beacon (or counted stale) [s]
     range_defer: float = 1.0
     #: signs this agent's beacons (None: unsigned)
-    signer: "BeaconSigner | None" = None
+    signer: BeaconSigner | None = None
     #: when set, only beacons signed by a key of this store for the sending vehicle are accepted
-    trust: "TrustStore | None" = None
+    trust: BeaconVerifier | None = None
     #: a beacon generated more than this before the agent's filter time is refused as stale, and
     #: one more than ``max_beacon_future`` after it as from the future [s]. (Fusion itself uses a
     #: beacon only within 0.3 s of the range time, see :class:`agent.neighbours.NeighbourTable`.)

@@ -30,7 +30,7 @@ fix, so the decision is conservative:
 neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
 
 If several adjacent lanes sharing the stop line match (lateral uncertainty larger than a lane),
-the lane markings the camera settled on (:mod:`agent.lane_markings`) pick the lane whose
+the lane markings the camera settled on (:mod:`geo.lane_markings`) pick the lane whose
 classes they match; the candidates they rule out are no longer "my lane" for the neighbour rule
 either. Without a settled camera report that names one lane, the decision is *along-only*: the
 stop line fixes the along-track position, not the lane. A stop's lane, once named by the
@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lane_markings import UNSEEN, LaneEdges, MarkingWindow, consistent, marking_classes
+from geo.lane_markings import UNSEEN, LaneEdges, MarkingWindow, consistent, marking_classes
 from .nav.measurements.stop_line import StopGapModel, StopLineApproach
 from .nav.rotation import wrap_angle
 
@@ -112,7 +112,7 @@ class FirstStoppedDetector:
         self.lanes = lanes
         self.gap = gap
         self.s = settings
-        #: (left, right) marking classes each approach lane implies (see :mod:`agent.lane_markings`)
+        #: (left, right) marking classes each approach lane implies (see :mod:`geo.lane_markings`)
         self.marks = marking_classes({lid: LaneEdges(np.asarray(ln.approach.left_lane_line.point),
                                                      ln.approach.travel_direction, ln.width)
                                       for lid, ln in lanes.items()})

@@ -39,7 +39,7 @@ import math
 import numpy as np
 
 from .methods import MethodFilter
-from .nav import earth
+from geo import earth
 
 #: the own-sensor twin of each cooperative method
 OWN_TWIN = {"CP": "SP", "SL-CP": "SL-SP"}

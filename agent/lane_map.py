@@ -17,7 +17,7 @@ association is conservative, like the first-stopped decision:
    vehicle that has not turned keeps the heading;
 3. if several lanes match (lanes of one direction side by side, a lateral σ comparable to the
    lane width), the camera's settled marking classes must name exactly one of them
-   (:mod:`agent.lane_markings`); otherwise there is no association;
+   (:mod:`geo.lane_markings`); otherwise there is no association;
 4. except that the lane the vehicle keeps already (``current``) stays its lane while it still
    matches 1-2 and the markings do not contradict it: a vehicle leaves its lane by crossing a
    line, not by its estimate growing wider. Without this, a queue's cooperative updates, which
@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lane_markings import UNSEEN, LaneEdges, consistent, marking_classes
+from geo.lane_markings import UNSEEN, LaneEdges, consistent, marking_classes
 from .nav.measurements.stop_line import Line2D
 
 

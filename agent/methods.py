@@ -24,8 +24,8 @@ import pymap3d
 
 from .first_stopped import ApproachLane, Decision, StopTracker
 from .lane_map import LaneMap
-from .lane_markings import UNSEEN, MarkingWindow
-from .nav import earth
+from geo.lane_markings import UNSEEN, MarkingWindow
+from geo import earth
 from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
 from .nav.kalman import Measurement, UpdateResult, chi2_gate

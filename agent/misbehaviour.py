@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .nav import earth
+from geo import earth
 
 
 @dataclass

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .nav import earth
+from geo import earth
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ def _time_us(fn, n: int, repeats: int = 5) -> float:
 def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     """Step costs [µs] of the pieces of an agent, on paper-1's V1 at its stop."""
     from agent.methods import MethodFilter, MethodSpec, initial_state
-    from agent.nav import earth
+    from geo import earth
     from agent.nav.mechanization import mechanize_fast
     from agent.neighbours import NeighbourState
     from hw_emulation.scenario import load_scenario

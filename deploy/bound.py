@@ -38,7 +38,7 @@ import numpy as np
 
 from agent.lane_map import LaneMap
 from agent.methods import METHODS, STOP_LINE_MAP_SIGMA, MethodSpec
-from agent.nav import earth
+from geo import earth
 from agent.nav.measurements.stop_line import stop_line_fix
 from hw_emulation.truth import ScenarioTruth
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from agent.engine import VehicleEngine
 from agent.methods import DEFAULT_FUSION, METHODS
-from agent.nav import earth
+from geo import earth
 from hw_emulation.playback import Radio, SensorPlayback
 from hw_emulation.truth import ScenarioTruth
 from transport.messages import Beacon, Estimate, Message

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from agent.methods import DEFAULT_FUSION, METHODS, MethodSpec
-from agent.nav import earth
+from geo import earth
 from hw_emulation.events import event_times, window_bounds
 from hw_emulation.faults import PROCESS_FAULTS, load_faults
 from hw_emulation.scenario import STANDING_WINDOW, load_scenario

@@ -58,7 +58,7 @@ def plot_scenario(truth, path: Path, events: dict[str, float] | None = None, est
     ellipses every ``ellipse_every`` seconds."""
     import numpy as np
 
-    from agent.nav import earth
+    from geo import earth
     from hw_emulation.geometry import offset_polyline
 
     scn = truth.scenario

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.nav import earth
+from geo import earth
 from agent.nav.error_model import ImuNoise
 from agent.nav.ins_filter import InsFilter, level_from_accel
 from agent.nav.kalman import Measurement

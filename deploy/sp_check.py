@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.nav import earth
+from geo import earth
 from agent.nav.ins_filter import InsFilter
 from agent.nav.measurements.gnss import gnss_position, gnss_velocity
 from agent.nav.rotation import euler_to_quat

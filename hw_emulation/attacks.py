@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.nav import earth
+from geo import earth
 from transport.messages import Beacon
 
 ATTACKS = ("constant_position", "constant_offset", "random_position", "random_offset", "eventual_stop",

@@ -14,8 +14,8 @@ from itertools import combinations
 
 import numpy as np
 
-from agent.lane_markings import UNSEEN, LaneEdges, marking_classes
-from agent.nav import earth
+from geo.lane_markings import UNSEEN, LaneEdges, marking_classes
+from geo import earth
 from .scenario import Scenario
 from .sensors.camera import simulate_markings
 from .sensors.gnss import GnssErrors, common_mode_error, simulate_gnss
@@ -55,7 +55,7 @@ class GnssFixes:
 @dataclass(frozen=True)
 class LaneMarkingReports:
     """The camera's lane-marking classes: ``t`` (n,) [s], ``classes`` (n, 2) ints (left,
-    right; see :mod:`agent.lane_markings`), ``truth`` (n, 2) the true classes."""
+    right; see :mod:`geo.lane_markings`), ``truth`` (n, 2) the true classes."""
 
     t: np.ndarray
     classes: np.ndarray

@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline
 
-from agent.nav import earth
+from geo import earth
 
 
 class KinematicProfile(Protocol):

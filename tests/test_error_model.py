@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.nav import earth
+from geo import earth
 from agent.nav.error_model import ImuNoise, discretize, noise_input_matrix, system_matrix
 from agent.nav.mechanization import continuous_dynamics
 from agent.nav.rotation import dcm_to_quat

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.nav import earth
+from geo import earth
 from deploy.launcher import evaluate_recording
 from hw_emulation.scenario import STANDING_WINDOW, load_scenario
 from hw_emulation.truth import build_truth

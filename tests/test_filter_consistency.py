@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from agent.nav import earth
+from geo import earth
 from agent.nav.error_model import ImuNoise
 from agent.nav.ins_filter import InsFilter
 from agent.nav.kalman import Measurement

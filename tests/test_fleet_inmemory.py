@@ -63,7 +63,7 @@ def test_fleet_on_the_in_memory_bus() -> None:
     # SL-SP error of V1 while it claims first
     vt = truth.vehicles["V1"].truth
     errs = []
-    from agent.nav import earth
+    from geo import earth
     for r in records:
         if r.vehicle == "V1" and r.method == "SL-SP" and r.first_stopped:
             k = int(np.searchsorted(vt.t, r.t - 1e-9))
@@ -167,7 +167,7 @@ def test_an_agent_that_stalls_the_clock_is_waited_for_once_then_set_aside_until_
 def test_the_filters_start_from_the_fix_nearest_the_first_imu_sample_whatever_had_arrived() -> None:
     """Which GNSS fixes an agent holds when its first IMU batch is processed depends on message
     timing; the start does not: the fix nearest in time, moved to the IMU start by its velocity."""
-    from agent.nav import earth
+    from geo import earth
     from transport.messages import GnssFix, ImuBatch
 
     scn = load_scenario("paper-1")

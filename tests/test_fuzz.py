@@ -15,7 +15,7 @@ import pytest
 
 from conftest import short_scenario
 
-from agent.nav import earth
+from geo import earth
 from agent.runtime import Agent
 from deploy.agent_configs import agent_config
 from deploy.recorder import Recorder

@@ -9,7 +9,7 @@ import pytest
 from scipy.stats import chi2
 
 from agent.integrity import OWN_TWIN, check_separation, separation, separation_threshold
-from agent.nav import earth
+from geo import earth
 from agent.nav.kalman import Measurement
 from agent.nav.measurements.gnss import gnss_position
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.linalg import block_diag
 
-from agent.nav import earth
+from geo import earth
 from agent.nav.kalman import Measurement, kalman_update, stack
 from agent.nav.measurements.common import point_llh, point_position_jacobian
 from agent.nav.measurements.gnss import gnss_position, gnss_velocity

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from agent.methods import METHODS, FilterSettings, MethodFilter, MethodSpec, initial_state
-from agent.nav import earth
+from geo import earth
 from agent.nav.rotation import quat_to_euler
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
 from agent.neighbours import NeighbourState
@@ -116,7 +116,7 @@ def test_a_forgotten_neighbour_leaves_no_state_in_the_misbehaviour_detector() ->
     """After ``forget`` (the neighbour left), a range is not checked against its old claim, and
     its next beacon starts a new motion history instead of being compared with the old one."""
     from agent.misbehaviour import MisbehaviourDetector
-    from agent.nav import earth
+    from geo import earth
 
     o = np.array([0.7, 2.0, 50.0])
     cov = np.diag([0.25, 0.25, 1.0])

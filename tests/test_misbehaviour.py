@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from agent.misbehaviour import MisbehaviourDetector
-from agent.nav import earth
+from geo import earth
 from hw_emulation.attacks import ATTACKS, Attack
 from transport.messages import Beacon
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.nav import earth
+from geo import earth
 from agent.neighbours import NeighbourTable
 
 LLH = np.array([math.radians(39.95), math.radians(116.32), 50.0])

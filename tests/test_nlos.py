@@ -81,7 +81,7 @@ def test_a_link_that_starts_in_nlos_is_not_fused() -> None:
     2.5 m too long (a link that starts in NLOS: no jump for the rate gate) is classified and
     left out, a clean one is fused; the paper's rule has no classifier."""
     from agent.neighbours import NeighbourState
-    from agent.nav import earth
+    from geo import earth
     from test_methods import ORIGIN, _stopped_filter
 
     rm, _ = earth.radii(ORIGIN[0])
@@ -216,7 +216,7 @@ def test_a_known_link_rejects_an_episode_the_estimates_cannot_see() -> None:
     but the link's own series sees the step. With the tracker the biased ranges are refused;
     without it they are kept."""
     from agent.neighbours import NeighbourState
-    from agent.nav import earth
+    from geo import earth
     from test_methods import ORIGIN, _stopped_filter
 
     rm, _ = earth.radii(ORIGIN[0])

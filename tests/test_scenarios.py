@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from agent.first_stopped import FirstStoppedDetector
-from agent.lane_markings import BOUNDARY, DIVIDER
-from agent.nav import earth
+from geo.lane_markings import BOUNDARY, DIVIDER
+from geo import earth
 from agent.nav.measurements.stop_line import StopGapModel
 from hw_emulation.events import event_times
 from hw_emulation.scenario import ScenarioError, load_scenario, parse_scenario, shipped_scenarios

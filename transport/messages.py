@@ -67,7 +67,7 @@ class GnssFix(Message):
 class LaneMarkings(Message):
     """The camera's classes of the markings left and right of the ego lane at ``t`` [s]:
     0 unseen, 1 divider (a lane of my direction beyond it), 2 boundary (centre line, road edge).
-    See :mod:`agent.lane_markings`; receivers treat any other value as unseen."""
+    See :mod:`geo.lane_markings`; receivers treat any other value as unseen."""
 
     vehicle: str
     seq: int

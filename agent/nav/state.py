@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import earth
+from geo import earth
 from .rotation import quat_mul, quat_normalize, quat_to_dcm, rotvec_to_quat
 
 ATT = slice(0, 3)

@@ -1,6 +1,6 @@
 """Forward camera's lane-marking classes (left and right of the ego lane).
 
-Each side is reported as divider / boundary (see :mod:`agent.lane_markings`), or unseen inside
+Each side is reported as divider / boundary (see :mod:`geo.lane_markings`), or unseen inside
 the junction and in a share ``unseen`` of frames (worn paint, a vehicle alongside). A side's
 class is wrong for episodes: a two-state Markov chain per side that is wrong a share ``error``
 of the time with a mean episode of ``error_tau`` seconds (the same wear or shadow fools many
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.lane_markings import BOUNDARY, DIVIDER, UNSEEN
+from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
 from . import params
 from .processes import two_state_markov
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import pymap3d
 
-from .. import earth
+from geo import earth
 from ..kalman import Measurement
 from ..state import NavState
 from .common import point_llh, point_position_jacobian

@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from .. import earth
+from geo import earth
 from ..kalman import Measurement
 from ..state import N_STATES, POS, NavState
 from .common import point_llh, point_position_jacobian
