@@ -17,20 +17,30 @@ import bisect
 import logging
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 
-from transport.messages import (Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, Message,
-                                UwbRange, UwbRound)
+from geo import earth
+from transport.messages import (
+    Beacon,
+    Diagnostics,
+    Estimate,
+    GnssFix,
+    ImuBatch,
+    LaneMarkings,
+    Message,
+    UwbRange,
+    UwbRound,
+)
 
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
 from .integrity import OWN_TWIN, check_separation
 from .lane_map import LaneMap
 from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
 from .misbehaviour import MisbehaviourDetector
-from geo import earth
 from .nav.measurements.stop_line import StopGapModel
 from .nav.motion import StationarityMonitor, ZuptGate, speed_sigma
 from .nav.rotation import quat_to_euler

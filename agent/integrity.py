@@ -38,8 +38,9 @@ import math
 
 import numpy as np
 
-from .methods import MethodFilter
 from geo import earth
+
+from .methods import MethodFilter
 
 #: the own-sensor twin of each cooperative method
 OWN_TWIN = {"CP": "SP", "SL-CP": "SL-SP"}

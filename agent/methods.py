@@ -22,10 +22,11 @@ from dataclasses import dataclass
 import numpy as np
 import pymap3d
 
+from geo import earth
+from geo.lane_markings import UNSEEN, MarkingWindow
+
 from .first_stopped import ApproachLane, Decision, StopTracker
 from .lane_map import LaneMap
-from geo.lane_markings import UNSEEN, MarkingWindow
-from geo import earth
 from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
 from .nav.kalman import Measurement, UpdateResult, chi2_gate
@@ -83,7 +84,7 @@ class MethodSpec:
     ranges: bool
 
     @classmethod
-    def of(cls, name: str) -> "MethodSpec":
+    def of(cls, name: str) -> MethodSpec:
         if name not in METHODS:
             raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
         return cls(name, name.startswith("SL-"), name.endswith("CP"))

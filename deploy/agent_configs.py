@@ -16,7 +16,6 @@ from hw_emulation.scenario import Scenario
 from hw_emulation.sensors.imu import ImuModel
 
 
-
 def imu_noise_of(model: ImuModel) -> ImuNoise:
     """Filter IMU model matching an emulated IMU (in-run biases as Gauss-Markov)."""
     return ImuNoise(arw=model.arw, vrw=model.vrw, gyro_bias_sigma=model.gyro_in_run, gyro_bias_tau=model.bias_tau,

@@ -91,8 +91,11 @@ def evaluate_attack(scenario: str, kind: str, seed: int, after: float = 4.0, dea
         flags = [t for t, who, _ in a.misbehaviour.events if who == attack.vehicle]
         early = [t for t in flags if t < attack.start]
         late = [t for t in flags if t >= attack.start]
-        out["receivers"][v] = {"latency_s": (late[0] - attack.start) if late else None, "flagged_before_start": bool(early),
-                               "detected": bool(late) and late[0] - attack.start <= deadline and not early}
+        out["receivers"][v] = {
+            "latency_s": (late[0] - attack.start) if late else None,
+            "flagged_before_start": bool(early),
+            "detected": bool(late) and late[0] - attack.start <= deadline and not early,
+        }
         for other, n in a.beacons_from.items():
             if other != attack.vehicle:
                 out["honest_beacons"] += n
@@ -123,9 +126,14 @@ def attack_study(scenario: str, seeds: list[int], kinds: tuple[str, ...] = ATTAC
         rec = [r for run in runs for r in run["receivers"].values()]
         lat = [r["latency_s"] for r in rec if r["latency_s"] is not None]
         per_kind[kind] = {
-            "cases": len(rec), "detected": sum(r["detected"] for r in rec),
+            "cases": len(rec),
+            "detected": sum(r["detected"] for r in rec),
             "detection_rate": sum(r["detected"] for r in rec) / len(rec) if rec else None,
-            "latency_median_s": statistics.median(lat) if lat else None, "latency_max_s": max(lat) if lat else None,
-            "honest_excluded_share": (sum(r["honest_excluded"] for r in runs) / max(1, sum(r["honest_beacons"] for r in runs))),
-            "runs": runs}
+            "latency_median_s": statistics.median(lat) if lat else None,
+            "latency_max_s": max(lat) if lat else None,
+            "honest_excluded_share": (
+                sum(r["honest_excluded"] for r in runs) / max(1, sum(r["honest_beacons"] for r in runs))
+            ),
+            "runs": runs,
+        }
     return {"scenario": scenario, "seeds": seeds, "deadline_s": deadline, "kinds": per_kind}

@@ -34,9 +34,9 @@ def _time_us(fn, n: int, repeats: int = 5) -> float:
 def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     """Step costs [µs] of the pieces of an agent, on paper-1's V1 at its stop."""
     from agent.methods import MethodFilter, MethodSpec, initial_state
-    from geo import earth
     from agent.nav.mechanization import mechanize_fast
     from agent.neighbours import NeighbourState
+    from geo import earth
     from hw_emulation.scenario import load_scenario
     from hw_emulation.truth import build_truth
     from transport.codec import decode, encode
@@ -194,7 +194,9 @@ def _decision_costs(fresh, llh: np.ndarray, t: float, cfg, rm: float, n: int) ->
         for nb in table.vehicles():
             tracker.observe_neighbour(nb, t - 5.0, 0.0, False)
         first_stopped_step(tracker, f, table, cfg.lanes, cfg.origin_llh, t - 1.0)  # at rest since then
-        out[name] = _time_us(lambda: first_stopped_step(tracker, f, table, cfg.lanes, cfg.origin_llh, t), n)
+        out[name] = _time_us(
+            lambda tr=tracker, f=f, tab=table: first_stopped_step(tr, f, tab, cfg.lanes, cfg.origin_llh, t), n
+        )
     return out
 
 

@@ -38,8 +38,8 @@ import numpy as np
 
 from agent.lane_map import LaneMap
 from agent.methods import METHODS, STOP_LINE_MAP_SIGMA, MethodSpec
-from geo import earth
 from agent.nav.measurements.stop_line import stop_line_fix
+from geo import earth
 from hw_emulation.truth import ScenarioTruth
 
 from .agent_configs import approach_lanes, lane_map
@@ -171,7 +171,7 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
     out = {vid: np.zeros((len(ts), 2, 2)) for vid in ids}
     was_first = {vid: False for vid in ids}
     kept_lane: dict[str, str | None] = {vid: None for vid in ids}  # the lane whose offset the state is
-    for k, t in enumerate(ts):
+    for k, _t in enumerate(ts):
         if offset_per_lane and lmap is not None:
             for i, vid in enumerate(ids):
                 ln = str(lane[vid][k])

@@ -54,7 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="outage length and GNSS-on time between outages [s] (default 15:30)")
     g.add_argument("--no-outage", action="store_true", help="keep every GNSS fix")
     rp.add_argument("--first-outage", type=T.nonnegative_float, default=40.0, help="first outage start after t0 [s]")
-    rp.add_argument("--end-margin", type=T.nonnegative_float, default=30.0, help="no outage starts later than tN minus this [s]")
+    rp.add_argument(
+        "--end-margin", type=T.nonnegative_float, default=30.0, help="no outage starts later than tN minus this [s]"
+    )
     rp.add_argument("--phases", type=T.positive_int, default=1, metavar="N",
                     help="also run the protocol at N phases evenly spread over its period (first outage at "
                          "FIRST + k (LEN + ON) / N) and report each and all pooled (default 1: the protocol only)")
@@ -70,9 +72,15 @@ def build_parser() -> argparse.ArgumentParser:
                     help="publish the drive's IMU and GNSS (outages withheld) on VEHICLE's sensor topics over Zenoh, "
                          "score the estimates the agent publishes back")
     pg.add_argument("--vehicle", default="V0", help="vehicle id of the topics (default V0)")
-    pg.add_argument("--speed", type=T.positive_float, default=1.0, help="real-time factor of the publication (default 1)")
-    pg.add_argument("--start", type=T.nonnegative_float, default=0.0, help="start this long after the first GNSS epoch [s]")
-    pg.add_argument("--duration", type=T.positive_float, default=None, help="publish this long [s] (default: to the end)")
+    pg.add_argument(
+        "--speed", type=T.positive_float, default=1.0, help="real-time factor of the publication (default 1)"
+    )
+    pg.add_argument(
+        "--start", type=T.nonnegative_float, default=0.0, help="start this long after the first GNSS epoch [s]"
+    )
+    pg.add_argument(
+        "--duration", type=T.positive_float, default=None, help="publish this long [s] (default: to the end)"
+    )
     pg.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
     pg.add_argument("--listen", action="append", type=T.listen_endpoint, default=[], help="Zenoh endpoint to listen on")
     pg.add_argument("--wait-agent", type=T.nonnegative_float, default=30.0,
@@ -87,14 +95,20 @@ def build_parser() -> argparse.ArgumentParser:
     em = sub.add_parser("emulate", help="run the emulator service (sensors, UWB, V2V radio) over Zenoh")
     em.add_argument("scenario", help="shipped scenario name or .toml")
     em.add_argument("--seed", type=T.seed, default=0, help="run seed: sensor noise and where drivers stop (default 0)")
-    em.add_argument("--speed", type=T.positive_float, default=None, help="real-time factor (default: as fast as agents keep up)")
+    em.add_argument(
+        "--speed", type=T.positive_float, default=None, help="real-time factor (default: as fast as agents keep up)"
+    )
     em.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
     em.add_argument("--listen", action="append", type=T.listen_endpoint, default=[], help="Zenoh endpoint to listen on")
     em.add_argument("--mode", choices=("peer", "client"), default="peer",
                     help="Zenoh mode (default peer; client: through the router given by --connect only)")
     em.add_argument("--faults", type=Path, default=None, help="fault schedule (TOML, docs/security.md)")
-    em.add_argument("--wait-agents", type=T.nonnegative_float, default=20.0,
-                    help="wait up to this long for every vehicle's agent before starting [s] (default 20; 0: start at once)")
+    em.add_argument(
+        "--wait-agents",
+        type=T.nonnegative_float,
+        default=20.0,
+        help="wait up to this long for every vehicle's agent before starting [s] (default 20; 0: start at once)",
+    )
     em.add_argument("--start-at", type=T.nonnegative_float, default=None, metavar="T",
                     help="resume the scenario at sensor time T [s] (a restarted emulator)")
     em.add_argument("--fleet", type=Path, default=None,
@@ -102,21 +116,36 @@ def build_parser() -> argparse.ArgumentParser:
     ro = sub.add_parser("router", help="run the infrastructure Zenoh router (TLS + ACL with --fleet)")
     ro.add_argument("--listen", action="append", type=T.listen_endpoint, default=[],
                     help="endpoint (repeatable; default tls/127.0.0.1:7447 with --fleet, else tcp/127.0.0.1:7447)")
-    ro.add_argument("--fleet", type=Path, default=None,
-                    help="fleet directory (slcp keys create): mutual TLS and an ACL in which a vehicle publishes only under its own keys")
-    ro.add_argument("--print-config", action="store_true", help="print the router's Zenoh configuration (JSON5) and exit")
-    se = sub.add_parser("sensors", help="publish a vehicle's real GNSS (NMEA/UBX) and IMU from serial ports or log files")
+    ro.add_argument(
+        "--fleet",
+        type=Path,
+        default=None,
+        help="fleet directory (slcp keys create): mutual TLS and an ACL in which a vehicle publishes only "
+        "under its own keys",
+    )
+    ro.add_argument(
+        "--print-config", action="store_true", help="print the router's Zenoh configuration (JSON5) and exit"
+    )
+    se = sub.add_parser(
+        "sensors", help="publish a vehicle's real GNSS (NMEA/UBX) and IMU from serial ports or log files"
+    )
     se.add_argument("--vehicle", required=True, help="vehicle id of the sensor topics")
     se.add_argument("--gnss", default=None, metavar="nmea|ubx:PATH[@BAUD]",
                     help="GNSS receiver: a serial device (e.g. nmea:/dev/ttyACM0@115200) or a log file")
-    se.add_argument("--imu", default=None, metavar="csv:PATH[@BAUD]", help="IMU text lines: a serial device or a log file")
+    se.add_argument(
+        "--imu", default=None, metavar="csv:PATH[@BAUD]", help="IMU text lines: a serial device or a log file"
+    )
     se.add_argument("--imu-units", default="m/s2,rad/s", metavar="ACCEL,GYRO",
                     help="units of the IMU lines: m/s2|g|mg and rad/s|deg/s|mrad/s (default m/s2,rad/s)")
     se.add_argument("--imu-mount", default="0,0,0", metavar="ROLL,PITCH,YAW",
                     help="sensor-to-body rotation [deg] (default 0,0,0: the IMU axes are forward, right, down)")
     se.add_argument("--imu-time-offset", type=T.finite_float, default=0.0, help="added to the IMU time stamps [s]")
-    se.add_argument("--uere", type=T.positive_float, default=2.5, help="NMEA without GST: horizontal sigma = HDOP x UERE [m]")
-    se.add_argument("--speed", type=T.positive_float, default=1.0, help="pacing of log files (real-time factor, default 1)")
+    se.add_argument(
+        "--uere", type=T.positive_float, default=2.5, help="NMEA without GST: horizontal sigma = HDOP x UERE [m]"
+    )
+    se.add_argument(
+        "--speed", type=T.positive_float, default=1.0, help="pacing of log files (real-time factor, default 1)"
+    )
     se.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
     se.add_argument("--listen", action="append", type=T.listen_endpoint, default=[], help="Zenoh endpoint to listen on")
     se.add_argument("--fleet", type=Path, default=None,
@@ -128,14 +157,19 @@ def build_parser() -> argparse.ArgumentParser:
     rn = sub.add_parser("run", help="run a fleet on this machine over Zenoh and evaluate it")
     rn.add_argument("scenario", nargs="?", default="paper-1", help="scenario (default paper-1)")
     rn.add_argument("--methods", nargs="+", default=None, help="methods (default: SP SL-SP CP SL-CP)")
-    rn.add_argument("--speed", type=T.positive_float, default=None, help="real-time factor (default: as fast as agents keep up)")
+    rn.add_argument(
+        "--speed", type=T.positive_float, default=None, help="real-time factor (default: as fast as agents keep up)"
+    )
     rn.add_argument("--seed", type=T.seed, default=0,
                     help="run seed: sensor noise and where drivers stop (default 0; with --seeds, the first)")
     rn.add_argument("--out", type=Path, default=None,
                     help="run directory (default runs/<scenario>-seed<S>, or runs/<scenario>-<N>seeds; "
                          "-2, -3, ... appended when that exists)")
-    rn.add_argument("--force", action="store_true",
-                    help="with --out: replace the previous run in that folder (default: refuse a folder that is not empty)")
+    rn.add_argument(
+        "--force",
+        action="store_true",
+        help="with --out: replace the previous run in that folder (default: refuse a folder that is not empty)",
+    )
     rn.add_argument("--fusion", choices=FUSION_RULES, default=DEFAULT_FUSION,
                     help=f"how CP methods fuse ranges with beacons (default {DEFAULT_FUSION})")
     rn.add_argument("--seeds", type=T.positive_int, default=None, metavar="N",
@@ -151,11 +185,16 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--zenoh-mode", choices=("client", "peer"), default="client",
                     help="how the agents and the emulator join the launcher's Zenoh router: client (default; "
                          "every message through the router) or peer (they also dial each other, a full mesh)")
-    rn.add_argument("--no-lane-constraint", action="store_true",
-                    help="SL methods use the stop line only, as the paper's (default: they also keep to the map's lanes)")
+    rn.add_argument(
+        "--no-lane-constraint",
+        action="store_true",
+        help="SL methods use the stop line only, as the paper's (default: they also keep to the map's lanes)",
+    )
     rn.add_argument("--no-sign", action="store_true",
                     help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
-    ae = sub.add_parser("attack-eval", help="misbehaviour detection against the VeReMi attacks, and false alarms on clean runs")
+    ae = sub.add_parser(
+        "attack-eval", help="misbehaviour detection against the VeReMi attacks, and false alarms on clean runs"
+    )
     ae.add_argument("scenario", nargs="?", default="paper-1")
     ae.add_argument("--seeds", type=T.positive_int, default=5, help="attack runs per kind (default 5)")
     ae.add_argument("--kinds", nargs="+", default=None, help="attack kinds (default: all)")
@@ -164,7 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
     ae.add_argument("--json", action="store_true", help="print one JSON object")
     ky = sub.add_parser("keys", help="create or list a fleet's CA, vehicle keys and certificates")
     ksub = ky.add_subparsers(dest="keys_command", required=True)
-    kc = ksub.add_parser("create", help="create a fleet CA (if absent) and a key + certificate per vehicle and the router")
+    kc = ksub.add_parser(
+        "create", help="create a fleet CA (if absent) and a key + certificate per vehicle and the router"
+    )
     kc.add_argument("dir", type=Path, help="fleet directory (ca.crt, <vehicle>.crt/.key, router.crt/.key)")
     kc.add_argument("vehicles", nargs="+", help="vehicle ids")
     kc.add_argument("--router-host", action="append", default=None,
@@ -198,7 +239,12 @@ def build_parser() -> argparse.ArgumentParser:
     bn.add_argument("--json", action="store_true", help="print one JSON object")
     bn.add_argument("--fleet", default=None, metavar="N,N,...",
                     help="also run the fleet scaling benchmark with these agent counts (e.g. 10,25,50,75)")
-    bn.add_argument("--fleet-duration", type=T.positive_float, default=40.0, help="scenario length of each fleet point [s] (default 40)")
+    bn.add_argument(
+        "--fleet-duration",
+        type=T.positive_float,
+        default=40.0,
+        help="scenario length of each fleet point [s] (default 40)",
+    )
     bn.add_argument("--fleet-method", default="SL-CP", help="the one method each agent runs (default SL-CP)")
     bn.add_argument("--fleet-fusion", choices=FUSION_RULES, default=DEFAULT_FUSION,
                     help=f"how the fleet's CP methods fuse ranges (as slcp run --fusion; default {DEFAULT_FUSION})")
@@ -288,8 +334,7 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from .datasets.rtklib import load_drive
-    from .replay import (TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, phase_protocols, pooled_metrics,
-                         run_replay)
+    from .replay import TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, phase_protocols, pooled_metrics, run_replay
 
     drive = load_drive(args.path)
     length, gap = (0.0, 1.0) if args.no_outage else args.outage
@@ -346,8 +391,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
                 first = "-" if ph["first_outage_s"] is None else f"{ph['first_outage_s']:.1f}"
                 print(f"    {first:>7}: {ph['n_outages']:3d}  {ph['outage_h_rms_m']:.2f}  "
                       f"{ph['outage_h_end_mean_m']:.2f} / {ph['outage_h_end_max_m']:.2f}  {ph['outage_h_max_m']:.2f}")
-            print(f"    pooled : {pooled['n_outages']:3d}  {pooled['outage_h_rms_m']:.2f}  "
-                  f"{pooled['outage_h_end_mean_m']:.2f} / {pooled['outage_h_end_max_m']:.2f}  {pooled['outage_h_max_m']:.2f}")
+            print(
+                f"    pooled : {pooled['n_outages']:3d}  {pooled['outage_h_rms_m']:.2f}  "
+                f"{pooled['outage_h_end_mean_m']:.2f} / {pooled['outage_h_end_max_m']:.2f}  "
+                f"{pooled['outage_h_max_m']:.2f}"
+            )
         print(f"  wrote {out}/trajectory.csv, metrics.json, error.png (the first phase)")
     return 0
 
@@ -367,15 +415,21 @@ def _replay_publish(args: argparse.Namespace, drive, cfg) -> int:
     if args.json:
         print(json.dumps(res))
         return 0
-    print(f"published {res['published']} messages ({res['imu_batches']} IMU batches of {res['imu_samples']} samples, "
-          f"{res['gnss_fixes']} fixes, {res['gnss_withheld']} withheld) on {args.vehicle}'s topics: "
-          f"{res['sensor_s']:.1f} s of sensor time in {res['wall_s']:.1f} s wall, at most {res['max_late_s'] * 1e3:.0f} ms late")
+    print(
+        f"published {res['published']} messages ({res['imu_batches']} IMU batches of {res['imu_samples']} samples, "
+        f"{res['gnss_fixes']} fixes, {res['gnss_withheld']} withheld) on {args.vehicle}'s topics: "
+        f"{res['sensor_s']:.1f} s of sensor time in {res['wall_s']:.1f} s wall, "
+        f"at most {res['max_late_s'] * 1e3:.0f} ms late"
+    )
     if not res["methods"]:
         print("no estimate of the agent received (is `slcp agent` running for this vehicle?)")
     fmt = lambda x: "   -  " if x is None else f"{x:6.2f}"  # noqa: E731
     for m, r in res["methods"].items():
-        print(f"  {m:6s} {r['n_estimates']:6d} estimates, {r['epochs']:5d} epochs: horizontal RMS {fmt(r['h_rms_m'])} m, "
-              f"GNSS on {fmt(r['gnss_on_h_rms_m'])} m, outages {fmt(r['outage_h_rms_m'])} m (max {fmt(r['outage_h_max_m'])} m)")
+        print(
+            f"  {m:6s} {r['n_estimates']:6d} estimates, {r['epochs']:5d} epochs: horizontal RMS {fmt(r['h_rms_m'])} m, "
+            f"GNSS on {fmt(r['gnss_on_h_rms_m'])} m, outages {fmt(r['outage_h_rms_m'])} m "
+            f"(max {fmt(r['outage_h_max_m'])} m)"
+        )
     return 0
 
 
@@ -435,7 +489,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
         out = args.out or next_free(Path("runs"), f"{stem}-{args.seeds}seeds")
         seeds = list(range(args.seed, args.seed + args.seeds))
-        print(f"slcp run {args.scenario}: {args.seeds} seeds, {', '.join(methods)}, fusion {args.fusion}; writing {out}")
+        print(
+            f"slcp run {args.scenario}: {args.seeds} seeds, {', '.join(methods)}, fusion {args.fusion}; writing {out}"
+        )
 
         def bar(done: int, total: int, seed: int) -> None:
             k = int(30 * done / total)
@@ -549,8 +605,13 @@ def _cmd_attack_eval(args: argparse.Namespace) -> int:
 
     def progress(kind, seed, run):
         if not args.json:
-            lat = {v: ("-" if r["latency_s"] is None else f"{r['latency_s']:.2f} s") for v, r in run["receivers"].items()}
-            print(f"  {kind:18s} seed {seed}: {run['attacker']} from {run['start_s']:.1f} s; first flag by {lat}", flush=True)
+            lat = {
+                v: ("-" if r["latency_s"] is None else f"{r['latency_s']:.2f} s") for v, r in run["receivers"].items()
+            }
+            print(
+                f"  {kind:18s} seed {seed}: {run['attacker']} from {run['start_s']:.1f} s; first flag by {lat}",
+                flush=True,
+            )
 
     study = attack_study(args.scenario, list(range(args.seeds)), kinds, progress=progress)
     study["clean"] = [evaluate_clean(s, 0) for s in (args.clean or [])]
@@ -561,8 +622,11 @@ def _cmd_attack_eval(args: argparse.Namespace) -> int:
     print(f"  {'kind':18s} {'detected':>10s} {'rate':>6s} {'median':>8s} {'max':>7s} {'honest excl.':>12s}")
     for k, d in study["kinds"].items():
         f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
-        print(f"  {k:18s} {d['detected']:4d}/{d['cases']:<5d} {f(d['detection_rate']):>6s} {f(d['latency_median_s']):>8s} "
-              f"{f(d['latency_max_s']):>7s} {100 * d['honest_excluded_share']:11.2f}%")
+        print(
+            f"  {k:18s} {d['detected']:4d}/{d['cases']:<5d} {f(d['detection_rate']):>6s} "
+            f"{f(d['latency_median_s']):>8s} "
+            f"{f(d['latency_max_s']):>7s} {100 * d['honest_excluded_share']:11.2f}%"
+        )
     for c in study["clean"]:
         print(f"  clean {c['scenario']}: {c['excluded']} of {c['beacons']} beacons excluded "
               f"({100 * c['false_alarm_rate']:.2f} %), {c['flags']} flags")
@@ -686,18 +750,29 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             print(f"  fleet {f['agents']:3d} agents: {f['error']}")
             continue
         lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
-        print(f"  fleet {f['agents']:3d} agents ({f['method']}, {f['fusion']}, Zenoh {f['zenoh_mode']}, IMU batch {f['imu_batch']}): "
-              f"real-time factor {f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
-              f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
-              f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, machine {f['machine_cpu_pct']:.0f} %, "
-              f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "
-              f"beacon latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms, sensor drops {f['sensor_dropped']}")
+        print(
+            f"  fleet {f['agents']:3d} agents ({f['method']}, {f['fusion']}, Zenoh {f['zenoh_mode']}, "
+            f"IMU batch {f['imu_batch']}): "
+            f"real-time factor {f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, "
+            f"CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
+            f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
+            f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, "
+            f"machine {f['machine_cpu_pct']:.0f} %, "
+            f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "
+            f"beacon latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms, sensor drops {f['sensor_dropped']}"
+        )
         if f.get("windows"):
             worst = f["beacon_p99_ms_worst_window"]
-            print(f"    by {f['windows'][0]['wall_s']:.0f} s window: machine CPU {f['machine_cpu_pct_peak']:.0f} % at the "
-                  f"busiest, beacon p99 {'–' if worst is None else f'{worst:.1f} ms'} in the worst; "
-                  + ", ".join(f"{w['machine_cpu_pct']:.0f} %/" + ("–" if w["beacon_p99_ms"] is None else f"{w['beacon_p99_ms']:.0f} ms")
-                              for w in f["windows"]))
+            print(
+                f"    by {f['windows'][0]['wall_s']:.0f} s window: "
+                f"machine CPU {f['machine_cpu_pct_peak']:.0f} % at the "
+                f"busiest, beacon p99 {'–' if worst is None else f'{worst:.1f} ms'} in the worst; "
+                + ", ".join(
+                    f"{w['machine_cpu_pct']:.0f} %/"
+                    + ("–" if w["beacon_p99_ms"] is None else f"{w['beacon_p99_ms']:.0f} ms")
+                    for w in f["windows"]
+                )
+            )
     return 0
 
 
@@ -763,11 +838,22 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
             cells.append(f"{v:6.2f}" + (f" [{p:5.2f}]" if p is not None else "        ") if v is not None else "     -")
         print(f"{row['window']:12s} {row['vehicle']:8s} " + " ".join(f"{c:>14s}" for c in cells))
     for m, kinds in ranges.items():
-        print(f"{m} ranges rejected by the gates, per injected error: " + "; ".join(
-            f"{kind} {d['rejected']}/{d['n']} ({100 * d['rejected_share']:.1f} %)" for kind, d in sorted(kinds.items()) if d["n"]))
-    print("first-stopped detection (SL-SP filter, seconds): " + "; ".join(
-        f"{v}: truth {d['true_first_s']:.1f}, claimed {d['claimed_s']:.1f}, wrongly {d['claimed_while_not_first_s']:.1f}"
-        for v, d in detect.items()))
+        print(
+            f"{m} ranges rejected by the gates, per injected error: "
+            + "; ".join(
+                f"{kind} {d['rejected']}/{d['n']} ({100 * d['rejected_share']:.1f} %)"
+                for kind, d in sorted(kinds.items())
+                if d["n"]
+            )
+        )
+    print(
+        "first-stopped detection (SL-SP filter, seconds): "
+        + "; ".join(
+            f"{v}: truth {d['true_first_s']:.1f}, claimed {d['claimed_s']:.1f}, "
+            f"wrongly {d['claimed_while_not_first_s']:.1f}"
+            for v, d in detect.items()
+        )
+    )
     return 0
 
 

@@ -226,24 +226,33 @@ class FleetMonitor:
             for k in ("queue_dropped_imu", "queue_dropped_gnss", "queue_dropped_uwb", "queue_dropped_beacon",
                       "seq_late_dropped"):
                 dropped[k] = dropped.get(k, 0) + int(c.get(k, 0))
-        out.update({
-            "steady_wall_s": wall,
-            "realtime_factor": (t1 - t0) / wall,
-            "lag_p99_s": float(np.percentile(self.lag_end, 99)) if self.lag_end else None,
-            "cpu_pct_per_agent": {"mean": float(np.mean(agent_pct)), "max": float(np.max(agent_pct))} if agent_pct else None,
-            "emulator_cpu_pct": pct.get("emulator"),
-            "launcher_cpu_pct": pct.get("launcher"),
-            "machine_cpu_pct": float(sum(pct.values())),
-            "rss_mb_per_agent": {"mean": float(np.mean(agent_rss)), "max": float(np.max(agent_rss))} if agent_rss else None,
-            "emulator_rss_mb": self.rss.get("emulator"),
-            "threads_per_agent": max((k for n, k in self.threads.items() if n.startswith("agent-")), default=None),
-            "beacon_latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
-                                   "n": int(len(lat))} if len(lat) else None),
-            "beacons_unmatched": self.unmatched,
-            **self._windows(lat),
-            "sensor_dropped": int(sum(v for k, v in dropped.items() if k != "queue_dropped_beacon")),
-            "dropped_by_kind": dropped,
-        })
+        out.update(
+            {
+                "steady_wall_s": wall,
+                "realtime_factor": (t1 - t0) / wall,
+                "lag_p99_s": float(np.percentile(self.lag_end, 99)) if self.lag_end else None,
+                "cpu_pct_per_agent": {"mean": float(np.mean(agent_pct)), "max": float(np.max(agent_pct))}
+                if agent_pct
+                else None,
+                "emulator_cpu_pct": pct.get("emulator"),
+                "launcher_cpu_pct": pct.get("launcher"),
+                "machine_cpu_pct": float(sum(pct.values())),
+                "rss_mb_per_agent": {"mean": float(np.mean(agent_rss)), "max": float(np.max(agent_rss))}
+                if agent_rss
+                else None,
+                "emulator_rss_mb": self.rss.get("emulator"),
+                "threads_per_agent": max((k for n, k in self.threads.items() if n.startswith("agent-")), default=None),
+                "beacon_latency_ms": (
+                    {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "n": int(len(lat))}
+                    if len(lat)
+                    else None
+                ),
+                "beacons_unmatched": self.unmatched,
+                **self._windows(lat),
+                "sensor_dropped": int(sum(v for k, v in dropped.items() if k != "queue_dropped_beacon")),
+                "dropped_by_kind": dropped,
+            }
+        )
         return out
 
 

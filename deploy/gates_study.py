@@ -46,6 +46,11 @@ def summarise(total: dict) -> dict:
         for kind, outcomes in sorted(kinds.items()):
             n = sum(outcomes.values())
             rej = sum(c for o, c in outcomes.items() if o.startswith(REJECTED_PREFIX))
-            out.setdefault(m, {})[kind] = {"n": n, "rejected": rej, "rejected_share": rej / n if n else None,
-                                           "fused": outcomes.get("fused", 0), "outcomes": dict(sorted(outcomes.items()))}
+            out.setdefault(m, {})[kind] = {
+                "n": n,
+                "rejected": rej,
+                "rejected_share": rej / n if n else None,
+                "fused": outcomes.get("fused", 0),
+                "outcomes": dict(sorted(outcomes.items())),
+            }
     return out

@@ -10,8 +10,8 @@ radio has delivered by then; the estimates the engines send (10 Hz) are scored a
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 

@@ -289,10 +289,20 @@ async def _supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pa
                 now_w = time.monotonic()
                 if play0 is None and rec.recorded:
                     play0 = now_w
-                progress(FleetProgress(
-                    title or str(scenario), "playing" if rec.recorded else "starting", max(rec.latest_t.values(), default=0.0), end_t,
-                    sum(now_w - w < 3.0 for w in rec.last_wall.values()), len(vehicles), rec.recorded,
-                    now_w - wall0, table, now_w - play0 if play0 is not None else 0.0))
+                progress(
+                    FleetProgress(
+                        title or str(scenario),
+                        "playing" if rec.recorded else "starting",
+                        max(rec.latest_t.values(), default=0.0),
+                        end_t,
+                        sum(now_w - w < 3.0 for w in rec.last_wall.values()),
+                        len(vehicles),
+                        rec.recorded,
+                        now_w - wall0,
+                        table,
+                        now_w - play0 if play0 is not None else 0.0,
+                    )
+                )
         await asyncio.sleep(0.5)  # last estimates in flight
     finally:
         # a second Ctrl-C while the children are stopped waits until they are (they run in
@@ -334,12 +344,17 @@ def status_table(vehicles: list[str], latest_t: dict[str, float], diag: dict, pr
         rej = sum(c.get(f"{m}_ranges_rejected", 0) for m in METHODS)
         stale = sum(c.get(f"{m}_stale", 0) for m in METHODS)
         late = c.get("seq_late_dropped", 0)
-        bad = c.get("codec_errors", 0) + sum(v2 for k2, v2 in c.items()
-                                             if k2.startswith(("rejected_", "beacon_", "duplicate_")) or k2.endswith("_time_jump"))
+        bad = c.get("codec_errors", 0) + sum(
+            v2
+            for k2, v2 in c.items()
+            if k2.startswith(("rejected_", "beacon_", "duplicate_")) or k2.endswith("_time_jump")
+        )
         qdrop = sum(v2 for k2, v2 in c.items() if k2.startswith("queue_dropped_"))
         first = ",".join(m for m in st.get("first_stopped", []))
-        rows.append(f"{v:8s} {latest_t.get(v, 0.0):7.1f} {st.get('neighbours', 0):4d} {rate['beacons_tx']} "
-                    f"{rate['beacons_rx']} {first or '-':>5s} {f'{ok}/{rej}':>13s} {stale:5d} {late:4d} {bad:4d} {qdrop:5d}")
+        rows.append(
+            f"{v:8s} {latest_t.get(v, 0.0):7.1f} {st.get('neighbours', 0):4d} {rate['beacons_tx']} "
+            f"{rate['beacons_rx']} {first or '-':>5s} {f'{ok}/{rej}':>13s} {stale:5d} {late:4d} {bad:4d} {qdrop:5d}"
+        )
     return "\n".join(rows)
 
 
@@ -471,12 +486,27 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
                         q = float(e[:2] @ np.linalg.solve(cov[:2, :2], e[:2]))
                     except np.linalg.LinAlgError:
                         q = math.inf
-                    w.writerow([f"{r['t']:.3f}", m, f"{math.degrees(r['llh'][0]):.9f}", f"{math.degrees(r['llh'][1]):.9f}",
-                                f"{r['llh'][2]:.3f}", *(f"{x:.3f}" for x in r["v_ned"]),
-                                *(f"{math.degrees(x):.3f}" for x in r["rpy"]),
-                                f"{math.sqrt(cov[0][0]):.3f}", f"{math.sqrt(cov[1][1]):.3f}", f"{cov[0][1]:.4f}",
-                                int(r["first_stopped"]), f"{e[0]:.3f}", f"{e[1]:.3f}", f"{math.hypot(e[0], e[1]):.3f}",
-                                f"{along:.3f}", f"{cross:.3f}", f"{q:.4f}"])
+                    w.writerow(
+                        [
+                            f"{r['t']:.3f}",
+                            m,
+                            f"{math.degrees(r['llh'][0]):.9f}",
+                            f"{math.degrees(r['llh'][1]):.9f}",
+                            f"{r['llh'][2]:.3f}",
+                            *(f"{x:.3f}" for x in r["v_ned"]),
+                            *(f"{math.degrees(x):.3f}" for x in r["rpy"]),
+                            f"{math.sqrt(cov[0][0]):.3f}",
+                            f"{math.sqrt(cov[1][1]):.3f}",
+                            f"{cov[0][1]:.4f}",
+                            int(r["first_stopped"]),
+                            f"{e[0]:.3f}",
+                            f"{e[1]:.3f}",
+                            f"{math.hypot(e[0], e[1]):.3f}",
+                            f"{along:.3f}",
+                            f"{cross:.3f}",
+                            f"{q:.4f}",
+                        ]
+                    )
                     ts.append(r["t"])
                     eh.append((math.hypot(e[0], e[1]), along, cross))
                     nees.append(q)
@@ -510,15 +540,22 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
                     "n": int(sel.sum()), "nees_h": float(np.mean(nees)), "bound_rms_m": float(np.sqrt(np.mean(lim**2))),
                     "sigma_below_bound": float(np.mean(sig_h[(vid, m)][sel] < lim * 0.99))}
     detection = {}
-    for (vid, m), (nees, claim, truth_first) in extra.items():
+    for (vid, m), (_nees, claim, truth_first) in extra.items():
         if MethodSpec.of(m).stop_line and (claim.any() or truth_first.any()):
             detection.setdefault(vid, {})[m] = score_first_stopped(series[(vid, m)][0], truth_first, claim,
                                                                    series[(vid, m)][1][:, 0])
     fault_rows = [fault_recovery(f, series, sorted(truth.vehicles)) for f in faults or []]
-    return {"scenario": truth.scenario.name, "events": event_times(truth), "windows": {k: list(v) for k, v in windows.items()},
-            "faults": fault_rows,
-            "rmse": rows, "first_stopped": detection, "unreadable_lines": bad_lines,
-            "estimates": {f"{v}/{m}": len(s[0]) for (v, m), s in series.items()}, "diagnostics": diags}
+    return {
+        "scenario": truth.scenario.name,
+        "events": event_times(truth),
+        "windows": {k: list(v) for k, v in windows.items()},
+        "faults": fault_rows,
+        "rmse": rows,
+        "first_stopped": detection,
+        "unreadable_lines": bad_lines,
+        "estimates": {f"{v}/{m}": len(s[0]) for (v, m), s in series.items()},
+        "diagnostics": diags,
+    }
 
 
 def fault_recovery(fault, series: dict, vehicles: list[str], before: float = 5.0) -> dict:
@@ -555,11 +592,17 @@ def report_markdown(scn, metrics: dict) -> str:
     first-stopped detection scores, events and plots."""
     fusion = metrics.get("fusion", "split-ci")  # runs from before source CI did not record it
     lane = lane_keeping_label(metrics.get("lane_constraint"))
-    lines = [f"# slcp run: {scn.name} (seed {metrics.get('seed', '?')}, fusion `{fusion}`{lane})", "", scn.description, "",
-             "Horizontal RMSE [m] per window, vehicle and method, the paper's figure in brackets. Below each value: "
-             "along-track / cross-track RMSE [m]; the mean horizontal NEES (2 for a consistent filter); the "
-             "posterior Cramér-Rao bound (RMS over the window) and the share of time the reported σ is below it "
-             "(an unbiased filter whose σ is below the bound is overconfident).", ""]
+    lines = [
+        f"# slcp run: {scn.name} (seed {metrics.get('seed', '?')}, fusion `{fusion}`{lane})",
+        "",
+        scn.description,
+        "",
+        "Horizontal RMSE [m] per window, vehicle and method, the paper's figure in brackets. Below each value: "
+        "along-track / cross-track RMSE [m]; the mean horizontal NEES (2 for a consistent filter); the "
+        "posterior Cramér-Rao bound (RMS over the window) and the share of time the reported σ is below it "
+        "(an unbiased filter whose σ is below the bound is overconfident).",
+        "",
+    ]
     for w, table in metrics["rmse"].items():
         lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
         for vid, cells in sorted(table.items()):
@@ -570,9 +613,14 @@ def report_markdown(scn, metrics: dict) -> str:
                 if c is None:
                     row.append("–")
                 else:
-                    row.append(f"{c['rmse_m']:.2f}" + (f" [{p:.2f}]" if p is not None else "")
-                               + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}<br>NEES {c.get('nees_h', float('nan')):.1f}"
-                               + f"<br>bound {c.get('bound_rms_m', float('nan')):.2f}, σ<bound {100 * c.get('sigma_below_bound', 0):.0f} %")
+                    row.append(
+                        f"{c['rmse_m']:.2f}"
+                        + (f" [{p:.2f}]" if p is not None else "")
+                        + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}"
+                        + f"<br>NEES {c.get('nees_h', float('nan')):.1f}"
+                        + f"<br>bound {c.get('bound_rms_m', float('nan')):.2f}, "
+                        + f"σ<bound {100 * c.get('sigma_below_bound', 0):.0f} %"
+                    )
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
     det = metrics.get("first_stopped", {})
@@ -588,9 +636,11 @@ def report_markdown(scn, metrics: dict) -> str:
                 def f(x, fmt="{:.3f}"):
                     return "–" if x is None else fmt.format(x)
                 lat = ", ".join("–" if x is None else f"{x:.1f}" for x in d["latency_s"]) or "–"
-                lines.append(f"| {vid} | {m} | {d['truth_s']:.1f} | {d['claimed_s']:.1f} | {d['wrong_s']:.1f} | "
-                             f"{f(d['precision'])} | {f(d['recall'])} | {lat} | "
-                             f"{f(d.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(d.get('sl_rmse_claimed_m'), '{:.2f}')} |")
+                lines.append(
+                    f"| {vid} | {m} | {d['truth_s']:.1f} | {d['claimed_s']:.1f} | {d['wrong_s']:.1f} | "
+                    f"{f(d['precision'])} | {f(d['recall'])} | {lat} | "
+                    f"{f(d.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(d.get('sl_rmse_claimed_m'), '{:.2f}')} |"
+                )
         lines.append("")
     if metrics.get("faults"):
         lines += ["## Faults", "", "Error of each affected vehicle: mean over 5 s before the fault, maximum until 10 s "
@@ -608,7 +658,12 @@ def report_markdown(scn, metrics: dict) -> str:
         lines.append("")
     restarts = metrics.get("processes", {}).get("restarts", [])
     if restarts:
-        lines += ["## Process faults", "", "| process | exit code | at [s wall] | rejoined after [s] |", "|---|---|---|---|"]
+        lines += [
+            "## Process faults",
+            "",
+            "| process | exit code | at [s wall] | rejoined after [s] |",
+            "|---|---|---|---|",
+        ]
         for r in restarts:
             rj = "never" if r["rejoined_after_s"] is None else f"{r['rejoined_after_s']:.2f}"
             lines.append(f"| {r['process']} | {r['exit_code']} | {r['at_s']:.1f} | {rj} |")

@@ -138,7 +138,7 @@ def plot_run_errors(series: dict, windows: dict, methods, path: Path, title: str
     fig, axes = plt.subplots(len(vehicles), 1, figsize=(10, 2.6 * len(vehicles)), sharex=True, squeeze=False)
     colours = {"SP": "tab:gray", "SL-SP": "tab:red", "CP": "tab:blue", "SL-CP": "tab:green"}
     for ax, vid in zip(axes[:, 0], vehicles):
-        for i, (w, (a, b)) in enumerate(windows.items()):
+        for i, (_w, (a, b)) in enumerate(windows.items()):
             ax.axvspan(a, b, color="tab:orange", alpha=0.06 + 0.04 * (i % 2), lw=0)
         for f in faults or []:  # fault windows hatched (a kill is a line)
             if not f.vehicles or vid in f.vehicles:

@@ -33,7 +33,8 @@ class FleetProgress:
         """One line: phase, sensor time and share of the scenario, agents alive, time left."""
         head = f"{self.scenario}: {self.phase}"
         if self.phase == "starting":
-            return f"{head} (agents, emulator, router) · {self.alive}/{self.vehicles} agents reporting · {self.wall_s:.0f} s"
+            return (f"{head} (agents, emulator, router) · {self.alive}/{self.vehicles} agents reporting · "
+                    f"{self.wall_s:.0f} s")
         frac = self.fraction
         parts = [head, f"t = {self.sensor_t:.1f}" + (f" / {self.end_t:.0f} s" if self.end_t else " s")]
         if frac is not None:
@@ -60,7 +61,7 @@ class ProgressView:
         self._last = -float("inf")
         self._phase = None
 
-    def __enter__(self) -> "ProgressView":
+    def __enter__(self) -> ProgressView:
         if self.live:
             from rich.console import Console
             from rich.live import Live

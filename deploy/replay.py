@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geo import earth
 from agent.nav.error_model import ImuNoise
 from agent.nav.ins_filter import InsFilter, level_from_accel
 from agent.nav.kalman import Measurement
@@ -28,6 +27,7 @@ from agent.nav.measurements.vehicle import non_holonomic, zero_angular_rate, zer
 from agent.nav.motion import StationaryDetector
 from agent.nav.rotation import euler_to_dcm, euler_to_quat, quat_to_euler
 from agent.nav.state import NavState
+from geo import earth
 
 from .datasets.rtklib import RtklibDrive
 from .sensors.imu import imu_increments
@@ -156,7 +156,9 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig()) -> Replay
     out_end = np.array([o[1] for o in outages])
 
     # whether each epoch's fix is withheld (one vectorised test, not one per epoch)
-    withheld_epoch = ((gnss.t[:, None] >= out_start[None, :]) & (gnss.t[:, None] < out_end[None, :])).any(axis=1).tolist()
+    withheld_epoch = (
+        ((gnss.t[:, None] >= out_start[None, :]) & (gnss.t[:, None] < out_end[None, :])).any(axis=1).tolist()
+    )
 
     # start at the first GNSS epoch with one second of IMU history for levelling
     k_level = int(np.searchsorted(t_imu, t_imu[0] + 1.0))

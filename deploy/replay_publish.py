@@ -49,12 +49,13 @@ class PublishPlan:
     counts: dict[str, int] = field(default_factory=dict)
 
 
-def plan_drive(drive: RtklibDrive, vehicle: str, cfg: ReplayConfig = ReplayConfig(), start: float = 0.0,
+def plan_drive(drive: RtklibDrive, vehicle: str, cfg: ReplayConfig | None = None, start: float = 0.0,
                duration: float | None = None) -> PublishPlan:
     """The messages of ``drive`` from ``start`` seconds after its first GNSS epoch, for
     ``duration`` seconds (None: to the end). Outage windows follow ``cfg.outage`` on the whole
     drive, so a window keeps the outages it has in ``slcp replay``."""
     keys.check_name(vehicle)
+    cfg = cfg if cfg is not None else ReplayConfig()
     imu, gnss = drive.imu, drive.gnss
     g0 = float(gnss.t[0])
     t_a = g0 + start
@@ -200,7 +201,7 @@ async def wait_for_agent(bus, vehicle: str, timeout: float) -> bool:
     try:
         await asyncio.wait_for(seen.wait(), timeout)
         return True
-    except asyncio.TimeoutError:
+    except TimeoutError:
         return False
 
 

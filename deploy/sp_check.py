@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geo import earth
 from agent.nav.ins_filter import InsFilter
 from agent.nav.measurements.gnss import gnss_position, gnss_velocity
 from agent.nav.rotation import euler_to_quat
 from agent.nav.state import NavState, apply_error
+from geo import earth
 from hw_emulation.emulate import VehicleSensors, emulate_vehicle_sensors
 from hw_emulation.events import window_bounds
 from hw_emulation.sensors.imu import ImuModel

@@ -224,7 +224,9 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
         raise
     pool.shutdown(wait=True)
     if not per_seed:
-        raise StudyError("no seed of the study finished: " + "; ".join(f"seed {s}: {r}" for s, r in sorted(failed.items())))
+        raise StudyError(
+            "no seed of the study finished: " + "; ".join(f"seed {s}: {r}" for s, r in sorted(failed.items()))
+        )
     study = aggregate(out, per_seed)
     study["failed_seeds"] = {str(s): r for s, r in sorted(failed.items())}
     study["fusion"] = fusion
@@ -332,15 +334,25 @@ def study_markdown(scn, study: dict) -> str:
             for m in METHODS:
                 c = cells.get(m)
                 p = scn.paper_table.get(w, {}).get(vid, {}).get(m)
-                row.append("–" if c is None else f"{c['mean_rmse_m']:.2f} ± {c['sd_rmse_m']:.2f}"
-                           + (f" [{p:.2f}]" if p is not None else "")
-                           + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}"
-                           + (f"<br>bound {c['bound_rms_m']:.2f}"
-                              + (f" (RMSE {c['mean_rmse_m'] / c['bound_rms_m']:.1f}×)" if c["bound_rms_m"] > 0.0 else "")
-                              + f", σ<bound {100 * c['sigma_below_bound']:.0f} %"
-                              if "bound_rms_m" in c else "")
-                           + (f"<br>ANEES {c['anees']['anees']:.2f}" + ("" if c["anees"]["inside"] else " (outside)")
-                              if "anees" in c else ""))
+                row.append(
+                    "–"
+                    if c is None
+                    else f"{c['mean_rmse_m']:.2f} ± {c['sd_rmse_m']:.2f}"
+                    + (f" [{p:.2f}]" if p is not None else "")
+                    + f"<br>{c['along_rmse_m']:.2f} / {c['cross_rmse_m']:.2f}"
+                    + (
+                        f"<br>bound {c['bound_rms_m']:.2f}"
+                        + (f" (RMSE {c['mean_rmse_m'] / c['bound_rms_m']:.1f}×)" if c["bound_rms_m"] > 0.0 else "")
+                        + f", σ<bound {100 * c['sigma_below_bound']:.0f} %"
+                        if "bound_rms_m" in c
+                        else ""
+                    )
+                    + (
+                        f"<br>ANEES {c['anees']['anees']:.2f}" + ("" if c["anees"]["inside"] else " (outside)")
+                        if "anees" in c
+                        else ""
+                    )
+                )
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
     if study.get("paired"):
@@ -383,9 +395,14 @@ def study_markdown(scn, study: dict) -> str:
                   "first at a line, keeping to a lane) a consistent filter's ANEES is expected outside its band too.",
                   "", "| vehicle | d_s | d_l | sum |", "|---|---|---|---|"]
         for vid, c in study["stance_draws"].items():
-            lines.append(f"| {vid} | " + " | ".join(
-                f"{c[k]['mean_z2']:.2f}" + ("" if c[k]["inside"] else " (outside)") for k in ("stop_gap", "lateral", "both"))
-                + " |")
+            lines.append(
+                f"| {vid} | "
+                + " | ".join(
+                    f"{c[k]['mean_z2']:.2f}" + ("" if c[k]["inside"] else " (outside)")
+                    for k in ("stop_gap", "lateral", "both")
+                )
+                + " |"
+            )
         lines.append("")
     if study["first_stopped"]:
         lines += ["## First-stopped detection (pooled over the seeds)", "",
@@ -396,9 +413,12 @@ def study_markdown(scn, study: dict) -> str:
         for k, a in study["first_stopped"].items():
             def f(x, fmt="{:.3f}"):
                 return "–" if x is None else fmt.format(x)
-            lines.append(f"| {k} | {a['truth_s']:.1f} | {a['claimed_s']:.1f} | {a['wrong_s']:.1f} | {f(a['precision'])} "
-                         f"| {f(a['recall'])} | {f(a['mean_latency_s'], '{:.2f}')} / {f(a.get('max_latency_s'), '{:.2f}')} "
-                         f"| {f(a.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(a.get('sl_rmse_claimed_m'), '{:.2f}')} |")
+
+            lines.append(
+                f"| {k} | {a['truth_s']:.1f} | {a['claimed_s']:.1f} | {a['wrong_s']:.1f} | {f(a['precision'])} "
+                f"| {f(a['recall'])} | {f(a['mean_latency_s'], '{:.2f}')} / {f(a.get('max_latency_s'), '{:.2f}')} "
+                f"| {f(a.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(a.get('sl_rmse_claimed_m'), '{:.2f}')} |"
+            )
         lines.append("")
     return "\n".join(lines)
 

@@ -67,7 +67,7 @@ class Attack:
             raise ValueError(f"unknown attack {self.kind!r}; known: {', '.join(ATTACKS)}")
 
     @classmethod
-    def parse(cls, text: str) -> "Attack":
+    def parse(cls, text: str) -> Attack:
         """``VEHICLE:KIND@START`` (e.g. ``V2:random_offset@12``)."""
         try:
             who, rest = text.split(":", 1)
@@ -90,7 +90,9 @@ class Attack:
             return dataclasses.replace(b, llh=earth.offset_llh(b.llh, np.array([d[0], d[1], 0.0])))
         if k == "random_position":
             d = rng.uniform(-self.area, self.area, 2)
-            return dataclasses.replace(b, llh=earth.offset_llh(np.asarray(origin_llh, float), np.array([d[0], d[1], 0.0])))
+            return dataclasses.replace(
+                b, llh=earth.offset_llh(np.asarray(origin_llh, float), np.array([d[0], d[1], 0.0]))
+            )
         if k == "constant_position":
             if "llh" not in self._frozen:
                 d = rng.uniform(-self.area, self.area, 2)

@@ -14,8 +14,9 @@ from itertools import combinations
 
 import numpy as np
 
-from geo.lane_markings import UNSEEN, LaneEdges, marking_classes
 from geo import earth
+from geo.lane_markings import UNSEEN, LaneEdges, marking_classes
+
 from .scenario import Scenario
 from .sensors.camera import simulate_markings
 from .sensors.gnss import GnssErrors, common_mode_error, simulate_gnss

@@ -91,5 +91,5 @@ def _still_valid(obj: dict, name: str, valid: Message) -> bool:
 def time_jumped(rng: np.random.Generator, valid: Message) -> Message:
     """``valid`` with its time ``t`` moved by ±10..10⁶ s (a clock jump at the source), kept >= 0."""
     jump = float(rng.choice([-1.0, 1.0]) * 10.0 ** rng.uniform(1.0, 6.0))
-    t = getattr(valid, "t")
+    t = valid.t
     return dataclasses.replace(valid, t=np.abs(t + jump) if isinstance(t, np.ndarray) else abs(t + jump))

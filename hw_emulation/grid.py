@@ -71,7 +71,7 @@ def grid_scenario_toml(n_vehicles: int, duration: float = 40.0, per_intersection
         cn, ce = spacing * (k // cols), spacing * (k % cols)
         for name, (dn, de), (rn, re) in APPROACHES:
             off = LANE_WIDTH / 2
-            def pt(s: float) -> str:
+            def pt(s: float, cn=cn, ce=ce, dn=dn, de=de, rn=rn, re=re, off=off) -> str:
                 return f"[{cn + dn * s + rn * off:.2f}, {ce + de * s + re * off:.2f}]"
             lin, lout = f"{name}{k}_in", f"{name}{k}_out"
             lanes.append((lin, f"[{pt(-STOP_OFFSET - APPROACH_LENGTH)}, {pt(-STOP_OFFSET)}]", "true"))

@@ -7,8 +7,9 @@ from one seed and see the same faults, so they play the same world.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 import pymap3d

@@ -140,8 +140,8 @@ def mechanization_drift(truth, n: int | None = None, every: int = 100):
     Returns ``(final_state, worst_position_error_m)`` over the first ``n`` intervals (all by
     default), checking the position every ``every`` samples and at the end.
     """
-    from geo import earth as _earth
     from agent.nav.mechanization import mechanize
+    from geo import earth as _earth
 
     n = len(truth.t) - 1 if n is None else min(n, len(truth.t) - 1)
     s = NavState(*truth.llh[0], truth.v_ned[0].copy(), euler_to_quat(*truth.euler[0]))

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import pytest
 
-from conftest import short_scenario
 from deploy import cli_types
 from deploy.cli import build_parser, main
 from deploy.run_dirs import RunDirError, folder_stem, next_free, prepare_out
+
+from conftest import short_scenario
 
 CLI = [sys.executable, "-m", "deploy.cli"]
 
@@ -284,8 +285,9 @@ def test_a_client_whose_router_is_not_there_is_one_clean_error(tmp_path, capsys)
     router: the error names the endpoint and carries no Rust source path."""
     import asyncio
 
-    from conftest import free_port
     from transport.zenoh_bus import ZenohBus, ZenohConfig
+
+    from conftest import free_port
 
     ep = f"tcp/127.0.0.1:{free_port()}"
 

@@ -59,7 +59,8 @@ def test_bounded_minimiser_takes_scipys_steps(rng) -> None:
     for _ in range(500):
         c, a, k = rng.uniform(-0.5, 1.5), rng.uniform(0.1, 10.0), rng.uniform(1.1, 4.0)
         b = rng.uniform(-2, 2)
-        for f in (lambda x: a * abs(x - c) ** k + b * x, lambda x: math.cosh(a * (x - c)), lambda x: 1.0):
+        for f in (lambda x, a=a, b=b, c=c, k=k: a * abs(x - c) ** k + b * x,
+                  lambda x, a=a, c=c: math.cosh(a * (x - c)), lambda x: 1.0):
             ours = fminbound(f, 0.01, 0.99, xatol=1e-3)
             ref = minimize_scalar(f, bounds=(0.01, 0.99), method="bounded", options={"xatol": 1e-3}).x
             assert ours == ref

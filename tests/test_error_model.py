@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from geo import earth
 from agent.nav.error_model import ImuNoise, discretize, noise_input_matrix, system_matrix
 from agent.nav.mechanization import continuous_dynamics
 from agent.nav.rotation import dcm_to_quat
 from agent.nav.state import N_STATES, NavState, apply_error, state_error
+from geo import earth
 
 from conftest import EPS, MEMS_NOISE, moving_state, numerical_jacobian
 

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from geo import earth
 from deploy.launcher import evaluate_recording
+from geo import earth
 from hw_emulation.scenario import STANDING_WINDOW, load_scenario
 from hw_emulation.truth import build_truth
 

@@ -127,6 +127,7 @@ def test_a_killed_recorder_keeps_what_it_wrote_and_a_restarted_one_continues(tmp
     Everything published well before the kill is on disk, the file is appended to (never
     rewritten), and the restarted recorder records what follows."""
     import asyncio
+
     import numpy as np
 
     from transport import keys

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from geo import earth
 from agent.nav.error_model import ImuNoise
 from agent.nav.ins_filter import InsFilter
 from agent.nav.kalman import Measurement
 from agent.nav.measurements.gnss import gnss_position, gnss_velocity
 from agent.nav.rotation import euler_to_quat
 from agent.nav.state import NavState, apply_error
+from geo import earth
 from hw_emulation.kinematics import SinusoidProfile, generate
 
 NOISE = ImuNoise(arw=math.radians(0.2) / 60, vrw=0.1 / 60,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView, StopTracker
-from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN, LaneEdges, MarkingWindow, marking_classes
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
+from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN, LaneEdges, MarkingWindow, marking_classes
 
 GAP = StopGapModel(1.5, 0.3, 1.75, 0.15, 2.5)
 

@@ -58,7 +58,7 @@ def test_staggered_imu_batches_end_at_evenly_spread_phases(tmp_path, stagger, ba
 
     emu, ev = asyncio.run(events())
     ends = {}
-    for t, _, kind, who, idx in ev:
+    for _t, _, kind, who, idx in ev:
         if kind == "imu":
             ends.setdefault(who, []).append(idx)
     # every vehicle gets whole batches (the scenario's imu_batch); staggered, vehicle k's end

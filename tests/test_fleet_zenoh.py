@@ -10,9 +10,9 @@ import subprocess
 
 import pytest
 
-from conftest import short_scenario
-
 from deploy.launcher import run_fleet
+
+from conftest import short_scenario
 
 pytestmark = [pytest.mark.fleet, pytest.mark.slow]
 
@@ -51,7 +51,9 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
 
     assert main(["report", str(out)]) == 0
     again = json.loads((out / "metrics.json").read_text())
-    assert again["rmse"]["t_s1-t_e"]["V1"]["SL-SP"]["rmse_m"] == pytest.approx(m["rmse"]["t_s1-t_e"]["V1"]["SL-SP"]["rmse_m"])
+    assert again["rmse"]["t_s1-t_e"]["V1"]["SL-SP"]["rmse_m"] == pytest.approx(
+        m["rmse"]["t_s1-t_e"]["V1"]["SL-SP"]["rmse_m"]
+    )
     # no process left behind
     ps = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True)
     assert ps.stdout.strip() == ""
@@ -180,7 +182,9 @@ def test_a_silent_emulator_is_killed_and_restarted_then_given_up(tmp_path, monke
     out = tmp_path / "run"
     t0 = time.monotonic()
     try:
-        with pytest.raises(RuntimeError, match=r"resumed at t=0\.00 s was killed after \d+ s of silence.*not restarted again"):
+        with pytest.raises(
+            RuntimeError, match=r"resumed at t=0\.00 s was killed after \d+ s of silence.*not restarted again"
+        ):
             run_fleet("paper-1", out=out, seed=0, methods=("SP",), wait_agents=1.0, evaluate=False)
         assert time.monotonic() - t0 < 60.0
         left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()

@@ -13,12 +13,10 @@ import math
 import numpy as np
 import pytest
 
-from conftest import short_scenario
-
-from geo import earth
 from agent.runtime import Agent
 from deploy.agent_configs import agent_config
 from deploy.recorder import Recorder
+from geo import earth
 from hw_emulation.fuzz import MALFORMED, SEMANTIC, malformed, time_jumped
 from hw_emulation.scenario import load_scenario
 from hw_emulation.service import EmulatorService
@@ -26,6 +24,8 @@ from hw_emulation.truth import build_truth
 from transport import keys
 from transport.bus import InMemoryNetwork
 from transport.codec import CodecError, decode, encode
+
+from conftest import short_scenario
 
 N_PAYLOADS = 10_200
 BURST = 24  #: payloads per 0.05 s of sensor time: all sent within 21.25 s
@@ -134,7 +134,7 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
     for a in agents.values():
         total.update(a.counters)
         total.update({f"seq_{k}": n for k, n in a.seq.counters.items()})
-        for m, tab in a.tables.items():
+        for _m, tab in a.tables.items():
             total.update({f"table_{k}": n for k, n in tab.counters.items()})
     print({k: total[k] for k in sorted(total) if any(s in k for s in ("duplicate", "jump", "stale", "future",
                                                                        "out_of_order", "late"))})

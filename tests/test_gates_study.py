@@ -7,8 +7,9 @@ import json
 
 import pytest
 
-from conftest import short_scenario
 from deploy.cli import main
+
+from conftest import short_scenario
 
 
 @pytest.mark.slow

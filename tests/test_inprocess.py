@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import short_scenario
-
 from deploy.detection import score_first_stopped
 from deploy.inprocess import run_inprocess
 from hw_emulation.scenario import load_scenario
 from hw_emulation.truth import build_truth
+
+from conftest import short_scenario
 
 pytestmark = pytest.mark.slow
 

@@ -7,13 +7,12 @@ import math
 import numpy as np
 import pytest
 from scipy.stats import chi2
+from test_methods import ORIGIN, _stopped_filter
 
 from agent.integrity import OWN_TWIN, check_separation, separation, separation_threshold
-from geo import earth
 from agent.nav.kalman import Measurement
 from agent.nav.measurements.gnss import gnss_position
-
-from test_methods import ORIGIN, _stopped_filter
+from geo import earth
 
 
 def _offset(llh: np.ndarray, north: float, east: float) -> np.ndarray:

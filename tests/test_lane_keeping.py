@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from agent.lane_map import LaneMap
-from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
 from agent.methods import FilterSettings, MethodFilter, MethodSpec, initial_state
-from geo import earth
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
 from deploy.agent_configs import lane_map
 from deploy.bound import posterior_crlb
+from geo import earth
+from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
 from hw_emulation.scenario import load_scenario
 from hw_emulation.truth import build_truth
 
@@ -113,12 +113,12 @@ def test_lane_rows_and_the_stop_line_share_one_lateral_offset() -> None:
     lateral row its own offset state (as without the lane row), the two would count d_l twice
     and the σ would drop to σ_yb / √2."""
     f = _filter()
-    for k in range(20):
+    for _k in range(20):
         _stand(f, 1.0)
         assert f.lane_line("NB_in", APPROACH.left_lane_line).accepted
     s_lane = math.sqrt(f.position_cov[1, 1])
     assert s_lane == pytest.approx(GAP.sigma_yb, rel=0.02)
-    for k in range(20):
+    for _k in range(20):
         _stand(f, 1.05)
         f.stop_line(APPROACH, stop_id=0.0, lane="NB_in")
         assert f.lane_line("NB_in", APPROACH.left_lane_line) is None  # the full fix holds d_l
@@ -185,7 +185,9 @@ def test_the_bound_holds_the_lane_information() -> None:
         assert np.all(a <= b + 1e-9)
         assert np.allclose(with_lane.sigma_h("SP", vid), without.sigma_h("SP", vid))
     # V2 queues behind V1 on a north-south lane: its cross-track (east) is held to about σ_yb
-    east = {k: np.median(np.sqrt(b.cov[("SL-SP", "V2")][:, 1, 1])) for k, b in (("with", with_lane), ("without", without))}
+    east = {
+        k: np.median(np.sqrt(b.cov[("SL-SP", "V2")][:, 1, 1])) for k, b in (("with", with_lane), ("without", without))
+    }
     assert east["with"] < 0.5 < east["without"], east
 
 
@@ -193,8 +195,8 @@ def test_a_one_second_camera_error_does_not_name_a_lane_for_the_lane_row() -> No
     """Five frames settle a class for the first-stopped detector; a lane row, which holds the
     vehicle in the lane it names, waits for ten (2 s at 5 Hz): a 1 s camera error at the start
     (rush-hour E2, seed 6) no longer names the wrong lane."""
-    from geo.lane_markings import MarkingWindow
     from agent.methods import LANE_MARKING_FRAMES
+    from geo.lane_markings import MarkingWindow
 
     w = MarkingWindow()
     for k in range(5):  # 1 s of wrong reports (the right lane's classes)
@@ -213,8 +215,8 @@ def test_one_settled_side_does_not_name_a_lane_for_the_lane_row() -> None:
     against the frames, the lane row's classes never name the right lane; they name the left
     lane once both sides have settled again (with a vehicle that has not yet taken a lane: the
     lateral σ stays at 2.5 m)."""
-    from geo.lane_markings import MarkingWindow
     from agent.methods import lane_row_markings
+    from geo.lane_markings import MarkingWindow
 
     reports = [(BOUNDARY, DIVIDER)] * 7 + [(BOUNDARY, BOUNDARY)] * 2 + [(DIVIDER, BOUNDARY)] * 2 \
         + [(DIVIDER, UNSEEN)] + [(DIVIDER, DIVIDER)] * 11 + [(BOUNDARY, DIVIDER)] * 25

@@ -9,17 +9,22 @@ import numpy as np
 import pytest
 from scipy.linalg import block_diag
 
-from geo import earth
 from agent.nav.kalman import Measurement, kalman_update, stack
 from agent.nav.measurements.common import point_llh, point_position_jacobian
 from agent.nav.measurements.gnss import gnss_position, gnss_velocity
 from agent.nav.measurements.lane_line import lane_line_measurement
 from agent.nav.measurements.stop_line import (
-    Line2D, StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement, stop_line_position,
+    Line2D,
+    StopGapModel,
+    StopLineApproach,
+    stop_line_fix,
+    stop_line_measurement,
+    stop_line_position,
 )
 from agent.nav.measurements.v2v_range import range_measurement, relative_position
 from agent.nav.measurements.vehicle import non_holonomic, zero_angular_rate, zero_velocity
 from agent.nav.state import N_STATES, apply_error
+from geo import earth
 
 from conftest import EPS, moving_state, numerical_jacobian
 
@@ -193,7 +198,7 @@ def test_range_with_road_height_offset_ignores_the_estimated_heights() -> None:
     assert m4.z[0] == pytest.approx(math.hypot(50.0, 0.8) - 50.0, abs=2e-3)
     assert m4.R[0, 0] == pytest.approx(m.R[0, 0] + (0.8 / 50.0 * 0.3) ** 2, rel=1e-3)
     for offset in ((0.0, 0.3), (0.8, 0.3)):
-        _check_jacobian(lambda st: range_measurement(st, 50.0, 0.1, nb, Pj, LEVER, height_offset=offset), tol=3e-5)
+        _check_jacobian(lambda st, o=offset: range_measurement(st, 50.0, 0.1, nb, Pj, LEVER, height_offset=o), tol=3e-5)
     # a large, uncertain offset: R = σ² + (u_v σ_dh)² + u_hᵀ P_h u_h along the slanted line
     m8 = range_measurement(s, 50.0, 0.1, nb, Pj, height_offset=(8.0, 2.0))
     rho = math.hypot(50.0, 8.0)

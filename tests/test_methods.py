@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from agent.methods import METHODS, FilterSettings, MethodFilter, MethodSpec, initial_state
-from geo import earth
-from agent.nav.rotation import quat_to_euler
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
+from agent.nav.rotation import quat_to_euler
 from agent.neighbours import NeighbourState
+from geo import earth
 
 from conftest import MEMS_NOISE
 
@@ -25,15 +25,21 @@ def test_method_specs() -> None:
         MethodSpec.of("XP")
 
 
-def _stopped_filter(method: str, offset_ne=(3.0, -2.0), **settings) -> tuple[MethodFilter, StopLineApproach, StopGapModel, np.ndarray]:
+def _stopped_filter(
+    method: str, offset_ne=(3.0, -2.0), **settings
+) -> tuple[MethodFilter, StopLineApproach, StopGapModel, np.ndarray]:
     approach = StopLineApproach(Line2D((0.0, 0.0), (0.0, 1.0)), Line2D((0.0, -1.75), (1.0, 0.0)))  # north-bound
     gap = StopGapModel(1.5, 0.2, 1.75, 0.1, 2.5)
     p_true, _ = stop_line_position(approach, gap)
     rm, rn = earth.radii(ORIGIN[0])
-    true_llh = np.array([ORIGIN[0] + p_true[0] / (rm + 50), ORIGIN[1] + p_true[1] / ((rn + 50) * math.cos(ORIGIN[0])), 50.0])
+    true_llh = np.array(
+        [ORIGIN[0] + p_true[0] / (rm + 50), ORIGIN[1] + p_true[1] / ((rn + 50) * math.cos(ORIGIN[0])), 50.0]
+    )
     est_llh = true_llh + np.array([offset_ne[0] / (rm + 50), offset_ne[1] / ((rn + 50) * math.cos(ORIGIN[0])), 0.0])
     st = initial_state(est_llh, np.zeros(3), np.array([0.0, 0.0, -9.8]))
-    f = MethodFilter(MethodSpec.of(method), st, np.array([4.0, 4.0, 6.0]), FilterSettings(MEMS_NOISE, **settings), 0.0, gap, ORIGIN)
+    f = MethodFilter(
+        MethodSpec.of(method), st, np.array([4.0, 4.0, 6.0]), FilterSettings(MEMS_NOISE, **settings), 0.0, gap, ORIGIN
+    )
     return f, approach, gap, true_llh
 
 
@@ -151,7 +157,9 @@ def test_displacement_since_interpolates_the_recent_history() -> None:
         past = np.array([np.interp(t, ts, [h[k] for h in hist]) for k in (1, 2, 3)])
         assert np.allclose(got, np.array(f._disp) - past, atol=1e-12)
     # the vehicle moved about v·Δt (its velocity barely changes over 1.5 s of level coasting)
-    assert np.allclose(f.displacement_since(t0 + 0.5)[:2], f.filter.state.v[:2] * (f.t - t0 - 0.5), rtol=0.05, atol=0.05)
+    assert np.allclose(
+        f.displacement_since(t0 + 0.5)[:2], f.filter.state.v[:2] * (f.t - t0 - 0.5), rtol=0.05, atol=0.05
+    )
 
 
 def test_a_gnss_jump_is_rejected_and_a_fix_rejected_for_long_re_anchors_the_position() -> None:
@@ -165,7 +173,7 @@ def test_a_gnss_jump_is_rejected_and_a_fix_rejected_for_long_re_anchors_the_posi
     g = np.array([0.0, 0.0, -earth.gravity(ORIGIN[0], 50.0)]) * dt
 
     def run(llh, seconds):
-        for k in range(int(round(seconds / 0.2))):
+        for _k in range(int(round(seconds / 0.2))):
             for _ in range(20):
                 f.propagate(zero, g, dt)
             f.gnss(llh, np.zeros(3), np.full(3, 0.5), 0.05)
@@ -192,7 +200,7 @@ def test_ranges_to_a_vague_neighbour_do_not_sharpen_a_stop_line_fix() -> None:
     nb = NeighbourState("V2", true_llh + np.array([-7.0 / (rm + 50), 0.0, 0.0]), np.eye(3) * 9.0, 0.05)
     zero, dt = np.zeros(3), 0.01
     g = np.array([0.0, 0.0, -earth.gravity(ORIGIN[0], 50.0)]) * dt
-    for k in range(300):  # 30 s
+    for _k in range(300):  # 30 s
         for f in (cp, sp):
             for _ in range(10):
                 f.propagate(zero, g, dt)

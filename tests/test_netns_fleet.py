@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from conftest import short_scenario
-
 from transport.security import create_fleet
+
+from conftest import short_scenario
 
 pytestmark = [pytest.mark.fleet, pytest.mark.slow]
 
@@ -53,7 +53,7 @@ class Namespaces:
         self.ips = {v: f"10.77.0.{10 + i}" for i, v in enumerate(vehicles)}
         self.tag = tag
 
-    def __enter__(self) -> "Namespaces":
+    def __enter__(self) -> Namespaces:
         try:
             _ip("netns", "add", self.hub)
             _ip("link", "set", "lo", "up", ns=self.hub)
@@ -104,7 +104,7 @@ class Procs:
                 p.wait()
         return p.returncode
 
-    def __enter__(self) -> "Procs":
+    def __enter__(self) -> Procs:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -152,18 +152,27 @@ def test_the_fleet_works_across_network_namespaces_through_the_router(tmp_path) 
             time.sleep(1.0)  # the last estimates in flight
             codes = {v: procs.stop(f"agent-{v}") for v in vehicles}
             procs.stop("recorder")
-        assert codes == {v: 0 for v in vehicles}, {v: (tmp_path / f"agent-{v}.log").read_text()[-1500:] for v in vehicles}
+        assert codes == {v: 0 for v in vehicles}, {
+            v: (tmp_path / f"agent-{v}.log").read_text()[-1500:] for v in vehicles
+        }
     lines = [json.loads(x) for x in rec.read_text().splitlines()]
     est = [d for d in lines if d["type"] == "Estimate"]
     diag = {d["source"]: d for d in lines if d["type"] == "Diagnostics"}
-    assert {(d["vehicle"], d["method"]) for d in est} == {(v, m) for v in vehicles for m in ("SP", "SL-SP", "CP", "SL-CP")}
+    assert {(d["vehicle"], d["method"]) for d in est} == {
+        (v, m) for v in vehicles for m in ("SP", "SL-SP", "CP", "SL-CP")
+    }
     for v in vehicles:
         c = diag[v]["counters"]
         # beacons crossed namespaces through the router and the radio, ranges were fused with them,
         # and every beacon verified (signed with the vehicle's key)
         assert c["beacons_rx"] > 100 and c["CP_ranges"] > 0, c
-        assert not any(k.startswith("beacon_") and n for k, n in c.items()), {k: n for k, n in c.items() if k.startswith("beacon_")}
-    print({v: {k: diag[v]["counters"][k] for k in ("beacons_rx", "CP_ranges", "SL-CP_ranges")} for v in vehicles}, len(est))
+        assert not any(k.startswith("beacon_") and n for k, n in c.items()), {
+            k: n for k, n in c.items() if k.startswith("beacon_")
+        }
+    print(
+        {v: {k: diag[v]["counters"][k] for k in ("beacons_rx", "CP_ranges", "SL-CP_ranges")} for v in vehicles},
+        len(est),
+    )
     assert any(d["first_stopped"] for d in est if d["vehicle"] == "V1" and d["method"] == "SL-SP")
     assert not any(d["first_stopped"] for d in est if d["vehicle"] == "V2")
     left = subprocess.run(["pgrep", "-f", str(tmp_path)], capture_output=True, text=True).stdout.strip()

@@ -80,9 +80,10 @@ def test_a_link_that_starts_in_nlos_is_not_fused() -> None:
     """After its stop-line fix a vehicle knows its place to 0.2 m; a neighbour's first range
     2.5 m too long (a link that starts in NLOS: no jump for the rate gate) is classified and
     left out, a clean one is fused; the paper's rule has no classifier."""
+    from test_methods import ORIGIN, _stopped_filter
+
     from agent.neighbours import NeighbourState
     from geo import earth
-    from test_methods import ORIGIN, _stopped_filter
 
     rm, _ = earth.radii(ORIGIN[0])
     outcomes = {}
@@ -215,9 +216,10 @@ def test_a_known_link_rejects_an_episode_the_estimates_cannot_see() -> None:
     innovation against the estimates cannot tell a 0.8 m NLOS bias from its position error,
     but the link's own series sees the step. With the tracker the biased ranges are refused;
     without it they are kept."""
+    from test_methods import ORIGIN, _stopped_filter
+
     from agent.neighbours import NeighbourState
     from geo import earth
-    from test_methods import ORIGIN, _stopped_filter
 
     rm, _ = earth.radii(ORIGIN[0])
     zero, dt = np.zeros(3), 0.01
@@ -234,7 +236,9 @@ def test_a_known_link_rejects_an_episode_the_estimates_cannot_see() -> None:
                 f.propagate(zero, g, dt)
             out.append(f.range(nb, 20.0 + (0.8 if k >= 40 else 0.0) + float(rng.normal(0.0, 0.05))))
         outcomes[tracking] = out
-    assert all(o == "gate_nlos" for o in outcomes[True][41:])  # the first is the rate gate's? no: a 0.8 m step passes it
+    assert all(
+        o == "gate_nlos" for o in outcomes[True][41:]
+    )  # the first is the rate gate's? no: a 0.8 m step passes it
     assert "gate_nlos" not in outcomes[False][40:]
 
 

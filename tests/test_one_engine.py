@@ -63,7 +63,9 @@ def test_the_in_process_runner_and_the_asyncio_agents_send_identical_estimates(t
     run_inprocess(truth, seed=0, on_message=lambda v, m: inputs[v].append(m),
                   on_output=lambda v, m: sent[v].append(m) if isinstance(m, Estimate) else None)
     kinds = {type(m).__name__ for msgs in inputs.values() for m in msgs}
-    assert kinds == {"ImuBatch", "GnssFix", "LaneMarkings", "UwbRound", "Beacon"}, kinds  # every input path is exercised
+    assert kinds == {"ImuBatch", "GnssFix", "LaneMarkings", "UwbRound", "Beacon"}, (
+        kinds
+    )  # every input path is exercised
     got = asyncio.run(_play_to_agents(scn, inputs))
     for v in truth.vehicles:
         assert len(sent[v]) > 800 and len(got[v]) == len(sent[v]), v
@@ -77,7 +79,9 @@ def test_an_engine_fed_twice_sends_the_same_messages() -> None:
     scn = dataclasses.replace(load_scenario("paper-1"), duration=6.0)
     truth = build_truth(scn)
     inputs: list = []
-    run_inprocess(truth, seed=3, methods=("SP", "SL-SP"), on_message=lambda v, m: inputs.append(m) if v == "V0" else None)
+    run_inprocess(
+        truth, seed=3, methods=("SP", "SL-SP"), on_message=lambda v, m: inputs.append(m) if v == "V0" else None
+    )
     outs = []
     for _ in range(2):
         eng = VehicleEngine(agent_config(scn, "V0", ("SP", "SL-SP")))
@@ -86,5 +90,5 @@ def test_an_engine_fed_twice_sends_the_same_messages() -> None:
         eng.finish()
         outs.append(eng.take_outbox())
     assert len(outs[0]) > 100 and len(outs[0]) == len(outs[1])
-    assert all(a == b for a, b in zip(*outs) if not hasattr(a, "counters")) 
+    assert all(a == b for a, b in zip(*outs) if not hasattr(a, "counters"))
     assert np.isfinite(outs[0][-1].t)

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import short_scenario
-
 from deploy.pooling import main, pool_translation
+
+from conftest import short_scenario
 
 
 def test_two_estimates_pool_to_the_information_weighted_mean() -> None:

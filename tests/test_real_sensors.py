@@ -12,7 +12,7 @@ import signal
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +20,12 @@ import pynmea2
 import pytest
 from pyubx2 import GET, UBXMessage
 
-from conftest import REPO, SHARED_DRIVE, free_port, wait_for_port
 from deploy.processes import ConfigError, load_agent_config
 from deploy.sensors.imu import ImuAdapter, ImuFormatError, imu_increments, parse_imu_line, parse_units
 from deploy.sensors.nmea import KNOT, NmeaFixAssembler
 from deploy.sensors.ubx import UbxFixReader
+
+from conftest import REPO, SHARED_DRIVE, free_port, wait_for_port
 
 CLI = [sys.executable, "-m", "deploy.cli"]
 needs_drive = pytest.mark.skipif(not SHARED_DRIVE.is_dir(), reason=f"shared drive not found at {SHARED_DRIVE}")
@@ -41,7 +42,7 @@ def nmea_epoch(t_utc: float, lat_deg: float, lon_deg: float, h_ell: float, vn: f
                sig: tuple[float, float, float] | None = (0.02, 0.03, 0.05), quality: int = 4,
                sep: float = -16.8, hdop: float = 0.8) -> list[str]:
     """RMC, GGA (and GST) of one epoch, as a receiver would print them."""
-    dt_ = datetime.fromtimestamp(t_utc, timezone.utc)
+    dt_ = datetime.fromtimestamp(t_utc, UTC)
     hms = dt_.strftime("%H%M%S") + f".{dt_.microsecond // 10000:02d}"
     la, ns = _ddmm(lat_deg, "N", "S", 2)
     lo, ew = _ddmm(lon_deg, "E", "W", 3)
@@ -90,9 +91,15 @@ def test_nmea_bad_input_is_counted_and_the_rest_still_works() -> None:
     good = nmea_epoch(t0, 40.1, -105.1, 1500.0, 1.0, 0.0, sig=None, hdop=1.5)
     bad_checksum = good[1][:-2] + ("00" if not good[1].endswith("00") else "11")
     fixes = []
-    for line in [bad_checksum, "garbage", "$GPXYZ,1,2*00", "$GPGSV,3,1,11,03,03,111,00,04,15,270,00,06,01,010,00,13,06,292,00*74",
-                 *good, *nmea_epoch(t0 + 0.4, 40.1, -105.1, 1500.0, 1.0, 0.0, sig=None, hdop=1.5, quality=0),
-                 *nmea_epoch(t0 + 1.2, 40.1, -105.1, 1500.0, 1.0, 0.0, sig=None, hdop=1.5)]:
+    for line in [
+        bad_checksum,
+        "garbage",
+        "$GPXYZ,1,2*00",
+        "$GPGSV,3,1,11,03,03,111,00,04,15,270,00,06,01,010,00,13,06,292,00*74",
+        *good,
+        *nmea_epoch(t0 + 0.4, 40.1, -105.1, 1500.0, 1.0, 0.0, sig=None, hdop=1.5, quality=0),
+        *nmea_epoch(t0 + 1.2, 40.1, -105.1, 1500.0, 1.0, 0.0, sig=None, hdop=1.5),
+    ]:
         fixes += a.feed(line)
     fixes += a.flush()
     c = a.counters
@@ -213,7 +220,9 @@ def test_a_site_less_agent_config_takes_the_vehicles_imu_and_gnss(tmp_path) -> N
                         ("[gnss]\ngate = 1\n", "gnss.gate"), ("[gnss]\nreset_after = 0\n", "gnss.reset_after"),
                         ("[site]\n", "[site]")):
         p.write_text('[agent]\nvehicle = "car1"\n' + text)
-        with pytest.raises(ConfigError, match=str(p).replace(".", r"\.") + ".*" + where.replace("[", r"\[").replace(".", r"\.")):
+        with pytest.raises(
+            ConfigError, match=str(p).replace(".", r"\.") + ".*" + where.replace("[", r"\[").replace(".", r"\.")
+        ):
             load_agent_config(p, None)
     p.write_text('[agent]\nvehicle = "car1"\n[gnss]\ngate = 0.9999\nreset_after = 90\n')
     s = load_agent_config(p, None)[0].settings
@@ -273,7 +282,7 @@ def test_the_driver_reads_nmea_from_a_serial_port() -> None:
                 try:
                     _k, payload = await asyncio.wait_for(fixes.get(), 1.0)
                     got.append(decode(payload))
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     pass
             counters = {}
             # a diagnostics message may be a snapshot from before the fifth fix was published
@@ -281,7 +290,7 @@ def test_the_driver_reads_nmea_from_a_serial_port() -> None:
                                                    or counters.get("published_gnss", 0) < 5):
                 try:
                     counters = decode((await asyncio.wait_for(diag.get(), 2.0))[1]).counters
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     pass
             return got, counters, drv
         finally:
@@ -367,7 +376,9 @@ def _write_logs(tmp_path: Path, t_from: float, t_to: float, gap: tuple[float, fl
     k = np.flatnonzero((imu.t >= t_from - 1.0) & (imu.t <= t_to))
     rows = np.column_stack([imu.t[k] - leap, imu.accel[k] / 9.80665, np.degrees(imu.gyro[k])])
     csv = tmp_path / "imu.csv"
-    np.savetxt(csv, rows, fmt=["%.4f"] + ["%.6f"] * 6, delimiter=",", header="t_utc_s,ax_g,ay_g,az_g,gx_dps,gy_dps,gz_dps")
+    np.savetxt(
+        csv, rows, fmt=["%.4f"] + ["%.6f"] * 6, delimiter=",", header="t_utc_s,ax_g,ay_g,az_g,gx_dps,gy_dps,gz_dps"
+    )
     truth = {"t": g.t[sel] - leap, "llh": g.llh[sel] + np.array([0, 0, -16.8]),
              "gap": (gap[0] - leap, gap[1] - leap)}
     return nmea, csv, truth
@@ -408,7 +419,7 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
             while drv.poll() is None or len(est):
                 try:
                     rows.append(decode((await asyncio.wait_for(est.get(), 1.0))[1]))
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     if drv.poll() is not None:
                         await asyncio.sleep(1.0)
                         break
@@ -419,10 +430,34 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     procs: list[subprocess.Popen] = []
 
     def start() -> subprocess.Popen:
-        return subprocess.Popen([*CLI, "sensors", "--vehicle", "V0", "--gnss", f"nmea:{nmea}", "--imu", f"csv:{csv}",
-                                 "--imu-units", "g,deg/s", "--imu-mount", "180,-6.79,185.35", "--imu-time-offset", "-0.125",
-                                 "--speed", "8", "--connect", f"tcp/127.0.0.1:{port}", "--listen", f"tcp/127.0.0.1:{port2}"],
-                                start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        return subprocess.Popen(
+            [
+                *CLI,
+                "sensors",
+                "--vehicle",
+                "V0",
+                "--gnss",
+                f"nmea:{nmea}",
+                "--imu",
+                f"csv:{csv}",
+                "--imu-units",
+                "g,deg/s",
+                "--imu-mount",
+                "180,-6.79,185.35",
+                "--imu-time-offset",
+                "-0.125",
+                "--speed",
+                "8",
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+                "--listen",
+                f"tcp/127.0.0.1:{port2}",
+            ],
+            start_new_session=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
 
     try:
         rows = asyncio.run(collect(start))

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from agent.first_stopped import FirstStoppedDetector
-from geo.lane_markings import BOUNDARY, DIVIDER
-from geo import earth
 from agent.nav.measurements.stop_line import StopGapModel
+from geo import earth
+from geo.lane_markings import BOUNDARY, DIVIDER
 from hw_emulation.events import event_times
 from hw_emulation.scenario import ScenarioError, load_scenario, parse_scenario, shipped_scenarios
 from hw_emulation.truth import build_truth

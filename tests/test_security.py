@@ -174,11 +174,21 @@ def test_an_agent_signs_what_it_sends(fleet) -> None:
 
     agent.bus = Bus()
     g = np.array([0.3, 0.0, 0.0])  # one random constant's sensitivity, m
-    agent.engine.filters = {"CP": type("F", (), {"spec": type("S", (), {"ranges": True, "stop_line": False})(),
-                                          "beacon": lambda self: (np.array([0.7, 2.0, 5.0]), np.zeros(3), np.eye(3)),
-                                          "beacon_sources": lambda self: ((("V2",), 0.75 * np.eye(3)),
-                                                                          (("V0", "~common"), 0.25 * np.eye(3) - np.outer(g, g))),
-                                          "beacon_constants": lambda self: (("V2~1.5", g),)})()}
+    agent.engine.filters = {
+        "CP": type(
+            "F",
+            (),
+            {
+                "spec": type("S", (), {"ranges": True, "stop_line": False})(),
+                "beacon": lambda self: (np.array([0.7, 2.0, 5.0]), np.zeros(3), np.eye(3)),
+                "beacon_sources": lambda self: (
+                    (("V2",), 0.75 * np.eye(3)),
+                    (("V0", "~common"), 0.25 * np.eye(3) - np.outer(g, g)),
+                ),
+                "beacon_constants": lambda self: (("V2~1.5", g),),
+            },
+        )()
+    }
     agent.engine._next["beacon"] = 10.0
     agent.engine._timers(10.0)
     asyncio.run(agent._publish_outbox())
@@ -280,7 +290,7 @@ def test_each_bad_key_or_certificate_is_refused_with_its_reason(fleet, tmp_path)
         BeaconSigner.from_file("V1", rsa_pem)
     ca_key = serialization.load_pem_private_key((fleet / "ca.key").read_bytes(), None)
     ca = x509.load_pem_x509_certificate((fleet / "ca.crt").read_bytes())
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
 
     def cert(cn: str = "V7", ou: str | None = "vehicle", key=None, start=-1.0, days=10.0) -> x509.Certificate:
         attrs = ([x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, ou)] if ou else []) + \

@@ -9,8 +9,18 @@ import pytest
 
 from agent.nav.fusion import OMEGA_MAX, OMEGA_MIN, split_ci_update
 from agent.nav.kalman import Measurement, kalman_update
-from agent.nav.source_fusion import (ANY, COMMON_MODE, MAX_COMPONENTS, MAX_CONSTANTS, MAX_LABELS, SourcePart, SourceSplit, _combine, _group,
-                                      _PosteriorTrace)
+from agent.nav.source_fusion import (
+    ANY,
+    COMMON_MODE,
+    MAX_COMPONENTS,
+    MAX_CONSTANTS,
+    MAX_LABELS,
+    SourcePart,
+    SourceSplit,
+    _combine,
+    _group,
+    _PosteriorTrace,
+)
 
 IDX = np.array([0, 1])
 
@@ -206,7 +216,7 @@ def test_the_remembered_blocks_follow_every_change_of_the_components() -> None:
             split._block_memo = memo
 
     hits = 0
-    for step in range(300):
+    for _step in range(300):
         kind = int(rng.integers(8))
         if kind == 0:
             split.propagate(np.eye(n) + 0.05 * rng.normal(size=(n, n)), np.diag(rng.uniform(0.0, 0.1, n)))
@@ -329,9 +339,9 @@ def test_the_update_chooses_the_best_weights_of_the_whole_matrices() -> None:
         hh = m.H[0]
         groups = [(gm, gp, _combine([parts[j] for j in gp])) for gm, gp in _group(mine, [p.labels for p in parts])]
 
-        def whole(s):
+        def whole(s, P=P, m=m, groups=groups, comps=comps, hh=hh, idx=idx, wt=wt):  # this iteration's
             P1, r1 = P.copy(), float(m.R[0, 0])
-            for gm, gp, b in groups:
+            for gm, _gp, b in groups:
                 if not gm or b <= 0.0:
                     r1 += b
                     continue
@@ -369,7 +379,7 @@ def test_a_constant_tracked_exactly_makes_the_updates_the_joint_kalman_updates()
     Pj = np.zeros((n + 1, n + 1))  # joint (x, θ)
     Pj[:n, :n] = P0
     Pj[n, n] = 1.0
-    for k in range(5):
+    for _k in range(5):
         ang = rng.uniform(0.0, 2.0 * np.pi)
         u = np.array([np.cos(ang), np.sin(ang)])
         h = np.zeros(n)

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from conftest import short_scenario
-
 from deploy.study import aggregate, anees_band, paired_difference, study_markdown
+
+from conftest import short_scenario
 
 
 def test_anees_band_matches_the_chi_square_table() -> None:

@@ -14,11 +14,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import free_port
 from transport import keys
 from transport.bus import InMemoryNetwork, Subscription, Waker, drain_in_arrival_order
 from transport.codec import SCHEMA_VERSION, CodecError, decode, encode
 from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRange, UwbRound
+
+from conftest import free_port
 
 names = st.from_regex(r"[A-Za-z0-9_.\-]{1,20}", fullmatch=True)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64, min_value=-1e12, max_value=1e12)
@@ -222,7 +223,9 @@ def test_in_memory_bus_delivery_drops_and_liveliness() -> None:
         b.watch_alive("slcp/v1/alive/agent/*", lambda k, alive: events.append((k, alive)))
         a.declare_alive(keys.alive("agent", "V1"))
         for i in range(10):
-            await a.publish(keys.radio_rx("V2"), encode(Beacon("V1", i, "SP", float(i), np.zeros(3), np.zeros(3), np.eye(3))))
+            await a.publish(
+                keys.radio_rx("V2"), encode(Beacon("V1", i, "SP", float(i), np.zeros(3), np.zeros(3), np.eye(3)))
+            )
         await a.publish(keys.imu("V2"), b"not for this subscriber")
         got = []
         async for _, payload in sub:  # (a subscription is an async iterator too)

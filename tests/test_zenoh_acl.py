@@ -15,8 +15,9 @@ from pathlib import Path
 import pytest
 
 from transport import keys
-from conftest import free_port, wait_for_port
 from transport.security import create_fleet
+
+from conftest import free_port, wait_for_port
 
 pytestmark = pytest.mark.fleet
 

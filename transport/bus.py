@@ -13,10 +13,10 @@ import asyncio
 import heapq
 import itertools
 from collections import defaultdict, deque
-from typing import AsyncIterator, Protocol
+from collections.abc import AsyncIterator
+from typing import Protocol
 
 from .keys import matches
-
 
 #: arrival stamps shared by every subscription of the process (``next`` is atomic in CPython), so
 #: that a consumer of several queues can take their items in the order they arrived
@@ -163,7 +163,7 @@ class InMemoryNetwork:
         self.alive: set[str] = set()
         self.watchers: list[tuple[str, object]] = []
 
-    def bus(self) -> "InMemoryBus":
+    def bus(self) -> InMemoryBus:
         b = InMemoryBus(self)
         self.buses.append(b)
         return b

@@ -185,8 +185,15 @@ def _check_constants(name: str, fname: str, val: Any) -> tuple:
     return tuple(out)
 
 
-_VALIDATORS = {"auth": _check_auth, "sources": _check_sources, "constants": _check_constants, "peers": _check_peers, "first_stopped": _check_bool, "counters": _check_counters,
-               "status": _check_status}
+_VALIDATORS = {
+    "auth": _check_auth,
+    "sources": _check_sources,
+    "constants": _check_constants,
+    "peers": _check_peers,
+    "first_stopped": _check_bool,
+    "counters": _check_counters,
+    "status": _check_status,
+}
 
 
 def _validator(fname: str):

@@ -87,7 +87,7 @@ class BeaconSigner:
         self.key_id = key_id(private_key.public_key())
 
     @classmethod
-    def from_file(cls, vehicle: str, path: Path | str) -> "BeaconSigner":
+    def from_file(cls, vehicle: str, path: Path | str) -> BeaconSigner:
         return cls(vehicle, _load_private_key(Path(path)))
 
     def sign(self, beacon: Beacon) -> Beacon:
@@ -116,7 +116,7 @@ class TrustStore:
         self.ca = ca_cert
         self._keys: dict[bytes, tuple[str, ec.EllipticCurvePublicKey]] = {}
         self.roles: dict[str, str] = {}  #: every valid identity (CN) -> role
-        now = _dt.datetime.now(_dt.timezone.utc)
+        now = _dt.datetime.now(_dt.UTC)
         for cert in certificates:
             cn = _common_name(cert)
             try:
@@ -133,7 +133,7 @@ class TrustStore:
                 self._keys[key_id(pk)] = (cn, pk)
 
     @classmethod
-    def from_dir(cls, directory: Path | str) -> "TrustStore":
+    def from_dir(cls, directory: Path | str) -> TrustStore:
         """Load ``ca.crt`` and every other ``*.crt`` of ``directory``."""
         d = Path(directory)
         ca = _load_cert(d / "ca.crt")
@@ -200,11 +200,13 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
     if overwrite or not (d / "ca.crt").exists():
         ca_key = ec.generate_private_key(_CURVE)
         name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "slcp fleet CA")])
-        ca_cert = (_builder(name, name, ca_key.public_key(), days)
-                   .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-                   .add_extension(x509.KeyUsage(False, False, False, False, False, True, True, False, False), critical=True)
-                   .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
-                   .sign(ca_key, hashes.SHA256()))
+        ca_cert = (
+            _builder(name, name, ca_key.public_key(), days)
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(x509.KeyUsage(False, False, False, False, False, True, True, False, False), critical=True)
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
+            .sign(ca_key, hashes.SHA256())
+        )
         written += _write_pair(d, "ca", ca_key, ca_cert)
     else:
         ca_key = _load_private_key(d / "ca.key")
@@ -235,7 +237,7 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
 
 
 def _builder(subject: x509.Name, issuer: x509.Name, public_key, days: int) -> x509.CertificateBuilder:
-    now = _dt.datetime.now(_dt.timezone.utc)
+    now = _dt.datetime.now(_dt.UTC)
     return (x509.CertificateBuilder().subject_name(subject).issuer_name(issuer).public_key(public_key)
             .serial_number(x509.random_serial_number())
             .not_valid_before(now - _dt.timedelta(minutes=5)).not_valid_after(now + _dt.timedelta(days=days)))
@@ -287,4 +289,6 @@ def _common_name(cert: x509.Certificate) -> str:
     try:
         return check_name(str(cn))
     except ValueError:
-        raise SecurityError(f"certificate with subject {cert.subject.rfc4514_string()!r}: CN is not a vehicle id") from None
+        raise SecurityError(
+            f"certificate with subject {cert.subject.rfc4514_string()!r}: CN is not a vehicle id"
+        ) from None

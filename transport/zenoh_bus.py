@@ -75,7 +75,7 @@ class ZenohConfig:
     config_file: str | None = None
     extra: dict = field(default_factory=dict)
 
-    def to_zenoh(self) -> "zenoh.Config":
+    def to_zenoh(self) -> zenoh.Config:
         if self.mode not in ("peer", "client", "router"):
             raise ValueError(f"zenoh mode must be peer, client or router, got {self.mode!r}")
         conf = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from geo import earth
+
 from .state import ATT, BA, BG, N_STATES, VEL, NavState
 
 

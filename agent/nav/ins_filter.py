@@ -16,9 +16,9 @@ import numpy as np
 from .error_model import ImuNoise, discretize_density, process_noise_density, system_matrix
 from .fusion import split_ci_update
 from .kalman import Measurement, UpdateResult, joseph, kalman_update, stack
-from .source_fusion import COMMON_MODE, SourcePart, SourceSplit
 from .mechanization import mechanize_run
 from .rotation import euler_to_quat, quat_to_euler, wrap_angle
+from .source_fusion import COMMON_MODE, SourcePart, SourceSplit
 from .state import ATT, N_STATES, POS, VEL, NavState, remove_error
 
 

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from geo import earth
+
 from .rotation import skew
 from .state import NavState
 
@@ -58,8 +59,8 @@ def mechanize(
 
 def mechanize_fast(
     state: NavState,
-    dtheta: "list[float] | tuple[float, float, float]",
-    dvel: "list[float] | tuple[float, float, float]",
+    dtheta: list[float] | tuple[float, float, float],
+    dvel: list[float] | tuple[float, float, float],
     dt: float,
     prev_th: tuple[float, float, float] | None,
     prev_dv: tuple[float, float, float] | None,
@@ -75,9 +76,9 @@ def mechanize_fast(
 
 def mechanize_run(
     state: NavState,
-    dtheta: "Sequence[Sequence[float]]",
-    dvel: "Sequence[Sequence[float]]",
-    dt: "Sequence[float]",
+    dtheta: Sequence[Sequence[float]],
+    dvel: Sequence[Sequence[float]],
+    dt: Sequence[float],
     prev_th: tuple[float, float, float] | None,
     prev_dv: tuple[float, float, float] | None,
 ) -> tuple[NavState, tuple[float, float, float], tuple[float, float, float],

@@ -156,7 +156,7 @@ class SourceSplit:
         """The components (or their pending congruence) are about to change."""
         self._version += 1
 
-    def copy(self) -> "SourceSplit":
+    def copy(self) -> SourceSplit:
         """An independent copy (e.g. to restore a filter's state)."""
         self._sync()
         out = SourceSplit.__new__(SourceSplit)

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geo import earth
+
 from .rotation import quat_mul, quat_normalize, quat_to_dcm, rotvec_to_quat
 
 ATT = slice(0, 3)
@@ -59,7 +60,7 @@ class NavState:
     bg: np.ndarray = field(default_factory=lambda: np.zeros(3))
     ba: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
-    def copy(self) -> "NavState":
+    def copy(self) -> NavState:
         return NavState(self.lat, self.lon, self.h, self.v.copy(), self.q.copy(),
                         self.bg.copy(), self.ba.copy())
 

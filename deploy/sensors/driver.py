@@ -56,7 +56,7 @@ class SourceSpec:
     serial: bool = False
 
     @classmethod
-    def parse(cls, kind: str, text: str) -> "SourceSpec":
+    def parse(cls, kind: str, text: str) -> SourceSpec:
         fmt, sep, rest = text.partition(":")
         if not sep or fmt not in FORMATS[kind] or not rest:
             raise SourceError(f"--{kind} {text!r}: expected FORMAT:PATH[@BAUD] with FORMAT one of "
@@ -126,7 +126,9 @@ class _Reader(threading.Thread):
                         if chunk and not self._put((time.time(), chunk)):
                             return
             except (OSError, serial.SerialException) as exc:
-                self.counters[f"{self.spec.kind}_port_errors"] = self.counters.get(f"{self.spec.kind}_port_errors", 0) + 1
+                self.counters[f"{self.spec.kind}_port_errors"] = (
+                    self.counters.get(f"{self.spec.kind}_port_errors", 0) + 1
+                )
                 log.warning("%s: %s; reopening in 1 s", self.spec.path, exc)
                 self.stop.wait(1.0)
 

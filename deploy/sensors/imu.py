@@ -146,7 +146,11 @@ class ImuAdapter:
         t = float(t) + self.time_offset
         a = np.asarray(accel_s, float)
         g = np.asarray(gyro_s, float)
-        if a.shape != (3,) or g.shape != (3,) or not (math.isfinite(t) and np.isfinite(a).all() and np.isfinite(g).all()):
+        if (
+            a.shape != (3,)
+            or g.shape != (3,)
+            or not (math.isfinite(t) and np.isfinite(a).all() and np.isfinite(g).all())
+        ):
             self.counters["imu_bad_sample"] += 1
             return []
         f_b, w_b = self._c_sb @ a, self._c_sb @ g

@@ -11,8 +11,8 @@ One fix is assembled per epoch (sentences sharing a UTC time of day) from:
   it, σ = HDOP × ``uere`` horizontally and 1.5 × that vertically.
 
 An epoch is emitted as soon as it has every sentence type the previous epoch had (the receiver's
-output set is learned; the first epoch waits for the second), or when the next epoch starts. Fix time: UTC seconds since the Unix
-epoch (POSIX time); a time of day that goes back by more than 12 h starts a new day.
+output set is learned; the first epoch waits for the second), or when the next epoch starts. Fix
+time: UTC seconds since the Unix epoch (POSIX time); a time of day that goes back by more than 12 h starts a new day.
 Bad sentences (checksum, syntax) are counted (``nmea_bad``), a fix quality of 0 is counted
 (``nmea_no_fix``); unknown sentence types are ignored (``nmea_ignored``).
 

@@ -132,7 +132,9 @@ def simulate_gnss(model: GnssModel, t: np.ndarray, moving: np.ndarray, rng: np.r
     n = len(t)
     dt = np.diff(t, prepend=t[0] - 1.0 / model.rate) if n else t
     tau = np.where(np.asarray(moving, bool), model.multipath_tau_moving, model.multipath_tau_static)
-    mp = gauss_markov_varying(dt, 1.0, tau, rng, 3) * np.array([model.multipath_h, model.multipath_h, model.multipath_v])
+    mp = gauss_markov_varying(dt, 1.0, tau, rng, 3) * np.array(
+        [model.multipath_h, model.multipath_h, model.multipath_v]
+    )
     white = rng.normal(0.0, 1.0, (n, 3)) * np.array([model.white_h, model.white_h, model.white_v])
     err = mp + white
     if common_mode is not None:

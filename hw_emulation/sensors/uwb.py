@@ -100,6 +100,8 @@ def simulate_pair(model: UwbModel, t: np.ndarray, true_range: np.ndarray, rng: n
     bias = np.where(nlos, bias_per_ep[episode], 0.0)
     r = d + bias + rng.normal(0.0, model.sigma_los, n)
     outlier = rng.random(n) < model.outlier_prob
-    r = np.where(outlier, np.abs(r + rng.choice([-1.0, 1.0], n) * rng.uniform(model.outlier_min, model.outlier_max, n)), r)
+    r = np.where(
+        outlier, np.abs(r + rng.choice([-1.0, 1.0], n) * rng.uniform(model.outlier_min, model.outlier_max, n)), r
+    )
     ok = rng.random(n) < model.success_probability(d)
     return UwbRanges(t, np.where(ok, r, np.nan), d, nlos & ok, outlier & ok)

@@ -5,8 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from geo import earth
+
 from ..rotation import skew
 from ..state import ATT, N_STATES, POS, NavState
+
+#: the default lever arm: the point is the IMU itself (read-only, shared)
+NO_LEVER_ARM = np.zeros(3)
+NO_LEVER_ARM.setflags(write=False)
 
 
 def point_llh(state: NavState, lever_arm_b: np.ndarray) -> tuple[float, float, float]:

@@ -5,17 +5,18 @@ from __future__ import annotations
 import numpy as np
 
 from geo import earth
+
 from ..kalman import Measurement
 from ..rotation import skew
 from ..state import ATT, BG, N_STATES, VEL, NavState
-from .common import point_llh, point_position_jacobian
+from .common import NO_LEVER_ARM, point_llh, point_position_jacobian
 
 
 def gnss_position(
     state: NavState,
     llh_measured: np.ndarray,
     cov_ned: np.ndarray,
-    lever_arm_b: np.ndarray = np.zeros(3),
+    lever_arm_b: np.ndarray = NO_LEVER_ARM,
 ) -> Measurement:
     """GNSS antenna position fix.
 
@@ -40,7 +41,7 @@ def gnss_velocity(
     v_measured: np.ndarray,
     cov_ned: np.ndarray,
     omega_ib_b: np.ndarray,
-    lever_arm_b: np.ndarray = np.zeros(3),
+    lever_arm_b: np.ndarray = NO_LEVER_ARM,
 ) -> Measurement:
     """GNSS antenna velocity (NED) with the lever-arm rotation term.
 

@@ -16,12 +16,13 @@ import numpy as np
 
 from ..kalman import Measurement
 from ..state import NavState
+from .common import NO_LEVER_ARM
 from .stop_line import Line2D, map_position
 
 
 def lane_line_measurement(state: NavState, left_line: Line2D, m_yb: float, sigma: float,
                           origin_llh: tuple[float, float, float],
-                          lever_arm_b: np.ndarray = np.zeros(3)) -> Measurement:
+                          lever_arm_b: np.ndarray = NO_LEVER_ARM) -> Measurement:
     """Distance right of the left lane line, predicted minus expected (1 row).
 
     Parameters

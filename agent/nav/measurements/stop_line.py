@@ -25,9 +25,10 @@ import numpy as np
 import pymap3d
 
 from geo import earth
+
 from ..kalman import Measurement
 from ..state import NavState
-from .common import point_llh, point_position_jacobian
+from .common import NO_LEVER_ARM, point_llh, point_position_jacobian
 
 
 @dataclass(frozen=True)
@@ -54,17 +55,17 @@ class Line2D:
         object.__setattr__(self, "point", (float(self.point[0]), float(self.point[1])))
 
     @classmethod
-    def from_points(cls, p0: tuple[float, float], p1: tuple[float, float]) -> "Line2D":
+    def from_points(cls, p0: tuple[float, float], p1: tuple[float, float]) -> Line2D:
         """Line through two points (north, east) [m], directed from ``p0`` to ``p1``."""
         return cls(p0, (p1[0] - p0[0], p1[1] - p0[1]))
 
     @classmethod
-    def from_heading(cls, point: tuple[float, float], heading: float) -> "Line2D":
+    def from_heading(cls, point: tuple[float, float], heading: float) -> Line2D:
         """Line through ``point`` with direction ``heading`` [rad] clockwise from north."""
         return cls(point, (math.cos(heading), math.sin(heading)))
 
     @classmethod
-    def from_slope_intercept(cls, k: float, b: float) -> "Line2D":
+    def from_slope_intercept(cls, k: float, b: float) -> Line2D:
         """The paper's ``y = k x + b`` (x north, y east). Cannot express ``x = const``."""
         return cls((0.0, b), (1.0, k))
 
@@ -164,7 +165,7 @@ def stop_line_position(approach: StopLineApproach, gap: StopGapModel) -> tuple[n
 
 
 def map_position(state: NavState, origin_llh: tuple[float, float, float],
-                 lever_arm_b: np.ndarray = np.zeros(3)) -> tuple[np.ndarray, np.ndarray]:
+                 lever_arm_b: np.ndarray = NO_LEVER_ARM) -> tuple[np.ndarray, np.ndarray]:
     """Map-frame position of a body-fixed point and its Jacobian.
 
     Parameters
@@ -194,7 +195,7 @@ def stop_line_measurement(
     approach: StopLineApproach,
     gap: StopGapModel,
     origin_llh: tuple[float, float, float],
-    lever_arm_b: np.ndarray = np.zeros(3),
+    lever_arm_b: np.ndarray = NO_LEVER_ARM,
     along_only: bool = False,
 ) -> Measurement:
     """Horizontal position fix of the reference point from the stop line (2 rows).

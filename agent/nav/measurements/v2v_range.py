@@ -23,9 +23,10 @@ import math
 import numpy as np
 
 from geo import earth
+
 from ..kalman import Measurement
 from ..state import N_STATES, POS, NavState
-from .common import point_llh, point_position_jacobian
+from .common import NO_LEVER_ARM, point_llh, point_position_jacobian
 
 
 def relative_position(state: NavState, lever_arm_b: np.ndarray, neighbour_llh: np.ndarray) -> np.ndarray:
@@ -43,7 +44,7 @@ def range_measurement(
     sigma_range: float,
     neighbour_llh: np.ndarray,
     neighbour_cov_ned: np.ndarray,
-    lever_arm_b: np.ndarray = np.zeros(3),
+    lever_arm_b: np.ndarray = NO_LEVER_ARM,
     own_cov_ned: np.ndarray | None = None,
     second_order: bool = False,
     relative: np.ndarray | None = None,

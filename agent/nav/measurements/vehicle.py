@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from geo import earth
+
 from ..kalman import Measurement
 from ..rotation import skew
 from ..state import ATT, BG, N_STATES, VEL, NavState
