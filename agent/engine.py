@@ -396,8 +396,6 @@ class VehicleEngine:
             if not self._init(msg):
                 self.counters["before_init"] += 1
                 return
-        ref = next(iter(self.filters.values()))
-        filters = list(self.filters.values())
         seq = self.seq
         ts, dts = msg.t.tolist(), msg.dt.tolist()
         ths, dvs = msg.dtheta.tolist(), msg.dvel.tolist()
@@ -407,34 +405,43 @@ class VehicleEngine:
             if seq.t is not None and t <= seq.t:  # behind the filter: not used at all
                 seq.counters["imu_out_of_order"] += 1
                 continue
-            if not seq.pending_by(t):  # the common case: no measurement inside the interval
-                dt = seq.imu_plain(t, dts[k])
-                if dt is not None:
-                    for f in filters:
-                        f.propagate(ths[k], dvs[k], dt)
-            else:
-                for step in seq.imu(t, ths[k], dvs[k], dts[k]):
-                    if isinstance(step, Propagate):
-                        for f in filters:
-                            f.propagate(step.dtheta, step.dvel, step.dt)
-                    else:
-                        self._apply(step)
+            self._step(t, ths[k], dvs[k], dts[k])
             # rest detection and ZUPT at the gate's rate, on the samples since the last check
             if k == len(ts) - 1 or t - self._rest_checked >= self.zupt_gate.interval:
-                self._rest_checked = t
-                self.rest.push_batch(msg.dtheta[rest_from:k + 1], msg.dvel[rest_from:k + 1],
-                                     msg.dt[rest_from:k + 1], ref.filter.state.dcm)
+                self._rest(t, msg, rest_from, k + 1)
                 rest_from = k + 1
-                v = ref.filter.state.v
-                if self.zupt_gate.due(t, self.rest, math.hypot(v[0], v[1]),
-                                      lambda: speed_sigma(ref.filter.state.v, ref.filter.velocity_cov)):
-                    for f in filters:
-                        f.zupt()
             if t >= self._timer_due:
                 self._timers(t)
         if self._deferred:
             self._fuse_ranges()
 
+    def _step(self, t: float, dtheta: list[float], dvel: list[float], dt: float) -> None:
+        """One IMU interval ending at ``t``, split at the measurements queued inside it."""
+        seq = self.seq
+        filters = self.filters.values()
+        if not seq.pending_by(t):  # the common case: no measurement inside the interval
+            span = seq.imu_plain(t, dt)
+            if span is not None:
+                for f in filters:
+                    f.propagate(dtheta, dvel, span)
+            return
+        for step in seq.imu(t, dtheta, dvel, dt):
+            if isinstance(step, Propagate):
+                for f in filters:
+                    f.propagate(step.dtheta, step.dvel, step.dt)
+            else:
+                self._apply(step)
+
+    def _rest(self, t: float, msg: ImuBatch, a: int, b: int) -> None:
+        """Rest detection on samples ``a:b`` of ``msg``, and a ZUPT of every filter if due."""
+        self._rest_checked = t
+        ref = next(iter(self.filters.values())).filter
+        self.rest.push_batch(msg.dtheta[a:b], msg.dvel[a:b], msg.dt[a:b], ref.state.dcm)
+        v = ref.state.v
+        if self.zupt_gate.due(t, self.rest, math.hypot(v[0], v[1]),
+                              lambda: speed_sigma(ref.state.v, ref.velocity_cov)):
+            for f in self.filters.values():
+                f.zupt()
 
     def _init(self, batch: ImuBatch) -> bool:
         """Start the filters at the start of IMU ``batch`` from the GNSS fix nearest in time,

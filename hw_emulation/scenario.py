@@ -225,6 +225,31 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     _check_keys(ctx, data, {"scenario", "lanes", "signals", "vehicles", "sensors", "radio", "uwb",
                             "events", "windows", "paper"}, "")
     sc = ctx.table(data, "scenario", "", required=True)
+    head = _parse_header(ctx, sc)
+    lanes = _parse_lanes(ctx, data)
+    signals = _parse_signals(ctx, data, lanes)
+    sensors = ctx.table(data, "sensors", "")
+    _check_keys(ctx, sensors, {"imu", "gnss", "camera"}, "sensors")
+    imu_base = ctx.model(ImuModel, ctx.table(sensors, "imu", "sensors"), "sensors.imu")
+    gnss_base = ctx.model(GnssModel, ctx.table(sensors, "gnss", "sensors"), "sensors.gnss")
+    camera = ctx.model(LaneCameraModel, ctx.table(sensors, "camera", "sensors"), "sensors.camera")
+    uwb = ctx.model(UwbModel, ctx.table(data, "uwb", ""), "uwb")
+    radio = ctx.model(RadioModel, ctx.table(data, "radio", ""), "radio")
+    vehicles = _parse_vehicles(ctx, data, lanes, imu_base, gnss_base)
+    events = _parse_events(ctx, data, lanes, {v.id for v in vehicles})
+    windows = _parse_windows(ctx, data, {e.name for e in events})
+    return Scenario(
+        **head, description=str(sc.get("description", "")), lanes=lanes, signals=signals,
+        vehicles=tuple(vehicles), uwb=uwb, radio=radio,
+        common_mode_sigma=ctx.number(sc, "common_mode_sigma", "scenario", 1.5, non_negative=True),
+        common_mode_tau=ctx.number(sc, "common_mode_tau", "scenario", 600.0, positive=True),
+        events=tuple(events), windows=windows, paper_table=ctx.table(data, "paper", ""), source=source,
+        camera=camera,
+    )
+
+
+def _parse_header(ctx: _Ctx, sc: dict) -> dict:
+    """The ``[scenario]`` table's name, seed, duration, IMU rate and batching, and origin."""
     _check_keys(ctx, sc, {"name", "description", "seed", "duration", "imu_rate", "origin",
                           "common_mode_sigma", "common_mode_tau", "imu_stagger", "imu_batch"}, "scenario")
     imu_stagger = sc.get("imu_stagger", False)
@@ -249,6 +274,11 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
         raise ctx.fail("scenario.origin", f"latitude/longitude out of range: {lat}, {lon}")
     origin = (math.radians(lat), math.radians(lon), ctx.number(org, "h", "scenario.origin", 0.0))
 
+    return {"name": name, "seed": seed, "duration": duration, "imu_rate": imu_rate, "origin_llh": origin,
+            "imu_stagger": imu_stagger, "imu_batch": imu_batch}
+
+
+def _parse_lanes(ctx: _Ctx, data: dict) -> dict[str, Lane]:
     lanes: dict[str, Lane] = {}
     raw_lanes = data.get("lanes")
     if not isinstance(raw_lanes, list) or not raw_lanes:
@@ -274,6 +304,10 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
             raise ctx.fail(f"{p}.stop_line", "must be true or false")
         lanes[lid] = Lane(lid, cl, ctx.number(ln, "width", p, 3.5, positive=True), stop)
 
+    return lanes
+
+
+def _parse_signals(ctx: _Ctx, data: dict, lanes: dict[str, Lane]) -> Signals:
     sg = ctx.table(data, "signals", "")
     _check_keys(ctx, sg, {"cycle", "offset", "phases"}, "signals")
     phases = []
@@ -292,17 +326,13 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
         if not (isinstance(g, list) and len(g) == 2 and all(isinstance(v, (int, float)) for v in g) and g[0] < g[1]):
             raise ctx.fail(f"{p}.green", "must be [start, end] seconds into the cycle with start < end")
         phases.append(SignalPhase(tuple(ls), float(g[0]), float(g[1])))
-    signals = Signals(ctx.number(sg, "cycle", "signals", 60.0, positive=True),
+    return Signals(ctx.number(sg, "cycle", "signals", 60.0, positive=True),
                       ctx.number(sg, "offset", "signals", 0.0), tuple(phases))
 
-    sensors = ctx.table(data, "sensors", "")
-    _check_keys(ctx, sensors, {"imu", "gnss", "camera"}, "sensors")
-    imu_base = ctx.model(ImuModel, ctx.table(sensors, "imu", "sensors"), "sensors.imu")
-    gnss_base = ctx.model(GnssModel, ctx.table(sensors, "gnss", "sensors"), "sensors.gnss")
-    camera = ctx.model(LaneCameraModel, ctx.table(sensors, "camera", "sensors"), "sensors.camera")
-    uwb = ctx.model(UwbModel, ctx.table(data, "uwb", ""), "uwb")
-    radio = ctx.model(RadioModel, ctx.table(data, "radio", ""), "radio")
 
+
+def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: ImuModel,
+                    gnss_base: GnssModel) -> list[VehicleSpec]:
     vehicles = []
     raw_v = data.get("vehicles")
     if not isinstance(raw_v, list) or not raw_v:
@@ -350,8 +380,12 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
             gnss=ctx.model(GnssModel, ctx.table(v, "gnss", p), f"{p}.gnss", gnss_base),
         ))
 
+    return vehicles
+
+
+def _parse_events(ctx: _Ctx, data: dict, lanes: dict[str, Lane], ids: set[str]) -> list[EventSpec]:
     events = []
-    names = set()
+    names: set[str] = set()
     for i, e in enumerate(data.get("events", [])):
         p = f"events[{i}]"
         _check_keys(ctx, e, {"name", "kind", "vehicle", "time", "other", "distance", "lane"}, p)
@@ -377,6 +411,10 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
             if lane not in lanes or not lanes[lane].stop_line:
                 raise ctx.fail(f"{p}.lane", f"must be a lane with a stop line, got {lane!r}")
         events.append(EventSpec(en, kind, veh, tm, other, dist, lane))
+    return events
+
+
+def _parse_windows(ctx: _Ctx, data: dict, names: set[str]) -> dict[str, tuple[str, str]]:
     windows = {}
     for wn, w in ctx.table(data, "windows", "").items():
         if wn == STANDING_WINDOW:
@@ -386,15 +424,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
             raise ctx.fail(f"windows.{wn}", f"must be [start_event, end_event] of defined events, got {w!r}")
         windows[wn] = (w[0], w[1])
 
-    return Scenario(
-        name=name, description=str(sc.get("description", "")), seed=seed, duration=duration,
-        imu_rate=imu_rate, origin_llh=origin, lanes=lanes, signals=signals, vehicles=tuple(vehicles),
-        uwb=uwb, radio=radio,
-        common_mode_sigma=ctx.number(sc, "common_mode_sigma", "scenario", 1.5, non_negative=True),
-        common_mode_tau=ctx.number(sc, "common_mode_tau", "scenario", 600.0, positive=True),
-        events=tuple(events), windows=windows, paper_table=ctx.table(data, "paper", ""), source=source,
-        imu_stagger=imu_stagger, imu_batch=imu_batch, camera=camera,
-    )
+    return windows
 
 
 def load_scenario(path_or_name: str | Path) -> Scenario:
