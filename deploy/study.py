@@ -240,9 +240,15 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
 
 def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
     """Statistics over seeded runs (their metrics and estimate CSVs under ``out/seed-<S>``)."""
-    import csv
-
     seeds = sorted(per_seed)
+    first = per_seed[seeds[0]]
+    rmse = _rmse_cells(per_seed, seeds)
+    return {"scenario": first["scenario"], "seeds": seeds, "rmse": rmse, "paired": _paired(per_seed, seeds, rmse),
+            "anees": _anees(out, seeds), "first_stopped": _detection(per_seed, seeds)}
+
+
+def _rmse_cells(per_seed: dict[int, dict], seeds: list[int]) -> dict:
+    """Window -> vehicle -> method -> RMSE mean and sd over the seeds, bound and ANEES."""
     first = per_seed[seeds[0]]
     rmse: dict = {}
     for w in first["rmse"]:
@@ -263,12 +269,26 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
                     cell["sigma_below_bound"] = float(np.mean([c["sigma_below_bound"] for c in cells]))
                 # the window's ANEES: every estimate in it, of every seed (a seed weighs by its
                 # number of estimates), against the band of as many runs as held the window
-                q = [(c["nees_h"], c.get("n", 1)) for c in cells if c.get("nees_h") is not None]
-                q = [(a, k) for a, k in q if np.isfinite(a) and k > 0]
-                if q:
-                    lo, hi = anees_band(len(q))
-                    a = float(sum(a * k for a, k in q) / sum(k for _, k in q))
-                    cell["anees"] = {"anees": a, "band": [lo, hi], "inside": bool(lo <= a <= hi)}
+                window_anees = _window_anees(cells)
+                if window_anees is not None:
+                    cell["anees"] = window_anees
+    return rmse
+
+
+def _window_anees(cells: list[dict]) -> dict | None:
+    """A window's ANEES over every estimate of every seed (a seed weighs by its number of
+    estimates), against the band of as many runs as held the window."""
+    q = [(c["nees_h"], c.get("n", 1)) for c in cells if c.get("nees_h") is not None]
+    q = [(a, k) for a, k in q if np.isfinite(a) and k > 0]
+    if not q:
+        return None
+    lo, hi = anees_band(len(q))
+    a = float(sum(a * k for a, k in q) / sum(k for _, k in q))
+    return {"anees": a, "band": [lo, hi], "inside": bool(lo <= a <= hi)}
+
+
+def _paired(per_seed: dict[int, dict], seeds: list[int], rmse: dict) -> dict:
+    """Paired RMSE differences of the method pairs, per window and vehicle."""
     paired: dict = {}
     for w in rmse:
         for vid in rmse[w]:
@@ -277,6 +297,13 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
                 if both:
                     a, b = (np.array([per_seed[s]["rmse"][w][vid][k]["rmse_m"] for s in both]) for k in (m, ref))
                     paired.setdefault(w, {}).setdefault(vid, {})[f"{m} - {ref}"] = paired_difference(a, b)
+    return paired
+
+
+def _anees(out: Path, seeds: list[int]) -> dict:
+    """Every vehicle and method's ANEES over the whole run, from the seeds' estimate files."""
+    import csv
+
     nees: dict = {}
     for s in seeds:
         for path in sorted((out / f"seed-{s}" / "estimates").glob("*.csv")):
@@ -288,6 +315,11 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
     lo, hi = anees_band(len(seeds))
     anees = {f"{v}/{m}": {"anees": float(np.mean(q)), "band": [lo, hi], "inside": bool(lo <= np.mean(q) <= hi)}
              for (v, m), q in sorted(nees.items())}
+    return anees
+
+
+def _detection(per_seed: dict[int, dict], seeds: list[int]) -> dict:
+    """First-stopped detection pooled over the seeds: precision, recall, latency."""
     det: dict = {}
     for s in seeds:
         for vid, ms in per_seed[s].get("first_stopped", {}).items():
@@ -309,8 +341,7 @@ def aggregate(out: Path, per_seed: dict[int, dict]) -> dict:
         a["sl_rmse_claimed_m"] = float(np.sqrt(a["_se_claimed"] / a["covered_s"])) if a["covered_s"] else None
         for k in ("latency_s", "_se_truth", "_se_claimed"):
             del a[k]
-    return {"scenario": first["scenario"], "seeds": seeds, "rmse": rmse, "paired": paired, "anees": anees,
-            "first_stopped": det}
+    return det
 
 
 def study_markdown(scn, study: dict) -> str:
@@ -327,6 +358,17 @@ def study_markdown(scn, study: dict) -> str:
     if failed:
         lines += [f"**{len(failed)} seed(s) failed and are left out** (their files: `failed-seed-*`):", ""]
         lines += [f"- seed {s}: {r}" for s, r in sorted(failed.items(), key=lambda kv: int(kv[0]))] + [""]
+    lines += _md_rmse(scn, study)
+    lines += _md_paired(study)
+    lines += _md_anees(study)
+    lines += _md_stances(study)
+    lines += _md_detection(study)
+    return "\n".join(lines)
+
+
+def _md_rmse(scn, study: dict) -> list[str]:
+    """The RMSE tables, one per window."""
+    lines: list[str] = []
     for w, table in study["rmse"].items():
         lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
         for vid, cells in table.items():
@@ -355,6 +397,12 @@ def study_markdown(scn, study: dict) -> str:
                 )
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
+    return lines
+
+
+def _md_paired(study: dict) -> list[str]:
+    """The paired RMSE differences."""
+    lines: list[str] = []
     if study.get("paired"):
         lines += ["## Cooperation against the reference: paired RMSE differences [m]", "",
                   "Mean over the seeds of (method − reference) ± the half-width of its 95 % Student-t "
@@ -378,12 +426,25 @@ def study_markdown(scn, study: dict) -> str:
                     row.append(f"{c['mean_m']:+.2f}{hw} " + (f"**{v}**" if v != "n.s." else v))
                 lines.append(f"| {vid} | " + " | ".join(row) + " |")
             lines.append("")
+    return lines
+
+
+def _md_anees(study: dict) -> list[str]:
+    """The whole-run ANEES per vehicle and method."""
+    lines: list[str] = []
     if study["anees"]:
         lo, hi = next(iter(study["anees"].values()))["band"]
+        n = len(study["seeds"])
         lines += [f"## Consistency: horizontal ANEES (n = 2), 95 % band for {n} runs: {lo:.2f}–{hi:.2f}", "",
                   "| vehicle/method | ANEES | inside |", "|---|---|---|"]
         lines += [f"| {k} | {a['anees']:.2f} | {'yes' if a['inside'] else 'no'} |" for k, a in study["anees"].items()]
         lines.append("")
+    return lines
+
+
+def _md_stances(study: dict) -> list[str]:
+    """How spread the drivers' draws are."""
+    lines: list[str] = []
     if study.get("stance_draws"):
         b1, b2 = (next(iter(study["stance_draws"].values()))[k]["band"] for k in ("stop_gap", "both"))
         lines += ["## The drivers' draws", "",
@@ -404,6 +465,12 @@ def study_markdown(scn, study: dict) -> str:
                 + " |"
             )
         lines.append("")
+    return lines
+
+
+def _md_detection(study: dict) -> list[str]:
+    """First-stopped detection pooled over the seeds."""
+    lines: list[str] = []
     if study["first_stopped"]:
         lines += ["## First-stopped detection (pooled over the seeds)", "",
                   "SL RMSE: the stop-line method's horizontal error while the vehicle is truly first stopped, "
@@ -420,7 +487,7 @@ def study_markdown(scn, study: dict) -> str:
                 f"| {f(a.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(a.get('sl_rmse_claimed_m'), '{:.2f}')} |"
             )
         lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def rebuild_study(out: Path) -> dict:

@@ -109,41 +109,42 @@ def parse_faults(data: dict, source: str, known_vehicles: set[str] | None = None
     items = data.get("fault", [])
     if not isinstance(items, list):
         raise FaultError(f"{source}: 'fault' must be an array of tables ([[fault]])")
-    out = []
-    for i, d in enumerate(items):
-        where = f"{source}: fault {i + 1}"
-        if not isinstance(d, dict):
-            raise FaultError(f"{where}: must be a table")
-        extra = set(d) - {"kind", "start", "end", "vehicles", "loss", "latency"}
-        if extra:
-            raise FaultError(f"{where}: unknown field {sorted(extra)[0]!r}")
-        kind = d.get("kind")
-        if kind not in KINDS:
-            raise FaultError(f"{where}: kind must be one of {', '.join(KINDS)}, got {kind!r}")
-        try:
-            start, end = float(d["start"]), float(d.get("end", d["start"]))
-        except KeyError:
-            raise FaultError(f"{where}: start is missing") from None
-        except (TypeError, ValueError):
-            raise FaultError(f"{where}: start and end must be numbers [s]") from None
-        if not (math.isfinite(start) and math.isfinite(end)) or start < 0 or end < start:
-            raise FaultError(f"{where}: need 0 <= start <= end, got {start}, {end}")
-        if kind not in ("agent_kill", "emulator_kill") and end == start:
-            raise FaultError(f"{where}: {kind} needs an end after its start")
-        vehicles = d.get("vehicles", [])
-        if not isinstance(vehicles, list) or not all(isinstance(v, str) for v in vehicles) or len(vehicles) > 2:
-            raise FaultError(f"{where}: vehicles must be a list of at most two vehicle ids")
-        if known_vehicles is not None and set(vehicles) - known_vehicles:
-            raise FaultError(f"{where}: unknown vehicle {sorted(set(vehicles) - known_vehicles)[0]!r}")
-        if kind in ("agent_kill", "agent_freeze") and len(vehicles) != 1:
-            raise FaultError(f"{where}: {kind} needs exactly one vehicle")
-        loss, latency = d.get("loss", 0.5), d.get("latency", 0.25)
-        if isinstance(loss, bool) or not isinstance(loss, (int, float)) or not 0.0 <= loss <= 1.0:
-            raise FaultError(f"{where}: loss must be a probability in [0, 1]")
-        if isinstance(latency, bool) or not isinstance(latency, (int, float)) or not 0.0 <= latency <= 10.0:
-            raise FaultError(f"{where}: latency must be in [0, 10] s")
-        out.append(Fault(kind, start, end, tuple(vehicles), float(loss), float(latency)))
-    return out
+    return [_parse_fault(d, f"{source}: fault {i + 1}", known_vehicles) for i, d in enumerate(items)]
+
+
+def _parse_fault(d: dict, where: str, known_vehicles: set[str] | None) -> Fault:
+    """One ``[[fault]]`` table; ``where`` names it in errors."""
+    if not isinstance(d, dict):
+        raise FaultError(f"{where}: must be a table")
+    extra = set(d) - {"kind", "start", "end", "vehicles", "loss", "latency"}
+    if extra:
+        raise FaultError(f"{where}: unknown field {sorted(extra)[0]!r}")
+    kind = d.get("kind")
+    if kind not in KINDS:
+        raise FaultError(f"{where}: kind must be one of {', '.join(KINDS)}, got {kind!r}")
+    try:
+        start, end = float(d["start"]), float(d.get("end", d["start"]))
+    except KeyError:
+        raise FaultError(f"{where}: start is missing") from None
+    except (TypeError, ValueError):
+        raise FaultError(f"{where}: start and end must be numbers [s]") from None
+    if not (math.isfinite(start) and math.isfinite(end)) or start < 0 or end < start:
+        raise FaultError(f"{where}: need 0 <= start <= end, got {start}, {end}")
+    if kind not in ("agent_kill", "emulator_kill") and end == start:
+        raise FaultError(f"{where}: {kind} needs an end after its start")
+    vehicles = d.get("vehicles", [])
+    if not isinstance(vehicles, list) or not all(isinstance(v, str) for v in vehicles) or len(vehicles) > 2:
+        raise FaultError(f"{where}: vehicles must be a list of at most two vehicle ids")
+    if known_vehicles is not None and set(vehicles) - known_vehicles:
+        raise FaultError(f"{where}: unknown vehicle {sorted(set(vehicles) - known_vehicles)[0]!r}")
+    if kind in ("agent_kill", "agent_freeze") and len(vehicles) != 1:
+        raise FaultError(f"{where}: {kind} needs exactly one vehicle")
+    loss, latency = d.get("loss", 0.5), d.get("latency", 0.25)
+    if isinstance(loss, bool) or not isinstance(loss, (int, float)) or not 0.0 <= loss <= 1.0:
+        raise FaultError(f"{where}: loss must be a probability in [0, 1]")
+    if isinstance(latency, bool) or not isinstance(latency, (int, float)) or not 0.0 <= latency <= 10.0:
+        raise FaultError(f"{where}: latency must be in [0, 10] s")
+    return Fault(kind, start, end, tuple(vehicles), float(loss), float(latency))
 
 
 def load_faults(path: Path | str, known_vehicles: set[str] | None = None) -> list[Fault]:
