@@ -74,21 +74,37 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
 
 
 def load_agent_config(path: Path, vehicle: str | None):
-    from agent.methods import DEFAULT_FUSION, FUSION_RULES, METHODS, MethodSpec
-    from hw_emulation.scenario import load_scenario, model_from_table
-    from hw_emulation.sensors.imu import ImuModel
+    """The agent configuration and Zenoh configuration of an agent's TOML file; ``vehicle``
+    overrides its ``agent.vehicle``. :class:`ConfigError` names the file and field."""
+    data = _read_toml(Path(path), "an agent configuration")
+    unknown = set(data) - {"agent", "imu", "gnss", "security", "zenoh"}
+    if unknown:
+        raise ConfigError(f"{path}: [{sorted(unknown)[0]}]: unknown section "
+                          "(known: agent, imu, gnss, security, zenoh)")
+    a = _agent_section(data.get("agent", {}), path, vehicle)
+    cfg = _filter_config(a, data, path)
+    sec = {}
+    if "security" in data:
+        sec = security_config(data["security"], Path(path), a["vehicle"])
+        cfg = dataclasses.replace(cfg, signer=sec["signer"], trust=sec["trust"])
+    return cfg, _agent_zenoh(dict(data.get("zenoh", {})), sec, path, a["vehicle"])
 
-    from .agent_configs import agent_config, siteless_agent_config, with_gnss, with_imu
 
+def _read_toml(path: Path, what: str) -> dict:
     try:
-        data = tomllib.loads(Path(path).read_text())
+        return tomllib.loads(path.read_text())
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read ({exc.strerror})") from exc
     except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not an agent configuration (not UTF-8 text)") from None
+        raise ConfigError(f"{path}: not {what} (not UTF-8 text)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
-    a = data.get("agent", {})
+
+
+def _agent_section(a: dict, path: Path, vehicle: str | None) -> dict:
+    """The ``[agent]`` section, checked, with its defaults."""
+    from agent.methods import DEFAULT_FUSION, FUSION_RULES, METHODS, MethodSpec
+
     vid = vehicle or a.get("vehicle")
     if not isinstance(vid, str) or not vid:
         raise ConfigError(f"{path}: agent.vehicle: missing (or give --vehicle)")
@@ -114,43 +130,53 @@ def load_agent_config(path: Path, vehicle: str | None):
     unknown = set(a) - {"vehicle", "scenario", "methods", "fusion", "lane_constraint", "integrity_false_alarm"}
     if unknown:
         raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
-    unknown = set(data) - {"agent", "imu", "gnss", "security", "zenoh"}
-    if unknown:
-        raise ConfigError(f"{path}: [{sorted(unknown)[0]}]: unknown section "
-                          "(known: agent, imu, gnss, security, zenoh)")
+    return {"vehicle": vid, "methods": tuple(methods), "fusion": fusion, "lane_constraint": lane,
+            "integrity_false_alarm": integrity, "scenario": a.get("scenario")}
+
+
+def _filter_config(a: dict, data: dict, path: Path):
+    """The engine's configuration: the site's (a scenario) or none, then the ``[imu]`` and
+    ``[gnss]`` sections and the integrity setting."""
+    from hw_emulation.scenario import load_scenario, model_from_table
+    from hw_emulation.sensors.imu import ImuModel
+
+    from .agent_configs import agent_config, siteless_agent_config, with_gnss, with_imu
+
+    vid, methods, fusion = a["vehicle"], a["methods"], a["fusion"]
     try:
-        if "scenario" in a:
-            cfg = agent_config(load_scenario(a["scenario"]), vid, tuple(methods), fusion, lane)
+        if a["scenario"] is not None:
+            cfg = agent_config(load_scenario(a["scenario"]), vid, methods, fusion, a["lane_constraint"])
         else:
-            cfg = siteless_agent_config(vid, tuple(methods), fusion)
+            cfg = siteless_agent_config(vid, methods, fusion)
         if "imu" in data:
             cfg = with_imu(cfg, model_from_table(ImuModel, data["imu"], str(path), "imu"))
         if "gnss" in data:
             cfg = with_gnss(cfg, _gnss_table(data["gnss"], path))
     except ValueError as exc:  # ScenarioError included
         raise ConfigError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
+    integrity = a["integrity_false_alarm"]
     if integrity is not None:
         cfg = dataclasses.replace(cfg, settings=dataclasses.replace(
             cfg.settings, separation_false_alarm=float(integrity) if integrity > 0 else None))
-    sec = {}
-    if "security" in data:
-        sec = security_config(data["security"], Path(path), vid)
-        cfg = dataclasses.replace(cfg, signer=sec["signer"], trust=sec["trust"])
-    z = dict(data.get("zenoh", {}))
+    return cfg
+
+
+def _agent_zenoh(z: dict, sec: dict, path: Path, vid: str):
+    """The ``[zenoh]`` section; with ``tls``, the fleet's mutual-TLS client configuration."""
     tls = z.pop("tls", False)
     if not isinstance(tls, bool):
         raise ConfigError(f"{path}: zenoh.tls: must be true or false")
-    if tls:
-        if not sec:
-            raise ConfigError(f"{path}: zenoh.tls: needs a [security] section (the fleet directory and key)")
-        from .zenoh_security import client_config
+    if not tls:
+        return zenoh_config(z, str(path))
+    if not sec:
+        raise ConfigError(f"{path}: zenoh.tls: needs a [security] section (the fleet directory and key)")
+    from .zenoh_security import client_config
 
-        zc = zenoh_config(z, str(path))
-        try:
-            return cfg, client_config(sec["trust_dir"], vid, zc.connect, zc.lease_ms)
-        except (OSError, ValueError) as exc:
-            raise ConfigError(f"{path}: zenoh.tls: {exc}") from None
-    return cfg, zenoh_config(z, str(path))
+    zc = zenoh_config(z, str(path))
+    try:
+        return client_config(sec["trust_dir"], vid, zc.connect, zc.lease_ms)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{path}: zenoh.tls: {exc}") from None
 
 
 def _gnss_table(d, path: Path) -> dict:
