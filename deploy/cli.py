@@ -470,7 +470,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from agent.methods import METHODS, MethodSpec
     from hw_emulation.scenario import load_scenario
 
-    from .launcher import interrupt_on_termination, run_fleet
+    from .launcher import run_fleet
+    from .supervisor import interrupt_on_termination
 
     interrupt_on_termination()
     methods = tuple(args.methods) if args.methods else METHODS
@@ -539,7 +540,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _report_partial_run(out: Path) -> None:
     """The report of what an interrupted run recorded, or one line on why there is none."""
-    from .launcher import rebuild_report
+    from .run_report import rebuild_report
 
     rec = out / "recorded" / "messages.jsonl"
     last = None
@@ -777,7 +778,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from .launcher import rebuild_report
+    from .run_report import rebuild_report
 
     if any(args.run_dir.glob("seed-*")):  # a study: re-aggregate its seeds
         from hw_emulation.scenario import load_scenario

@@ -20,7 +20,7 @@ class FleetProgress:
     vehicles: int
     recorded: int  #: messages recorded so far
     wall_s: float  #: since the launcher started the processes [s]
-    table: str = ""  #: the per-vehicle status table (launcher.status_table)
+    table: str = ""  #: the per-vehicle status table (supervisor.status_table)
     playing_s: float = 0.0  #: since the first estimate was recorded [s, wall]
 
     @property

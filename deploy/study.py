@@ -126,7 +126,7 @@ def _interruptible(fn, *args):
     behind the interrupted one) and start another fleet."""
     import logging
 
-    from .launcher import interrupt_on_termination
+    from .supervisor import interrupt_on_termination
 
     logging.basicConfig(level=logging.WARNING)
     interrupt_on_termination()
@@ -346,7 +346,7 @@ def _detection(per_seed: dict[int, dict], seeds: list[int]) -> dict:
 
 def study_markdown(scn, study: dict) -> str:
     n = len(study["seeds"])
-    from .launcher import lane_keeping_label
+    from .run_report import lane_keeping_label
 
     lane = lane_keeping_label(study.get("lane_constraint"))
     lines = [f"# slcp study: {scn.name}, {n} seeds, fusion `{study.get('fusion', '?')}`{lane}", "",

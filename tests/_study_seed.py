@@ -18,13 +18,13 @@ TRIES_FILE = "tries.txt"  #: each try of the bad seed appends a line here (in th
 
 def runner(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
            agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client") -> dict:
-    from deploy import launcher
+    from deploy import launcher, supervisor
 
     if seed == BAD_SEED:
         with open(Path(out).parent / TRIES_FILE, "a") as fh:
             fh.write(f"{seed}\n")
-        real = launcher._slcp
-        launcher._slcp = lambda *a: ([sys.executable, "-c", "import time; time.sleep(600)", *real(*a)]
+        real = supervisor._slcp
+        supervisor._slcp = lambda *a: ([sys.executable, "-c", "import time; time.sleep(600)", *real(*a)]
                                      if "emulate" in a else real(*a))
         launcher._supervise = functools.partial(launcher._supervise, stall_s=1.0)
     # the bad seed's watchdog fires after wait_agents + stall_s without a report: kept short

@@ -1,4 +1,4 @@
-"""A run's evaluation from its recording alone (`deploy.launcher.evaluate_recording`): the
+"""A run's evaluation from its recording alone (`deploy.run_report.evaluate_recording`): the
 scenario's windows and each vehicle's standing window, scored against truth."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from deploy.launcher import evaluate_recording
+from deploy.run_report import evaluate_recording
 from geo import earth
 from hw_emulation.scenario import STANDING_WINDOW, load_scenario
 from hw_emulation.truth import build_truth

@@ -97,7 +97,7 @@ def test_a_termination_signal_while_a_child_starts_still_leaves_it_to_be_stopped
     import signal
     import sys
 
-    from deploy import launcher
+    from deploy import supervisor
 
     real_popen = subprocess.Popen
 
@@ -106,27 +106,27 @@ def test_a_termination_signal_while_a_child_starts_still_leaves_it_to_be_stopped
         os.kill(os.getpid(), signal.SIGTERM)  # as if the launcher were killed at this instant
         return p
 
-    monkeypatch.setattr(launcher.subprocess, "Popen", popen_then_signal)
+    monkeypatch.setattr(supervisor.subprocess, "Popen", popen_then_signal)
     saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
     procs: dict = {}
     try:
-        launcher.interrupt_on_termination()
+        supervisor.interrupt_on_termination()
         with pytest.raises(KeyboardInterrupt):
-            launcher._spawn(procs, "sleeper", [sys.executable, "-c", "import time; time.sleep(60)"], subprocess.DEVNULL)
+            supervisor._spawn(procs, "sleeper", [sys.executable, "-c", "import time; time.sleep(60)"], subprocess.DEVNULL)
         assert "sleeper" in procs and procs["sleeper"].poll() is None
     finally:
         for s, h in saved.items():
             signal.signal(s, h)
-        launcher._stop_all(procs, grace=5.0)
+        supervisor._stop_all(procs, grace=5.0)
     assert procs["sleeper"].returncode is not None
 
 
 def _emulator_replaced(monkeypatch, command) -> None:
     """Make the launcher start ``command(emulator_argv)`` (an argv) in place of the emulator."""
-    from deploy import launcher
+    from deploy import supervisor
 
-    real = launcher._slcp
-    monkeypatch.setattr(launcher, "_slcp", lambda *a: command(real(*a)) if "emulate" in a else real(*a))
+    real = supervisor._slcp
+    monkeypatch.setattr(supervisor, "_slcp", lambda *a: command(real(*a)) if "emulate" in a else real(*a))
 
 
 @pytest.mark.timeout(200)
