@@ -1,0 +1,193 @@
+"""``slcp scenario``: list, export, show and evaluate emulation scenarios."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from .. import cli_types as T
+
+
+def add_scenario(sub) -> None:
+    """The ``scenario`` command's parser."""
+    sp = sub.add_parser("scenario", help="list or show emulation scenarios")
+    ssub = sp.add_subparsers(dest="scenario_command", required=True)
+    ssub.add_parser("list", help="list the shipped scenarios")
+    ex = ssub.add_parser("export", help="write a shipped scenario's TOML, to start a scenario of your own from it")
+    ex.add_argument("name", help="shipped scenario name")
+    ex.add_argument("--out", type=Path, default=None, metavar="FILE.toml",
+                    help="write here (default: print to the terminal); an existing file is kept unless --force")
+    ex.add_argument("--force", action="store_true", help="replace an existing --out file")
+    show = ssub.add_parser("show", help="summarise a scenario (name or TOML file)")
+    show.add_argument("name", help="shipped scenario name or path to a .toml file")
+    show.add_argument("--plot", type=Path, metavar="FILE.png", help="write a map with trajectories")
+    chk = ssub.add_parser("sp-check", help="SP RMSE on emulated sensors beside the paper's SP row")
+    chk.add_argument("name", help="shipped scenario name or path to a .toml file")
+    chk.add_argument("--seeds", type=T.positive_int, default=20, help="sensor seeds to average (default 20)")
+    chk.add_argument("--json", action="store_true", help="print one JSON object")
+    gt = ssub.add_parser("gates", help="range-gate outcomes over many seeds (in process, spread over the cores)")
+    gt.add_argument("name", help="shipped scenario name or path to a .toml file")
+    gt.add_argument("--seeds", type=T.positive_int, default=25, help="seeds 0..N-1 (default 25)")
+    gt.add_argument("--json", action="store_true", help="print one JSON object")
+    ev = ssub.add_parser("evaluate", help="run all vehicles and the four methods in one process (no bus)")
+    ev.add_argument("name", help="shipped scenario name or path to a .toml file")
+    ev.add_argument("--seed", type=T.seed, default=0, help="sensor seed (default 0)")
+    ev.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def _cmd_scenario(args: argparse.Namespace) -> int:
+    from hw_emulation.scenario import load_scenario, shipped_scenarios
+
+    if args.scenario_command == "list":
+        for name in shipped_scenarios():
+            scn = load_scenario(name)
+            print(f"{name:12s} {len(scn.vehicles):3d} vehicles {scn.duration:6.0f} s  {scn.description}")
+        return 0
+    if args.scenario_command == "export":
+        from hw_emulation.scenario import shipped_scenario_text
+
+        text = shipped_scenario_text(args.name)
+        if args.out is None:
+            print(text, end="")
+            return 0
+        if args.out.exists() and not args.force:
+            raise FileExistsError(f"{args.out}: exists (use --force to replace it)")
+        args.out.write_text(text)
+        print(f"wrote {args.out} (scenario {args.name}; run it with: slcp run {args.out})")
+        return 0
+    from hw_emulation.events import event_times, window_bounds
+    from hw_emulation.truth import build_truth
+
+    scn = load_scenario(args.name)
+    if args.scenario_command == "gates":
+        return _gates(args, scn)
+    # evaluate: a run's seed also redraws where the drivers stop, as in `slcp run --seed`
+    truth = build_truth(scn, stop_seed=args.seed if args.scenario_command == "evaluate" else None)
+    if args.scenario_command == "sp-check":
+        return _sp_check(args, scn, truth)
+    if args.scenario_command == "evaluate":
+        return _evaluate(args, scn, truth)
+    ev = event_times(truth)
+    print(f"{scn.name}: {scn.description}")
+    print(f"  {len(scn.lanes)} lanes, {len(scn.vehicles)} vehicles, {scn.duration:.0f} s, seed {scn.seed}")
+    for vid, vt in truth.vehicles.items():
+        first = vt.truth.t[vt.first_stopped]
+        stopped = vt.truth.t[vt.stopped]
+        print(f"  {vid:6s} route {' -> '.join(dict.fromkeys(vt.segment))}; stopped {len(stopped) / scn.imu_rate:5.1f} s"
+              + (f", first stopped from {first[0]:.1f} s" if first.size else ""))
+    print("  events: " + ", ".join(f"{k} = {v:.1f} s" for k, v in ev.items()))
+    for w, (a, b) in window_bounds(truth, ev).items():
+        print(f"  window {w}: {a:.1f} - {b:.1f} s")
+    if args.plot:
+        from ..plots import plot_scenario
+
+        plot_scenario(truth, args.plot, ev)
+        print(f"  wrote {args.plot}")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace, scn, truth) -> int:
+    import numpy as np
+
+    from agent.methods import METHODS
+    from hw_emulation.events import window_bounds
+
+    from ..gates_study import summarise
+    from ..inprocess import run_inprocess
+
+    r = run_inprocess(truth, args.seed)
+    rows = []
+    for w, (a, b) in window_bounds(truth).items():
+        m = (r.t >= a) & (r.t <= b)
+        for vid in sorted(truth.vehicles):
+            row = {"window": w, "vehicle": vid}
+            for meth in METHODS:
+                row[meth] = float(np.sqrt(np.mean(r.err[(vid, meth)][m] ** 2))) if m.any() else None
+            row["paper"] = scn.paper_table.get(w, {}).get(vid, {})
+            rows.append(row)
+    detect = {}
+    for vid, vt in truth.vehicles.items():
+        true_first = vt.first_stopped[9::10][: len(r.t)]
+        claims = r.first[(vid, "SL-SP")]
+        detect[vid] = {"true_first_s": float(true_first.sum() / 10), "claimed_s": float(claims.sum() / 10),
+                       "claimed_while_not_first_s": float((claims & ~true_first).sum() / 10)}
+    ranges = summarise(r.range_outcomes)
+    if args.json:
+        print(json.dumps({"scenario": scn.name, "seed": args.seed, "rows": rows, "first_stopped": detect,
+                          "ranges": ranges}))
+        return 0
+    print(f"{scn.name}, sensor seed {args.seed}: horizontal RMSE [m] (paper in brackets)")
+    print(f"{'window':12s} {'vehicle':8s} " + " ".join(f"{m:>14s}" for m in METHODS))
+    for row in rows:
+        cells = []
+        for meth in METHODS:
+            p = row["paper"].get(meth)
+            v = row[meth]
+            cells.append(f"{v:6.2f}" + (f" [{p:5.2f}]" if p is not None else "        ") if v is not None else "     -")
+        print(f"{row['window']:12s} {row['vehicle']:8s} " + " ".join(f"{c:>14s}" for c in cells))
+    for m, kinds in ranges.items():
+        print(
+            f"{m} ranges rejected by the gates, per injected error: "
+            + "; ".join(
+                f"{kind} {d['rejected']}/{d['n']} ({100 * d['rejected_share']:.1f} %)"
+                for kind, d in sorted(kinds.items())
+                if d["n"]
+            )
+        )
+    print(
+        "first-stopped detection (SL-SP filter, seconds): "
+        + "; ".join(
+            f"{v}: truth {d['true_first_s']:.1f}, claimed {d['claimed_s']:.1f}, "
+            f"wrongly {d['claimed_while_not_first_s']:.1f}"
+            for v, d in detect.items()
+        )
+    )
+    return 0
+
+
+def _gates(args: argparse.Namespace, scn) -> int:
+    from ..gates_study import range_outcomes, summarise
+
+    seeds = list(range(args.seeds))
+    summary = summarise(range_outcomes(args.name, seeds))
+    if args.json:
+        print(json.dumps({"scenario": scn.name, "seeds": seeds, "ranges": summary}))
+        return 0
+    print(f"{scn.name}, seeds 0-{seeds[-1]}: ranges rejected by the gates / fused, per injected error")
+    for m, kinds in summary.items():
+        cells = [f"{kind} {d['rejected']}/{d['n']} ({100 * d['rejected_share']:.2f} %), fused {d['fused']}"
+                 for kind, d in kinds.items() if d["n"]]
+        print(f"  {m:6s} " + "; ".join(cells))
+    return 0
+
+
+def _sp_check(args: argparse.Namespace, scn, truth) -> int:
+    import numpy as np
+
+    from ..sp_check import sp_table
+
+    if args.seeds < 1:
+        raise ValueError("--seeds must be at least 1")
+    table = sp_table(truth, list(range(args.seeds)))
+    rows = []
+    for w, cells in table.items():
+        for vid, vals in cells.items():
+            paper = scn.paper_table.get(w, {}).get(vid, {}).get("SP")
+            rows.append({"window": w, "vehicle": vid, "mean_rmse_m": float(np.mean(vals)),
+                         "sd_rmse_m": float(np.std(vals)), "seed0_rmse_m": float(vals[0]),
+                         "paper_sp_m": paper, "ratio": float(np.mean(vals)) / paper if paper else None})
+    if args.json:
+        print(json.dumps({"scenario": scn.name, "seeds": args.seeds, "rows": rows}))
+        return 0
+    print(f"SP horizontal RMSE on {scn.name}, mean over {args.seeds} sensor seeds (truth seed {scn.seed})")
+    print(f"{'window':12s} {'vehicle':8s} {'mean':>6s} {'sd':>6s} {'seed 0':>7s} {'paper':>6s} {'ratio':>6s}")
+    for r in rows:
+        paper = f"{r['paper_sp_m']:6.2f}" if r["paper_sp_m"] else "     -"
+        ratio = f"{r['ratio']:6.2f}" if r["ratio"] else "     -"
+        print(f"{r['window']:12s} {r['vehicle']:8s} {r['mean_rmse_m']:6.2f} {r['sd_rmse_m']:6.2f} "
+              f"{r['seed0_rmse_m']:7.2f} {paper} {ratio}")
+    return 0
+
+
+HANDLERS = {"scenario": _cmd_scenario}
