@@ -153,7 +153,35 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
          lmap: LaneMap | None = None, offset_per_lane: bool = False) -> dict:
     n_v = len(ids)
     n = _NV * n_v + 2
-    ic = slice(_NV * n_v, n)  # common mode
+    P = _prior(scn, specs, ids)
+    p_radio = 1.0 - scn.radio.expected_loss()
+    ranges_per_step = scn.uwb.rate / (1.0 / (ts[1] - ts[0])) if len(ts) > 1 else 1.0
+    out = {vid: np.zeros((len(ts), 2, 2)) for vid in ids}
+    was_first = {vid: False for vid in ids}
+    kept_lane: dict[str, str | None] = {vid: None for vid in ids}  # the lane whose offset the state is
+    for k, _t in enumerate(ts):
+        if offset_per_lane and lmap is not None:
+            _redraw_lane_offsets(P, specs, ids, lane, k, lmap, kept_lane)
+        if k > 0:
+            P = _predict(P, scn, specs, ids, moving, k, ts[k] - ts[k - 1])
+        info = np.zeros((n, n))
+        for i, vid in enumerate(ids):
+            _own_information(info, P, i, vid, specs[vid], k, first, lane, pos, lanes, lmap, use_sl,
+                             was_first[vid])
+            was_first[vid] = bool(first[vid][k])
+        if use_ranges and n_v > 1:
+            _range_information(info, scn, ids, pos, k, p_radio * ranges_per_step)
+        P = np.linalg.inv(np.linalg.inv(P) + info)
+        P = 0.5 * (P + P.T)
+        for i, vid in enumerate(ids):
+            out[vid][k] = P[_NV * i:_NV * i + 2, _NV * i:_NV * i + 2]
+    return out
+
+
+def _prior(scn, specs, ids) -> np.ndarray:
+    """The joint prior: per vehicle position, velocity, multipath, stop-gap errors and lane
+    offset; the common mode last."""
+    n = _NV * len(ids) + 2
     P = np.zeros((n, n))
     for i, vid in enumerate(ids):
         b = _NV * i
@@ -164,88 +192,95 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
         sg = specs[vid]
         P[b + 6:b + 8, b + 6:b + 8] = np.diag([sg.stop_gap[1] ** 2, sg.lateral[1] ** 2])
         P[b + 8, b + 8] = sg.lateral[1] ** 2
-    P[ic, ic] = np.eye(2) * scn.common_mode_sigma**2
+    P[n - 2:, n - 2:] = np.eye(2) * scn.common_mode_sigma**2
+    return P
+
+
+def _redraw_lane_offsets(P, specs, ids, lane, k: int, lmap: LaneMap, kept_lane: dict) -> None:
+    """A vehicle entering a new lane draws a new lateral offset (the filters' model)."""
+    for i, vid in enumerate(ids):
+        ln = str(lane[vid][k])
+        if ln in lmap.marks and ln != kept_lane[vid]:
+            if kept_lane[vid] is not None:
+                o = _NV * i + 8
+                P[o, :] = 0.0
+                P[:, o] = 0.0
+                P[o, o] = specs[vid].lateral[1] ** 2
+            kept_lane[vid] = ln
+
+
+def _predict(P, scn, specs, ids, moving, k: int, dt: float) -> np.ndarray:
+    """Every vehicle's white-acceleration motion and Gauss-Markov multipath, and the common
+    mode, over ``dt`` [s]."""
+    n = len(P)
+    ic = slice(n - 2, n)
+    F = np.eye(n)
+    Q = np.zeros((n, n))
+    for i, vid in enumerate(ids):
+        b = _NV * i
+        g, imu = specs[vid].gnss, specs[vid].imu
+        F[b:b + 2, b + 2:b + 4] = np.eye(2) * dt
+        q = imu.vrw**2  # white acceleration: [[dt³/3, dt²/2], [dt²/2, dt]] q on (p, v), per axis
+        Q[b:b + 2, b:b + 2] = I2 * (dt**3 / 3 * q)
+        Q[b:b + 2, b + 2:b + 4] = Q[b + 2:b + 4, b:b + 2] = I2 * (dt**2 / 2 * q)
+        Q[b + 2:b + 4, b + 2:b + 4] = I2 * (dt * q)
+        tau = g.multipath_tau_moving if moving[vid][k] else g.multipath_tau_static
+        a = np.exp(-dt / tau)
+        F[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * a
+        Q[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * g.multipath_h**2 * (1 - a * a)
+    a = np.exp(-dt / scn.common_mode_tau)
+    F[ic, ic] = np.eye(2) * a
+    Q[ic, ic] = np.eye(2) * scn.common_mode_sigma**2 * (1 - a * a)
+    return F @ P @ F.T + Q
+
+
+def _own_information(info, P, i: int, vid: str, sg, k: int, first, lane, pos, lanes, lmap: LaneMap | None,
+                     use_sl: bool, was_first: bool) -> None:
+    """Vehicle ``i``'s own information at step ``k``: its GNSS position and velocity, and its
+    stop-line fix while first stopped or else its lane keeping (a new stop redraws the gap
+    errors in ``P``)."""
+    n = len(P)
+    b = _NV * i
+    g = sg.gnss
+    # GNSS position: z = p + multipath + common + white (rows on p, m, c)
+    cols = np.r_[b:b + 2, b + 4:b + 6, n - 2:n]
+    info[np.ix_(cols, cols)] += GNSS_ROWS / max(g.white_h, 0.05) ** 2
+    info[b + 2:b + 4, b + 2:b + 4] += np.eye(2) / max(g.velocity_white, 0.02) ** 2
+    ln = str(lane[vid][k])
+    if use_sl and first[vid][k] and ln in lanes:
+        if not was_first:  # a new stop draws new gap errors
+            s = slice(b + 6, b + 8)
+            P[s, :] = 0.0
+            P[:, s] = 0.0
+            P[s, s] = np.diag([sg.stop_gap[1] ** 2, sg.lateral[1] ** 2])
+        _, J = stop_line_fix(lanes[ln].approach, sg.stop_gap[0] + sg.l0, sg.lateral[0])
+        Hs = np.hstack([np.eye(2), -J])  # on (p, gap errors); the lane's offset is d_l's
+        cols = np.r_[b:b + 2, b + 6, b + 8 if lmap is not None else b + 7]
+        info[np.ix_(cols, cols)] += Hs.T @ Hs / STOP_LINE_MAP_SIGMA**2
+    elif lmap is not None and ln in lmap.marks:
+        # lane keeping (the filters skip it while the full stop-line fix holds d_l)
+        line = lmap.left_line_at(ln, pos[vid][k])
+        h = np.r_[line.right_normal, -1.0]
+        cols = np.r_[b:b + 2, b + 8]
+        info[np.ix_(cols, cols)] += np.outer(h, h) / STOP_LINE_MAP_SIGMA**2
+
+
+def _range_information(info, scn, ids, pos, k: int, per_step: float) -> None:
+    """The UWB ranges of step ``k`` between every pair, weighted by the chance that a range is
+    measured and its beacon arrives (``per_step``: ranges per step times delivery probability)."""
     uwb, radio = scn.uwb, scn.radio
-    p_radio = 1.0 - radio.expected_loss()
-    ranges_per_step = uwb.rate / (1.0 / (ts[1] - ts[0])) if len(ts) > 1 else 1.0
-    out = {vid: np.zeros((len(ts), 2, 2)) for vid in ids}
-    was_first = {vid: False for vid in ids}
-    kept_lane: dict[str, str | None] = {vid: None for vid in ids}  # the lane whose offset the state is
-    for k, _t in enumerate(ts):
-        if offset_per_lane and lmap is not None:
-            for i, vid in enumerate(ids):
-                ln = str(lane[vid][k])
-                if ln in lmap.marks and ln != kept_lane[vid]:
-                    if kept_lane[vid] is not None:  # a new lane draws a new offset
-                        o = _NV * i + 8
-                        P[o, :] = 0.0
-                        P[:, o] = 0.0
-                        P[o, o] = specs[vid].lateral[1] ** 2
-                    kept_lane[vid] = ln
-        if k > 0:
-            dt = ts[k] - ts[k - 1]
-            F = np.eye(n)
-            Q = np.zeros((n, n))
-            for i, vid in enumerate(ids):
-                b = _NV * i
-                g, imu = specs[vid].gnss, specs[vid].imu
-                F[b:b + 2, b + 2:b + 4] = np.eye(2) * dt
-                q = imu.vrw**2  # white acceleration: [[dt³/3, dt²/2], [dt²/2, dt]] q on (p, v), per axis
-                Q[b:b + 2, b:b + 2] = I2 * (dt**3 / 3 * q)
-                Q[b:b + 2, b + 2:b + 4] = Q[b + 2:b + 4, b:b + 2] = I2 * (dt**2 / 2 * q)
-                Q[b + 2:b + 4, b + 2:b + 4] = I2 * (dt * q)
-                tau = g.multipath_tau_moving if moving[vid][k] else g.multipath_tau_static
-                a = np.exp(-dt / tau)
-                F[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * a
-                Q[b + 4:b + 6, b + 4:b + 6] = np.eye(2) * g.multipath_h**2 * (1 - a * a)
-            a = np.exp(-dt / scn.common_mode_tau)
-            F[ic, ic] = np.eye(2) * a
-            Q[ic, ic] = np.eye(2) * scn.common_mode_sigma**2 * (1 - a * a)
-            P = F @ P @ F.T + Q
-        info = np.zeros((n, n))
-        for i, vid in enumerate(ids):
-            b = _NV * i
-            g = specs[vid].gnss
-            # GNSS position: z = p + multipath + common + white (rows on p, m, c)
-            cols = np.r_[b:b + 2, b + 4:b + 6, ic]
-            info[np.ix_(cols, cols)] += GNSS_ROWS / max(g.white_h, 0.05) ** 2
-            info[b + 2:b + 4, b + 2:b + 4] += np.eye(2) / max(g.velocity_white, 0.02) ** 2
-            if use_sl and first[vid][k] and str(lane[vid][k]) in lanes:
-                sg = specs[vid]
-                if not was_first[vid]:  # a new stop draws new gap errors
-                    s = slice(b + 6, b + 8)
-                    P[s, :] = 0.0
-                    P[:, s] = 0.0
-                    P[s, s] = np.diag([sg.stop_gap[1] ** 2, sg.lateral[1] ** 2])
-                _, J = stop_line_fix(lanes[str(lane[vid][k])].approach, sg.stop_gap[0] + sg.l0, sg.lateral[0])
-                Hs = np.hstack([np.eye(2), -J])  # on (p, gap errors); the lane's offset is d_l's
-                cols = np.r_[b:b + 2, b + 6, b + 8 if lmap is not None else b + 7]
-                info[np.ix_(cols, cols)] += Hs.T @ Hs / STOP_LINE_MAP_SIGMA**2
-            elif lmap is not None and str(lane[vid][k]) in lmap.marks:
-                # lane keeping (the filters skip it while the full stop-line fix holds d_l)
-                line = lmap.left_line_at(str(lane[vid][k]), pos[vid][k])
-                h = np.r_[line.right_normal, -1.0]
-                cols = np.r_[b:b + 2, b + 8]
-                info[np.ix_(cols, cols)] += np.outer(h, h) / STOP_LINE_MAP_SIGMA**2
-            was_first[vid] = bool(first[vid][k])
-        if use_ranges and n_v > 1:
-            pk = np.array([pos[v][k] for v in ids])
-            ii, jj = np.triu_indices(n_v, 1)
-            d = pk[ii] - pk[jj]
-            rho = np.hypot(d[:, 0], d[:, 1])
-            p = uwb.success_probability(rho) * p_radio * (rho <= radio.max_range) * (rho > 0.5)
-            w = p * ranges_per_step / max(uwb.sigma_los, 0.01) ** 2
-            for a, c, dd, r, wk in zip(ii, jj, d, rho, w):
-                if wk <= 0.0:
-                    continue
-                uu = wk * np.outer(dd, dd) / (r * r)
-                A, C = _NV * a, _NV * c
-                info[A:A + 2, A:A + 2] += uu
-                info[C:C + 2, C:C + 2] += uu
-                info[A:A + 2, C:C + 2] -= uu
-                info[C:C + 2, A:A + 2] -= uu
-        P = np.linalg.inv(np.linalg.inv(P) + info)
-        P = 0.5 * (P + P.T)
-        for i, vid in enumerate(ids):
-            out[vid][k] = P[_NV * i:_NV * i + 2, _NV * i:_NV * i + 2]
-    return out
+    pk = np.array([pos[v][k] for v in ids])
+    ii, jj = np.triu_indices(len(ids), 1)
+    d = pk[ii] - pk[jj]
+    rho = np.hypot(d[:, 0], d[:, 1])
+    p = uwb.success_probability(rho) * (rho <= radio.max_range) * (rho > 0.5)
+    w = p * per_step / max(uwb.sigma_los, 0.01) ** 2
+    for a, c, dd, r, wk in zip(ii, jj, d, rho, w):
+        if wk <= 0.0:
+            continue
+        uu = wk * np.outer(dd, dd) / (r * r)
+        A, C = _NV * a, _NV * c
+        info[A:A + 2, A:A + 2] += uu
+        info[C:C + 2, C:C + 2] += uu
+        info[A:A + 2, C:C + 2] -= uu
+        info[C:C + 2, A:A + 2] -= uu
