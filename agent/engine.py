@@ -442,6 +442,15 @@ class VehicleEngine:
                               lambda: speed_sigma(ref.state.v, ref.velocity_cov)):
             for f in self.filters.values():
                 f.zupt()
+        elif self.cfg.settings.nhc_sigma is not None or self.cfg.settings.zaru_sigma is not None:
+            # at rest: the IMU shows it and the filter agrees (cruising at a steady speed looks
+            # like rest to a smooth IMU)
+            at_rest = math.hypot(v[0], v[1]) < self.zupt_gate.max_speed and self.rest.stationary
+            for f in self.filters.values():
+                if at_rest:
+                    f.own.zaru()
+                else:
+                    f.coast(True)
 
     def _init(self, batch: ImuBatch) -> bool:
         """Start the filters at the start of IMU ``batch`` from the GNSS fix nearest in time,
@@ -482,7 +491,7 @@ class VehicleEngine:
         if step.kind == "gnss":
             self.zupt_gate.gnss(step.t)
             for f in self.filters.values():
-                f.gnss(msg.llh, msg.v_ned, msg.sigma_ned, msg.sigma_v)
+                f.gnss(msg.llh, msg.v_ned, msg.sigma_ned, msg.sigma_v, msg.quality)
         elif step.kind == "lane":
             for tr in self.trackers.values():
                 tr.observe_markings(step.t, msg.left, msg.right)
@@ -584,8 +593,9 @@ class VehicleEngine:
     def _send_estimates(self, t: float) -> None:
         for m, f in self.filters.items():
             s = f.filter.state
-            self.outbox.append(Estimate(self.cfg.vehicle, m, t, s.llh.copy(), s.v.copy(), quat_to_euler(s.q),
-                                        f.position_cov, self.claim(m)))
+            # stamped in GNSS time: the IMU's time stamps lag it by the estimated offset
+            self.outbox.append(Estimate(self.cfg.vehicle, m, t + f.time_offset, s.llh.copy(), s.v.copy(),
+                                        quat_to_euler(s.q), f.position_cov, self.claim(m)))
             self.counters["estimates_tx"] += 1
 
     def diagnostics(self, t: float) -> Diagnostics:

@@ -30,15 +30,14 @@ from .lane_map import LaneMap
 from .nav.error_model import ImuNoise
 from .nav.ins_filter import InsFilter, level_from_accel
 from .nav.kalman import Measurement, UpdateResult, chi2_gate
-from .nav.measurements.gnss import gnss_position, gnss_velocity
 from .nav.measurements.lane_line import lane_line_measurement
 from .nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_fix, stop_line_measurement
 from .nav.measurements.v2v_range import quadratic_rows, range_measurement, relative_position
-from .nav.measurements.vehicle import zero_velocity
 from .nav.rotation import euler_to_quat, quat_to_euler
 from .nav.source_fusion import ANY, CONSTANT_MARK, SourcePart
 from .nav.state import POS, VEL, NavState
 from .neighbours import NeighbourState, NeighbourTable
+from .own_sensors import OwnSensors
 from .range_gate import NlosLinkTracker, NlosModel, RangeRateGate
 
 METHODS = ("SP", "SL-SP", "CP", "SL-CP")
@@ -202,6 +201,28 @@ class FilterSettings:
     #: Gauss-Markov states; 0 leaves it out
     gnss_common_sigma: float = 0.0
     gnss_common_tau: float = 600.0
+    #: the GNSS antenna's position in the body frame (forward, right, down) [m]
+    gnss_lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: the receiver's reported σ is widened by these factors for a fixed RTK, a float RTK and
+    #: any other solution: receivers report the σ of float and code solutions optimistically
+    gnss_quality_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    #: floors of the reported GNSS σ (position [m], velocity [m/s]): a receiver's millimetres
+    #: are not the error of the antenna's position on the vehicle
+    gnss_min_sigma: float = 0.0
+    gnss_min_sigma_v: float = 0.0
+    #: non-holonomic constraint (no sideways or vertical velocity of the body): its lateral σ
+    #: [m/s] (None: off), vertical σ, and the unknown IMU-to-rear-axle distance [m] whose
+    #: yaw-rate term widens the lateral σ; with fixes it rides on their updates, without, it is
+    #: applied on its own once no fix came for ``nhc_coast_after`` s
+    nhc_sigma: float | None = None
+    nhc_vertical_sigma: float = 0.1
+    nhc_lever_uncertainty: float = 1.0
+    nhc_coast_after: float = 1.0
+    #: zero angular rate with every zero-velocity update: σ of the mean rate [rad/s] (None: off)
+    zaru_sigma: float | None = None
+    #: the IMU-GNSS time offset as a state: its initial σ [s] and random walk [s/√s] (None: not
+    #: estimated; the offset known is applied to the IMU time stamps by the sensor driver)
+    time_offset: tuple[float, float] | None = None
 
 
 def initial_state(llh: np.ndarray, v_ned: np.ndarray, f_b_mean: np.ndarray) -> NavState:
@@ -240,7 +261,6 @@ class MethodFilter:
                 extra += tuple((0.0, sc, 2 * sc * sc / tc, tc) for _ in range(3))
         #: GNSS error states within ``filter.extra``: multipath (3), then common mode (3)
         self._mp = slice(0, len(extra))
-        self._static: bool | None = None
         #: this stop's deviation of (d_s, d_l) from their means: random constants, reset at every
         #: new stop, so that repeated stop-line fixes share their error instead of averaging it
         self._sl: slice | None = None
@@ -253,6 +273,11 @@ class MethodFilter:
         if spec.stop_line and gap is not None and s.lane_constraint:
             self._lane = slice(len(extra), len(extra) + 1)
             extra += ((0.0, gap.sigma_yb, 0.0),)
+        #: the IMU-GNSS time offset (a random walk) within ``filter.extra``
+        self._dtau: int | None = None
+        if s.time_offset is not None:
+            self._dtau = len(extra)
+            extra += ((0.0, s.time_offset[0], s.time_offset[1] ** 2),)
         self._lane_id: str | None = None
         self._lane_seen = -math.inf  #: sensor time the current lane was last confirmed [s]
         self._lane_checked = -math.inf  #: sensor time of the last call of :meth:`lane_line` [s]
@@ -297,13 +322,15 @@ class MethodFilter:
         self.heading_known = heading_known
         self._heading_wait_since: float | None = None  #: sensor time GNSS began waiting for the course
         self.last_stop_line = -math.inf
-        self._gnss_rejected_since: float | None = None  #: sensor time of the first fix rejected in a row
         self.counters = {"gnss": 0, "gnss_rejected": 0, "gnss_reanchored": 0,
                          "ranges": 0, "ranges_rejected": 0, "ranges_skipped": 0, "ranges_gate_physical": 0,
                          "ranges_gate_rate": 0, "ranges_gate_nis": 0, "ranges_gate_nlos": 0, "ranges_skipped_near": 0,
                          "ranges_skipped_held": 0, "stop_line": 0,
                          "lane_line": 0, "lane_line_rejected": 0,
                          "integrity_tests": 0, "integrity_resets": 0, "integrity_held": 0}
+        self.own = OwnSensors(self.filter, s, self._mp, self._dtau, self.counters)
+        #: the own-sensor models need the IMU rates (lever arm, time offset, ZARU, NHC)
+        self._own_imu = bool(any(s.gnss_lever_arm) or s.time_offset or s.zaru_sigma or s.nhc_sigma)
         #: the cooperative integrity test has widened this filter for the current disagreement
         #: with its own-sensor twin (:func:`agent.integrity.check_separation`)
         self.separation_fault = False
@@ -385,6 +412,8 @@ class MethodFilter:
         d[1] += float(v[1]) * dt
         d[2] += float(v[2]) * dt
         self.filter.propagate(dtheta, dvel, dt)
+        if self._own_imu:
+            self.own.imu(dtheta, dvel, dt)
         if self.filter.t - self._disp_hist[-1][0] >= 0.05:
             self._disp_hist.append((self.filter.t, d[0], d[1], d[2]))
 
@@ -403,40 +432,21 @@ class MethodFilter:
         a = (t - p0[0]) / (p1[0] - p0[0])
         return np.array([d[k - 1] - (p0[k] + a * (p1[k] - p0[k])) for k in (1, 2, 3)])
 
-    def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float) -> None:
-        st = self.filter.state
+    def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float,
+             quality: int = 1, moving: bool | None = None) -> None:
+        """A GNSS fix (:meth:`OwnSensors.gnss`); ``moving`` (default: the fix's speed is over
+        0.5 m/s) says whether the vehicle moves, for the multipath time constant and the
+        non-holonomic rows. While the heading is unknown, the fix may first have to wait for
+        the course (:meth:`_await_heading`)."""
         if not self.heading_known and self._await_heading(v_ned, sigma_v):
             return
-        s = self.settings
-        if s.gnss_multipath_sigma:
-            # predicted = position + multipath state; the white part is what remains
-            static = math.hypot(v_ned[0], v_ned[1]) < 0.5
-            if s.gnss_multipath_tau_static and static != self._static:
-                # a standing receiver sees the same reflections: its multipath decorrelates slowly
-                self._static = static
-                tau = s.gnss_multipath_tau_static if static else s.gnss_multipath_tau
-                for k in range(3):
-                    self.filter.set_gauss_markov(k, s.gnss_multipath_sigma, tau)
-            m = gnss_position(st, llh, np.eye(3) * s.gnss_white_sigma**2)
-            hx = np.zeros((3, len(self.filter.extra)))
-            hx[:, self._mp] = np.tile(np.eye(3), (1, self._mp.stop // 3))
-            m = Measurement(m.z + hx @ self.filter.extra, self.filter.full_jacobian(m.H, hx), m.R, m.name)
-        else:
-            m = gnss_position(st, llh, np.diag(np.square(sigma_ned)))
-        res = self.filter.update(m, s.gnss_gate)
-        if res.accepted:
-            self._gnss_rejected_since = None
-        else:
-            self.counters["gnss_rejected"] += 1
-            if self._gnss_rejected_since is None:
-                self._gnss_rejected_since = self.t
-            elif self.t - self._gnss_rejected_since >= s.gnss_reset_after:
-                self.filter.inflate_position(np.square(m.z))
-                res = self.filter.update(m)
-                self._gnss_rejected_since = None
-                self.counters["gnss_reanchored"] += 1
-        self.filter.update(gnss_velocity(self.filter.state, v_ned, np.eye(3) * sigma_v**2, np.zeros(3)))
-        self.counters["gnss"] += int(res.accepted)
+        if moving is None:
+            moving = math.hypot(v_ned[0], v_ned[1]) >= 0.5
+        self.own.gnss(llh, v_ned, sigma_ned, sigma_v, quality, moving, self.heading_known)
+
+    def coast(self, moving: bool) -> None:
+        """Between fixes (:meth:`OwnSensors.coast`)."""
+        self.own.coast(moving, self.heading_known)
 
     def _await_heading(self, v_ned: np.ndarray, sigma_v: float) -> bool:
         """Heading unknown: take it (and the velocity) from the GNSS course as soon as the course
@@ -467,11 +477,7 @@ class MethodFilter:
 
     def zupt(self) -> UpdateResult | None:
         """Zero-velocity update (the caller decides that the vehicle is at rest)."""
-        if self.settings.zupt_sigma is None:
-            return None
-        res = self.filter.update(zero_velocity(self.filter.state, self.settings.zupt_sigma))
-        self.counters["zupt"] = self.counters.get("zupt", 0) + int(res.accepted)
-        return res
+        return self.own.zupt()
 
     def stop_line(self, approach: StopLineApproach, along_only: bool = False,
                   stop_id: float | None = None, lane: str | None = None) -> UpdateResult | None:
@@ -746,6 +752,12 @@ class MethodFilter:
         if outcome.startswith("gate"):
             self.counters["ranges_rejected"] += 1
         return outcome
+
+    @property
+    def time_offset(self) -> float:
+        """The estimated IMU-GNSS time offset [s]: filter time + offset = GNSS time (0 when not
+        estimated)."""
+        return float(self.filter.extra[self._dtau]) if self._dtau is not None else 0.0
 
     @property
     def position_cov(self) -> np.ndarray:

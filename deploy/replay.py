@@ -370,3 +370,24 @@ def _metrics(res: ReplayResult, outages, imu_span: float, wall: float) -> dict:
         "wall_s": wall,
         "realtime_factor": imu_span / wall if wall > 0 else float("inf"),
     }
+
+
+def engine_config(cfg: ReplayConfig, vehicle: str = "V0"):
+    """The vehicle engine's configuration for a drive replayed with ``cfg``: a vehicle without a
+    site map running SP, with the drive's IMU noise and the filter options of ``cfg``."""
+    import dataclasses as dc
+
+    from .agent_configs import siteless_agent_config
+
+    base = siteless_agent_config(vehicle, ("SP",))
+    s = dc.replace(base.settings, noise=cfg.noise, init_att_sigma=cfg.init_att_sigma,
+                   init_vel_sigma=cfg.init_vel_sigma, init_gyro_bias_sigma=cfg.init_gyro_bias_sigma,
+                   init_accel_bias_sigma=cfg.init_accel_bias_sigma,
+                   gnss_lever_arm=cfg.lever_arm_gnss, gnss_quality_scale=(1.0, cfg.float_gain, cfg.single_gain),
+                   gnss_min_sigma=0.005, gnss_min_sigma_v=0.02,
+                   nhc_sigma=cfg.nhc_sigma if cfg.nhc else None, nhc_vertical_sigma=cfg.nhc_vertical_sigma,
+                   nhc_lever_uncertainty=cfg.nhc_lever_uncertainty, nhc_coast_after=cfg.coast_after,
+                   zupt_sigma=cfg.zupt_sigma if cfg.zupt else None,
+                   zaru_sigma=(cfg.noise.arw / math.sqrt(cfg.detector.window * 0.01) * 2) if cfg.zupt else None,
+                   time_offset=(cfg.time_offset_sigma, cfg.time_offset_rw) if cfg.estimate_time_offset else None)
+    return dc.replace(base, settings=s)

@@ -169,6 +169,12 @@ def _rms(x: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(x * x))) if len(x) else None
 
 
+def _outage_ends(withheld: np.ndarray, err: np.ndarray) -> list[float]:
+    """The error at the last withheld epoch of every outage (a run of withheld epochs)."""
+    last = np.flatnonzero(withheld & ~np.r_[withheld[1:], False])
+    return [float(err[i]) for i in last]
+
+
 def score_estimates(plan: PublishPlan, by_method: dict[str, list[tuple[float, np.ndarray]]]) -> dict:
     """Horizontal error of each method's estimates against the file's fixes [m].
 
@@ -182,10 +188,15 @@ def score_estimates(plan: PublishPlan, by_method: dict[str, list[tuple[float, np
         inside, err = errors_at_epochs(plan.fix_t, plan.fix_llh, np.array([r[0] for r in rows]),
                                        np.array([r[1] for r in rows]))
         wh = plan.withheld[inside]
+        ends = _outage_ends(wh, err)
         out[method] = {"n_estimates": len(rows), "epochs": int(inside.sum()),
                        "h_rms_m": _rms(err), "h_max_m": float(err.max()) if len(err) else None,
                        "gnss_on_h_rms_m": _rms(err[~wh]), "outage_h_rms_m": _rms(err[wh]),
-                       "outage_h_max_m": float(err[wh].max()) if wh.any() else None}
+                       "outage_h_max_m": float(err[wh].max()) if wh.any() else None,
+                       "n_outages": len(ends),
+                       "outage_h_end_mean_m": float(np.mean(ends)) if ends else None,
+                       "outage_h_end_max_m": float(np.max(ends)) if ends else None,
+                       "outage_end_errors_m": ends}
     return out
 
 

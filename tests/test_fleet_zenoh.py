@@ -112,7 +112,8 @@ def test_a_termination_signal_while_a_child_starts_still_leaves_it_to_be_stopped
     try:
         supervisor.interrupt_on_termination()
         with pytest.raises(KeyboardInterrupt):
-            supervisor._spawn(procs, "sleeper", [sys.executable, "-c", "import time; time.sleep(60)"], subprocess.DEVNULL)
+            supervisor._spawn(procs, "sleeper", [sys.executable, "-c", "import time; time.sleep(60)"],
+                              subprocess.DEVNULL)
         assert "sleeper" in procs and procs["sleeper"].poll() is None
     finally:
         for s, h in saved.items():
