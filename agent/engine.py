@@ -239,10 +239,19 @@ class VehicleEngine:
         if self._ahead(msg.t, kind) or self._duplicate(kind, (msg.seq, msg.t)):
             return
         self.counters[kind] += 1
-        if self.filters:
+        if not self.filters:
+            if isinstance(msg, GnssFix):  # the filters start from these
+                self._pending_fixes.append(msg)
+        elif isinstance(msg, GnssFix):
+            self._push_fix(msg)
+        else:
             self._apply_now(self.seq.push(msg.t, kind, msg))
-        elif isinstance(msg, GnssFix):  # the filters start from these
-            self._pending_fixes.append(msg)
+
+    def _push_fix(self, fix: GnssFix) -> None:
+        """Queue a fix at the filter time of its GNSS time: earlier by the IMU-GNSS time offset
+        the filters estimate (0 when they do not)."""
+        offset = next(iter(self.filters.values())).time_offset
+        self._apply_now(self.seq.push(fix.t - offset, "gnss", (fix, offset)))
 
     def _on_range(self, msg: UwbRange) -> None:
         v = self.cfg.vehicle
@@ -479,7 +488,7 @@ class VehicleEngine:
         self._timer_due = min(self._next.values())
         log.info("%s: initialised %s at t=%.2f", self.cfg.vehicle, ",".join(self.cfg.methods), self.seq.t)
         for g in later:
-            self._apply_now(self.seq.push(g.t, "gnss", g))
+            self._push_fix(g)
         return True
 
     def _apply_now(self, steps: list[Apply]) -> None:
@@ -489,9 +498,10 @@ class VehicleEngine:
     def _apply(self, step: Apply) -> None:
         msg = step.payload
         if step.kind == "gnss":
+            fix, offset = msg
             self.zupt_gate.gnss(step.t)
             for f in self.filters.values():
-                f.gnss(msg.llh, msg.v_ned, msg.sigma_ned, msg.sigma_v, msg.quality)
+                f.gnss(fix.llh, fix.v_ned, fix.sigma_ned, fix.sigma_v, fix.quality, applied_offset=offset)
         elif step.kind == "lane":
             for tr in self.trackers.values():
                 tr.observe_markings(step.t, msg.left, msg.right)

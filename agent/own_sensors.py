@@ -51,6 +51,7 @@ class OwnSensors:
         self._static: bool | None = None
         self._rejected_since: float | None = None  #: sensor time of the first fix rejected in a row
         self.last_fix_t = -math.inf  #: sensor time of the last fix applied [s]
+        self._applied = 0.0  #: the time offset by which the fix being applied was moved [s]
 
     def imu(self, dtheta, dvel, dt: float) -> None:
         """One IMU interval: increments [rad], [m/s] over ``dt`` [s]."""
@@ -77,10 +78,13 @@ class OwnSensors:
         return fixed if quality == 1 else floating if quality == 2 else other
 
     def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float,
-             quality: int = 1, moving: bool = True, heading_known: bool = True) -> UpdateResult:
+             quality: int = 1, moving: bool = True, heading_known: bool = True,
+             applied_offset: float = 0.0) -> UpdateResult:
         """A GNSS fix: the position through the χ² gate (re-anchored after
         ``gnss_reset_after`` s of rejections), then the velocity, and with the non-holonomic
-        constraint on, its rows while moving."""
+        constraint on, its rows while moving. The fix is applied at the filter time of its
+        GNSS time by the time offset ``applied_offset`` [s]."""
+        self._applied = applied_offset
         s, f = self.settings, self.filter
         k = self.sigma_scale(quality)
         m = self._position(llh, np.asarray(sigma_ned, float) * k, moving)
@@ -143,8 +147,9 @@ class OwnSensors:
         H = m.H if m.H.shape[1] == f.n else f.full_jacobian(m.H[:, :n_nav])
         H = H.copy()
         H[:, n_nav + self.dtau] = col
-        # predicted at the estimated offset: h(x) = value at t − δτ ≈ value(t) + col δτ
-        return Measurement(m.z + col * float(f.extra[self.dtau]), H, m.R, m.name)
+        # predicted at the estimated offset: the fix was applied where the offset then put it,
+        # h(x) ≈ value(t) + col (δτ − that offset)
+        return Measurement(m.z + col * (float(f.extra[self.dtau]) - self._applied), H, m.R, m.name)
 
     # ----------------------------------------------------------------- motion
     def zupt(self) -> UpdateResult | None:
