@@ -220,6 +220,9 @@ class FilterSettings:
     nhc_coast_after: float = 1.0
     #: zero angular rate with every zero-velocity update: σ of the mean rate [rad/s] (None: off)
     zaru_sigma: float | None = None
+    #: the covariance is propagated over this interval of IMU samples [s] (and before every
+    #: update); a step of the GNSS fix period costs least and changes little
+    cov_interval: float = 0.1
     #: the IMU-GNSS time offset as a state: its initial σ [s] and random walk [s/√s] (None: not
     #: estimated; the offset known is applied to the IMU time stamps by the sensor driver)
     time_offset: tuple[float, float] | None = None
@@ -282,7 +285,7 @@ class MethodFilter:
         self._lane_seen = -math.inf  #: sensor time the current lane was last confirmed [s]
         self._lane_checked = -math.inf  #: sensor time of the last call of :meth:`lane_line` [s]
         self._sl_full = False  #: the current stop's fix has its lateral row
-        self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=0.1, extra_states=extra)
+        self.filter = InsFilter(state, np.diag(p0), n, t=t, cov_interval=s.cov_interval, extra_states=extra)
         self.filter.yaw_free = not heading_known
         self._stop_id: float | None = None
         if self._mp.stop:

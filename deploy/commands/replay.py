@@ -116,7 +116,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print(f"  outage horizontal RMS      {m['outage_h_rms_m']:.2f} m")
         print(f"  end-of-outage mean / max   {m['outage_h_end_mean_m']:.2f} / {m['outage_h_end_max_m']:.2f} m")
         print(f"  outage max                 {m['outage_h_max_m']:.2f} m")
-        print(f"  GNSS-on prior RMS          {m['gnss_on_h_rms_m']:.2f} m")
+        print(f"  GNSS-on RMS                {m['gnss_on_h_rms_m']:.2f} m")
         print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
         print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
         if pooled is not None:
