@@ -5,15 +5,93 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from agent.engine import AgentConfig
 from agent.first_stopped import ApproachLane
 from agent.lane_map import LaneMap
 from agent.methods import DEFAULT_FUSION, METHODS, FilterSettings
 from agent.nav.error_model import ImuNoise
 from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
 from agent.range_gate import NlosModel
-from agent.runtime import AgentConfig
 from hw_emulation.scenario import Scenario
+from hw_emulation.sensors import params
 from hw_emulation.sensors.imu import ImuModel
+
+
+def _triple(obj, name: str, positive_entries: bool = False) -> None:
+    v = getattr(obj, name)
+    if (not isinstance(v, (list, tuple)) or len(v) != 3
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+        raise ValueError(f"{type(obj).__name__}.{name} must be three finite numbers, got {v!r}")
+    if positive_entries and not all(x > 0 for x in v):
+        raise ValueError(f"{type(obj).__name__}.{name} must be three numbers > 0, got {v!r}")
+    object.__setattr__(obj, name, tuple(float(x) for x in v))
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterOptions:
+    """The ``[filter]`` section of an agent configuration: the vehicle's installation and the
+    own-sensor options of its filters (the units are in the names). The defaults are the
+    emulated vehicles'."""
+
+    #: the GNSS antenna's position in the body frame: forward, right, down [m]
+    gnss_lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: factors on the receiver's reported σ for a fixed RTK, a float RTK and any other solution
+    gnss_quality_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    #: floor of the reported position σ [m]
+    gnss_min_sigma_m: float = 0.0
+    #: floor of the reported velocity σ [m/s]
+    gnss_min_sigma_mps: float = 0.0
+    #: non-holonomic constraint: lateral σ [m/s] (0: off)
+    nhc_sigma_mps: float = 0.0
+    #: non-holonomic constraint: vertical σ [m/s]
+    nhc_vertical_sigma_mps: float = 0.1
+    #: the unknown distance from the IMU to the rear axle, which widens the lateral σ by the yaw rate [m]
+    nhc_lever_uncertainty_m: float = 1.0
+    #: without a fix for this long, the non-holonomic constraint is applied on its own [s]
+    nhc_coast_after_s: float = 1.0
+    #: zero-velocity update σ [m/s] (0: off)
+    zupt_sigma_mps: float = 0.02
+    #: zero angular rate at rest: σ of the mean rate of the last 10 IMU samples [deg/s] (0: off)
+    zaru_sigma_dps: float = 0.0
+    #: the IMU-GNSS time offset as a filter state: its initial σ [s] (0: not estimated)
+    time_offset_sigma_s: float = 0.0
+    #: the time offset's random walk [s/√s]
+    time_offset_rw: float = 1e-3
+    #: covariance propagation interval [s]
+    cov_interval_s: float = 0.1
+    #: initial attitude σ: roll, pitch, yaw [deg] (the yaw's is 60° when the vehicle starts standing)
+    init_att_sigma_deg: tuple[float, float, float] = (2.0, 2.0, 5.0)
+    #: initial velocity σ [m/s]
+    init_vel_sigma_mps: float = 0.3
+
+    def __post_init__(self) -> None:
+        _triple(self, "gnss_lever_arm_m")
+        _triple(self, "gnss_quality_scale", positive_entries=True)
+        _triple(self, "init_att_sigma_deg", positive_entries=True)
+        params.non_negative(self, "gnss_min_sigma_m", "gnss_min_sigma_mps", "nhc_sigma_mps", "zupt_sigma_mps",
+                            "zaru_sigma_dps", "time_offset_sigma_s", "time_offset_rw")
+        params.positive(self, "nhc_vertical_sigma_mps", "nhc_lever_uncertainty_m", "nhc_coast_after_s",
+                        "cov_interval_s", "init_vel_sigma_mps")
+
+    def settings(self) -> dict:
+        """The :class:`FilterSettings` fields these set (SI units, radians)."""
+        return {
+            "gnss_lever_arm": self.gnss_lever_arm_m, "gnss_quality_scale": self.gnss_quality_scale,
+            "gnss_min_sigma": self.gnss_min_sigma_m, "gnss_min_sigma_v": self.gnss_min_sigma_mps,
+            "nhc_sigma": self.nhc_sigma_mps or None, "nhc_vertical_sigma": self.nhc_vertical_sigma_mps,
+            "nhc_lever_uncertainty": self.nhc_lever_uncertainty_m, "nhc_coast_after": self.nhc_coast_after_s,
+            "zupt_sigma": self.zupt_sigma_mps or None,
+            "zaru_sigma": math.radians(self.zaru_sigma_dps) or None,
+            "time_offset": (self.time_offset_sigma_s, self.time_offset_rw) if self.time_offset_sigma_s else None,
+            "cov_interval": self.cov_interval_s,
+            "init_att_sigma": tuple(math.radians(x) for x in self.init_att_sigma_deg),
+            "init_vel_sigma": self.init_vel_sigma_mps,
+        }
+
+
+def with_filter(cfg: AgentConfig, options: FilterOptions) -> AgentConfig:
+    """``cfg`` with the ``[filter]`` section's options."""
+    return dataclasses.replace(cfg, settings=dataclasses.replace(cfg.settings, **options.settings()))
 
 
 def imu_noise_of(model: ImuModel) -> ImuNoise:

@@ -31,12 +31,15 @@ def _tables():
     from hw_emulation.sensors.uwb import UwbModel
     from transport.zenoh_bus import ZenohConfig
 
+    from .agent_configs import FilterOptions
+
     return [
         ("Scenario file", "[sensors.imu]; a vehicle's imu = {...}; an agent configuration's [imu]", ImuModel),
         ("Scenario file", "[sensors.gnss]; a vehicle's gnss = {...}", GnssModel),
         ("Scenario file", "[sensors.camera]", LaneCameraModel),
         ("Scenario file", "[uwb]", UwbModel),
         ("Scenario file", "[radio]", RadioModel),
+        ("Agent configuration", "[filter]", FilterOptions),
         ("Agent configuration", "[zenoh] (with tls = true/false besides)", ZenohConfig),
         ("Fault schedule", "[[fault]]", Fault),
     ]

@@ -77,10 +77,10 @@ def load_agent_config(path: Path, vehicle: str | None):
     """The agent configuration and Zenoh configuration of an agent's TOML file; ``vehicle``
     overrides its ``agent.vehicle``. :class:`ConfigError` names the file and field."""
     data = _read_toml(Path(path), "an agent configuration")
-    unknown = set(data) - {"agent", "imu", "gnss", "security", "zenoh"}
+    unknown = set(data) - {"agent", "imu", "gnss", "filter", "security", "zenoh"}
     if unknown:
         raise ConfigError(f"{path}: [{sorted(unknown)[0]}]: unknown section "
-                          "(known: agent, imu, gnss, security, zenoh)")
+                          "(known: agent, imu, gnss, filter, security, zenoh)")
     a = _agent_section(data.get("agent", {}), path, vehicle)
     cfg = _filter_config(a, data, path)
     sec = {}
@@ -140,7 +140,7 @@ def _filter_config(a: dict, data: dict, path: Path):
     from hw_emulation.scenario import load_scenario, model_from_table
     from hw_emulation.sensors.imu import ImuModel
 
-    from .agent_configs import agent_config, siteless_agent_config, with_gnss, with_imu
+    from .agent_configs import FilterOptions, agent_config, siteless_agent_config, with_filter, with_gnss, with_imu
 
     vid, methods, fusion = a["vehicle"], a["methods"], a["fusion"]
     try:
@@ -152,6 +152,8 @@ def _filter_config(a: dict, data: dict, path: Path):
             cfg = with_imu(cfg, model_from_table(ImuModel, data["imu"], str(path), "imu"))
         if "gnss" in data:
             cfg = with_gnss(cfg, _gnss_table(data["gnss"], path))
+        if "filter" in data:
+            cfg = with_filter(cfg, model_from_table(FilterOptions, data["filter"], str(path), "filter"))
     except ValueError as exc:  # ScenarioError included
         raise ConfigError(str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
     integrity = a["integrity_false_alarm"]

@@ -25,12 +25,11 @@ import numpy as np
 
 from agent.engine import AgentConfig, VehicleEngine
 from agent.nav.error_model import ImuNoise
-from agent.nav.rotation import euler_to_dcm
 from agent.own_sensors import IMU_MEMORY
-from geo import earth
 from transport.messages import Estimate
 
 from .datasets.rtklib import RtklibDrive
+from .drive_scoring import score_estimates
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +131,7 @@ TRAJECTORY_COLUMNS = (
 
 def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig(), vehicle: str = "V0") -> ReplayResult:
     """The drive's messages through the vehicle engine (SP), scored at the GNSS epochs."""
-    from .replay_publish import errors_at_epochs, plan_drive
+    from .replay_publish import plan_drive
 
     wall0 = time.perf_counter()
     plan = plan_drive(drive, vehicle, cfg)
@@ -146,27 +145,20 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig(), vehicle: 
     if not est:
         raise ValueError("the engine never started: no GNSS fix within a second of the IMU data")
     wall = time.perf_counter() - wall0
-    inside, err = errors_at_epochs(plan.fix_t, plan.fix_llh, np.array([e.t for e in est]),
-                                   antenna_positions(est, cfg.lever_arm_gnss))
+    figures, inside, err = score_estimates(plan.fix_t, plan.fix_llh, plan.withheld, est, cfg.lever_arm_gnss)
     t0 = float(drive.gnss.t[0])
     outages = cfg.outage.windows(t0, float(drive.gnss.t[-1]))
     res = ReplayResult(plan.fix_t[inside], err, plan.withheld[inside], outages, _trajectory(est), t0)
-    res.metrics = _metrics(res, outages, float(drive.imu.t[-1] - drive.imu.t[0]), wall)
+    imu_span = float(drive.imu.t[-1] - drive.imu.t[0])
+    res.metrics = {**{k: (float("nan") if v is None else v) for k, v in figures.items()},
+                   "imu_span_s": imu_span, "wall_s": wall,
+                   "realtime_factor": imu_span / wall if wall > 0 else float("inf")}
     f = engine.filters["SP"]
     res.metrics["imu_time_offset_s"] = cfg.imu_time_offset + f.time_offset
     st = f.filter.stats
     res.metrics["filter_stats"] = {"imu_samples": st.imu_samples, "cov_steps": st.cov_steps,
                                    "updates": st.updates, "rejected": st.rejected}
     return res
-
-
-def antenna_positions(est: list[Estimate], lever_arm: tuple[float, float, float]) -> np.ndarray:
-    """Where each estimate puts the GNSS antenna (lat, lon [rad], h [m]), (n, 3): the fixes
-    it is scored against are the antenna's."""
-    lever = np.asarray(lever_arm, float)
-    if not lever.any():
-        return np.array([e.llh for e in est])
-    return np.array([earth.offset_llh(e.llh, euler_to_dcm(*e.rpy) @ lever) for e in est])
 
 
 def _trajectory(est: list[Estimate]) -> np.ndarray:
@@ -208,30 +200,6 @@ def pooled_metrics(results: list[ReplayResult]) -> dict:
         "outage_h_end_max_m": float(np.max(ends)) if ends else float("nan"),
         "outage_h_max_m": float(np.max(withheld)) if withheld.size else float("nan"),
         "phases": phases,
-    }
-
-
-def _metrics(res: ReplayResult, outages, imu_span: float, wall: float) -> dict:
-    t, e, w = res.t, res.h_err, res.withheld
-    ends = []
-    for s, f in outages:
-        idx = np.nonzero((t >= s) & (t < f))[0]
-        if idx.size:
-            ends.append(float(e[idx[-1]]))
-    def rms(x):
-        return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
-    return {
-        "outage_h_rms_m": rms(e[w]),
-        "outage_h_end_mean_m": float(np.mean(ends)) if ends else float("nan"),
-        "outage_h_end_max_m": float(np.max(ends)) if ends else float("nan"),
-        "outage_h_max_m": float(np.max(e[w])) if w.any() else float("nan"),
-        "gnss_on_h_rms_m": rms(e[~w]),
-        "n_outages": len(outages),
-        "n_withheld_fixes": int(w.sum()),
-        "outage_end_errors_m": ends,
-        "imu_span_s": imu_span,
-        "wall_s": wall,
-        "realtime_factor": imu_span / wall if wall > 0 else float("inf"),
     }
 
 

@@ -24,13 +24,13 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import pymap3d
 
 from transport import keys
 from transport.codec import CodecError, decode, encode
 from transport.messages import Estimate, GnssFix, Message
 
 from .datasets.rtklib import RtklibDrive
+from .drive_scoring import score_estimates
 from .replay import ReplayConfig
 from .sensors.imu import ImuAdapter
 
@@ -123,7 +123,7 @@ class EstimateCollector:
 
     def __init__(self, bus, vehicle: str) -> None:
         self.sub = bus.subscribe(f"{keys.ROOT}/estimate/{keys.check_name(vehicle)}/*", 65536)
-        self.by_method: dict[str, list[tuple[float, np.ndarray]]] = {}
+        self.by_method: dict[str, list[Estimate]] = {}
         self.bad = 0
         self._task = asyncio.ensure_future(self._run())
 
@@ -135,7 +135,7 @@ class EstimateCollector:
                 self.bad += 1
                 continue
             if isinstance(m, Estimate):
-                self.by_method.setdefault(m.method, []).append((m.t, m.llh))
+                self.by_method.setdefault(m.method, []).append(m)
 
     async def close(self) -> None:
         self._task.cancel()
@@ -145,59 +145,11 @@ class EstimateCollector:
             pass
 
 
-def errors_at_epochs(fix_t: np.ndarray, fix_llh: np.ndarray, est_t: np.ndarray,
-                     est_llh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Horizontal error [m] of estimates against reference fixes at the fixes' epochs.
-
-    The estimates (times (k,), llh (k, 3) in rad, rad, m) are interpolated linearly in local
-    NED to each epoch of ``fix_t`` (n,) inside their time span. Returns ``(inside (n,) bool,
-    error (inside.sum(),))``.
-    """
-    order = np.argsort(est_t)
-    t, llh = np.asarray(est_t, float)[order], np.asarray(est_llh, float)[order]
-    inside = (fix_t >= t[0]) & (fix_t <= t[-1]) if len(t) > 1 else np.zeros(len(fix_t), bool)
-    if not inside.any():
-        return inside, np.zeros(0)
-    origin = fix_llh[0]
-    ref = np.column_stack(pymap3d.geodetic2ned(*fix_llh[inside].T, *origin, deg=False)[:2])
-    ne = np.column_stack(pymap3d.geodetic2ned(*llh.T, *origin, deg=False)[:2])
-    est = np.column_stack([np.interp(fix_t[inside], t, ne[:, i]) for i in (0, 1)])
-    return inside, np.hypot(*(est - ref).T)
-
-
-def _rms(x: np.ndarray) -> float | None:
-    return float(np.sqrt(np.mean(x * x))) if len(x) else None
-
-
-def _outage_ends(withheld: np.ndarray, err: np.ndarray) -> list[float]:
-    """The error at the last withheld epoch of every outage (a run of withheld epochs)."""
-    last = np.flatnonzero(withheld & ~np.r_[withheld[1:], False])
-    return [float(err[i]) for i in last]
-
-
-def score_estimates(plan: PublishPlan, by_method: dict[str, list[tuple[float, np.ndarray]]]) -> dict:
-    """Horizontal error of each method's estimates against the file's fixes [m].
-
-    Per method (:func:`errors_at_epochs`): ``n_estimates``, ``epochs`` scored, ``h_rms_m`` and
-    ``h_max_m`` over all of them, ``gnss_on_h_rms_m`` (epochs whose fix was published) and
-    ``outage_h_rms_m`` / ``outage_h_max_m`` (withheld epochs). The file's fixes (RTK) stand as
-    truth.
-    """
-    out = {}
-    for method, rows in sorted(by_method.items()):
-        inside, err = errors_at_epochs(plan.fix_t, plan.fix_llh, np.array([r[0] for r in rows]),
-                                       np.array([r[1] for r in rows]))
-        wh = plan.withheld[inside]
-        ends = _outage_ends(wh, err)
-        out[method] = {"n_estimates": len(rows), "epochs": int(inside.sum()),
-                       "h_rms_m": _rms(err), "h_max_m": float(err.max()) if len(err) else None,
-                       "gnss_on_h_rms_m": _rms(err[~wh]), "outage_h_rms_m": _rms(err[wh]),
-                       "outage_h_max_m": float(err[wh].max()) if wh.any() else None,
-                       "n_outages": len(ends),
-                       "outage_h_end_mean_m": float(np.mean(ends)) if ends else None,
-                       "outage_h_end_max_m": float(np.max(ends)) if ends else None,
-                       "outage_end_errors_m": ends}
-    return out
+def score_plan(plan: PublishPlan, by_method: dict[str, list[Estimate]],
+               lever_arm: tuple[float, float, float]) -> dict:
+    """Each method's figures against the plan's fixes (:func:`deploy.drive_scoring.score_estimates`)."""
+    return {m: score_estimates(plan.fix_t, plan.fix_llh, plan.withheld, est, lever_arm)[0]
+            for m, est in sorted(by_method.items())}
 
 
 async def wait_for_agent(bus, vehicle: str, timeout: float) -> bool:
@@ -217,7 +169,7 @@ async def wait_for_agent(bus, vehicle: str, timeout: float) -> bool:
 
 
 async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent: float,
-                              settle: float = 2.0) -> dict:
+                              settle: float = 2.0, lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict:
     """Publish over Zenoh, collect the agent's estimates, and score them (see module doc)."""
     from transport.zenoh_bus import ZenohBus
 
@@ -241,6 +193,6 @@ async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent:
         stats["wall_s"] = time.perf_counter() - wall0
         return {"vehicle": plan.vehicle, "speed": speed, **plan.counts, **stats,
                 "estimate_codec_errors": collector.bad,
-                "methods": score_estimates(plan, collector.by_method)}
+                "methods": score_plan(plan, collector.by_method, lever_arm)}
     finally:
         await bus.close()

@@ -327,32 +327,51 @@ def _drive_agent_config() -> str:
 @needs_drive
 @pytest.mark.timeout(180)
 def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) -> None:
-    """The first 100 s of the real drive (two 15 s outages) played onto V0's topics at 10×: the
-    SP agent behind Zenoh has the outage error of the offline replay with the same model (no
-    NHC, fixed time offset), and follows the RTK fixes while they are on."""
-    from deploy.datasets.rtklib import load_drive
-    from deploy.replay import ReplayConfig, run_replay
+    """One engine under both hosts: the first 120 s of the real drive (two 15 s outages) played
+    onto V0's topics at 10× to a live agent configured by the drive's vehicle file, and the
+    offline replay with its defaults (the same engine settings: checked below), agree within a
+    centimetre on the outage figures of the epochs the live run scored."""
+    import dataclasses
 
+    from deploy.datasets.rtklib import load_drive
+    from deploy.drive_scoring import outage_metrics
+    from deploy.processes import load_agent_config
+    from deploy.replay import ReplayConfig, engine_config, run_replay
+
+    live_cfg, _ = load_agent_config(REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.toml", None)
+    off_cfg = engine_config(ReplayConfig())
+    def flat(settings):
+        out = {}
+        for f in dataclasses.fields(settings):
+            v = getattr(settings, f.name)
+            out.update({f"{f.name}.{k}": x for k, x in dataclasses.asdict(v).items()}
+                       if dataclasses.is_dataclass(v) else {f.name: v})
+        return out
+
+    live, off_settings = flat(live_cfg.settings), flat(off_cfg.settings)
+    assert live.keys() == off_settings.keys()
+    for k, v in off_settings.items():
+        assert live[k] == (pytest.approx(v, rel=1e-12) if isinstance(v, (float, tuple)) else v), k
     port = free_port()
     agent = _agent(_drive_agent_config(), tmp_path, port)
     try:
-        out = subprocess.run([*CLI, "replay", "rtklib", str(SHARED_DRIVE), "--publish", "--duration", "100",
+        out = subprocess.run([*CLI, "replay", "rtklib", str(SHARED_DRIVE), "--publish", "--duration", "120",
                               "--speed", "10", "--connect", f"tcp/127.0.0.1:{port}", "--json"],
-                             capture_output=True, text=True, timeout=120)
+                             capture_output=True, text=True, timeout=150)
     finally:
         _stop(agent)
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads(out.stdout)
     sp = res["methods"]["SP"]
     assert res["gnss_withheld"] == 120 and res["max_late_s"] < 0.1
-    assert sp["epochs"] >= 380 and sp["gnss_on_h_rms_m"] < 0.5
-    d = load_drive(SHARED_DRIVE)
-    off = run_replay(d, ReplayConfig(nhc=False, estimate_time_offset=False))
-    w = (off.t <= d.gnss.t[0] + 100.0) & off.withheld
-    rms_off = float(np.sqrt(np.mean(off.h_err[w] ** 2)))
-    print(f"\nlive agent outage RMS {sp['outage_h_rms_m']:.2f} m, offline {rms_off:.2f} m; "
-          f"GNSS on {sp['gnss_on_h_rms_m']:.2f} m")
-    assert sp["outage_h_rms_m"] == pytest.approx(rms_off, rel=0.25)
+    assert sp["epochs"] >= 460 and sp["gnss_on_h_rms_m"] < 0.5 and sp["n_outages"] == 2
+    off = run_replay(load_drive(SHARED_DRIVE), ReplayConfig())
+    n = sp["epochs"]  # both score from the first epoch their estimates cover
+    ref = outage_metrics(off.h_err[:n], off.withheld[:n])
+    print(f"\nlive agent outage RMS {sp['outage_h_rms_m']:.3f} m, offline {ref['outage_h_rms_m']:.3f} m; "
+          f"end mean {sp['outage_h_end_mean_m']:.3f} / {ref['outage_h_end_mean_m']:.3f} m")
+    for k in ("outage_h_rms_m", "outage_h_end_mean_m", "outage_h_max_m"):
+        assert sp[k] == pytest.approx(ref[k], abs=0.01), k
 
 
 def _write_logs(tmp_path: Path, t_from: float, t_to: float, gap: tuple[float, float]) -> tuple[Path, Path, dict]:
@@ -473,10 +492,11 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     assert counters["nmea_bad"] == 0 and counters["imu_bad_line"] == 0 and counters["imu_out_of_order"] == 0
     gap_all = (truth["t"] >= truth["gap"][0]) & (truth["t"] < truth["gap"][1])
     assert gap_all.sum() > 40 and counters["gnss_fixes"] == int((~gap_all).sum())  # 12 s of fixes left out
-    from deploy.replay_publish import errors_at_epochs
+    from deploy.drive_scoring import antenna_positions, errors_at_epochs
+    from deploy.replay import ReplayConfig
 
     inside, err = errors_at_epochs(truth["t"], truth["llh"], np.array([r.t for r in rows]),
-                                   np.array([r.llh for r in rows]))
+                                   antenna_positions(rows, ReplayConfig().lever_arm_gnss))
     in_gap = (truth["t"][inside] >= truth["gap"][0]) & (truth["t"][inside] < truth["gap"][1])
     on_median, on_p95 = np.percentile(err[~in_gap], [50, 95])
     gap_rms = float(np.sqrt(np.mean(err[in_gap] ** 2)))

@@ -145,7 +145,7 @@ def _replay_publish(args: argparse.Namespace, drive, cfg) -> int:
         raise ValueError(f"--speed must be > 0, got {args.speed}")
     plan = plan_drive(drive, args.vehicle, cfg, args.start, args.duration)
     z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
-    res = asyncio.run(replay_publish_main(plan, z, args.speed, args.wait_agent))
+    res = asyncio.run(replay_publish_main(plan, z, args.speed, args.wait_agent, lever_arm=cfg.lever_arm_gnss))
     if args.json:
         print(json.dumps(res))
         return 0
@@ -162,7 +162,7 @@ def _replay_publish(args: argparse.Namespace, drive, cfg) -> int:
         print(
             f"  {m:6s} {r['n_estimates']:6d} estimates, {r['epochs']:5d} epochs: horizontal RMS {fmt(r['h_rms_m'])} m, "
             f"GNSS on {fmt(r['gnss_on_h_rms_m'])} m, outages {fmt(r['outage_h_rms_m'])} m "
-            f"(max {fmt(r['outage_h_max_m'])} m)"
+            f"(end mean {fmt(r['outage_h_end_mean_m'])} m, max {fmt(r['outage_h_max_m'])} m)"
         )
     return 0
 
