@@ -185,6 +185,30 @@ def test_imu_adapter_batches_equal_the_whole_array_increments(rng) -> None:
     np.testing.assert_allclose(b.dvel[0], [0.0, -0.5, 0.0], atol=1e-12)
 
 
+def test_imu_adapter_takes_a_stretch_at_once_as_it_takes_its_samples_one_by_one(rng) -> None:
+    """push_many's array path (finite samples, increasing times) gives the batches of push,
+    whatever the stretches (including ones of one sample, which go sample by sample), and falls
+    back to push when a stretch has a bad or repeated sample."""
+    n = 1200
+    t = 50.0 + np.cumsum(rng.uniform(0.008, 0.012, n))
+    acc, gyr = rng.normal(size=(n, 3)), rng.normal(0, 0.1, (n, 3))
+    gyr[700] = np.nan
+    t[900] = t[899]  # repeated: out of order
+    for cuts in ([n], [1, 400, 699, n], [3, 4, 701, 899, 950, n]):
+        one, many = ImuAdapter("car1", (0.1, -0.2, 3.0), -0.125), ImuAdapter("car1", (0.1, -0.2, 3.0), -0.125)
+        ref = [b for k in range(n) for b in one.push(t[k], acc[k], gyr[k])] + [one.flush()]
+        got, lo = [], 0
+        for hi in cuts:
+            got += many.push_many(t[lo:hi], acc[lo:hi], gyr[lo:hi])
+            lo = hi
+        got.append(many.flush())
+        assert one.counters == many.counters and one.counters["imu_bad_sample"] == 1
+        assert [(b.seq, len(b.t)) for b in ref] == [(b.seq, len(b.t)) for b in got]
+        for x, y in zip(ref, got):
+            np.testing.assert_array_equal(x.t, y.t)
+            np.testing.assert_allclose(np.c_[x.dtheta, x.dvel], np.c_[y.dtheta, y.dvel], rtol=0, atol=1e-15)
+
+
 def test_imu_adapter_counts_bad_samples_and_lines() -> None:
     ad = ImuAdapter("car1", max_gap=0.05)
     ad.push(1.0, np.zeros(3), np.zeros(3))

@@ -171,11 +171,56 @@ class ImuAdapter:
         return []
 
     def push_many(self, t: np.ndarray, accel_s: np.ndarray, gyro_s: np.ndarray) -> list[ImuBatch]:
-        """Add samples (n,), (n, 3), (n, 3); returns the completed batches."""
+        """Add samples (n,), (n, 3), (n, 3); returns the completed batches. A clean stretch (finite,
+        strictly increasing times) is taken at once, the same batches as sample by sample."""
+        t = np.asarray(t, float) + self.time_offset
+        a, g = np.asarray(accel_s, float), np.asarray(gyro_s, float)
+        clean = (len(t) > 1 and a.shape == (len(t), 3) and g.shape == (len(t), 3)
+                 and bool(np.isfinite(t).all() and np.isfinite(a).all() and np.isfinite(g).all())
+                 and bool(np.all(np.diff(t) > 0)) and (self._last is None or t[0] > self._last[0]))
+        if not clean:
+            out: list[ImuBatch] = []
+            for k in range(len(t)):
+                out.extend(self.push(t[k] - self.time_offset, a[k], g[k]))
+            return out
+        return self._push_clean(t, a @ self._c_sb.T, g @ self._c_sb.T)
+
+    def _push_clean(self, t: np.ndarray, f_b: np.ndarray, w_b: np.ndarray) -> list[ImuBatch]:
+        """:meth:`push_many` of finite samples after the last one, in increasing time (body frame)."""
+        if self._last is not None:  # the interval from the previous sample
+            t = np.r_[self._last[0], t]
+            f_b, w_b = np.vstack([self._last[1], f_b]), np.vstack([self._last[2], w_b])
+            new = len(t) - 1
+        else:
+            new = len(t)
+        self.counters["imu_samples"] += new
+        self._last = (float(t[-1]), f_b[-1].copy(), w_b[-1].copy())
+        dt = np.diff(t)
+        self.counters["imu_gaps"] += int(np.count_nonzero(dt > self.max_gap))
+        dth = 0.5 * (w_b[1:] + w_b[:-1]) * dt[:, None]
+        dv = 0.5 * (f_b[1:] + f_b[:-1]) * dt[:, None]
         out: list[ImuBatch] = []
-        for k in range(len(t)):
-            out.extend(self.push(t[k], accel_s[k], gyro_s[k]))
+        start = self._rows[0][0] - self._rows[0][1] if self._rows else None
+        first = 0  # first row of the batch being filled (rows pending from before come first)
+        ends = t[1:].tolist()
+        for k, te in enumerate(ends):
+            if start is None:
+                start = te - float(dt[k])
+            if te - start >= self.batch_period - 1e-9:
+                out.append(self._batch(ends[first:k + 1], dt[first:k + 1], dth[first:k + 1], dv[first:k + 1]))
+                first, start = k + 1, None
+        self._rows += [(ends[k], float(dt[k]), dth[k], dv[k]) for k in range(first, len(ends))]
         return out
+
+    def _batch(self, t: list[float], dt: np.ndarray, dth: np.ndarray, dv: np.ndarray) -> ImuBatch:
+        """A batch of the pending rows followed by these intervals."""
+        rows, self._rows = self._rows, []
+        b = ImuBatch(self.vehicle, self._seq, np.array([r[0] for r in rows] + list(t)),
+                     np.r_[[r[1] for r in rows], dt], np.vstack([np.array([r[2] for r in rows]).reshape(-1, 3), dth]),
+                     np.vstack([np.array([r[3] for r in rows]).reshape(-1, 3), dv]))
+        self._seq += 1
+        self.counters["imu_batches"] += 1
+        return b
 
     def flush(self) -> ImuBatch | None:
         """The pending intervals as a batch (None if there are none)."""
