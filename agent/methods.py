@@ -245,42 +245,11 @@ class MethodFilter:
                  heading_known: bool = True, vehicle: str = "self") -> None:
         s = settings
         self.vehicle = vehicle
-        n = s.noise
-        att = np.array(s.init_att_sigma)
-        if not heading_known:
-            att[2] = math.radians(60.0)
-        bg0 = math.hypot(n.gyro_bias_sigma, s.init_gyro_bias_sigma or 0.0)
-        ba0 = math.hypot(n.accel_bias_sigma, s.init_accel_bias_sigma or 0.0)
-        p0 = np.concatenate([att, [s.init_vel_sigma] * 3, np.maximum(sigma_pos, 0.1),
-                             [max(bg0, 1e-6)] * 3, [max(ba0, 1e-4)] * 3]) ** 2
         self.spec = spec
         self.settings = settings
-        extra: tuple = ()
-        if s.gnss_multipath_sigma:
-            sm, tau = s.gnss_multipath_sigma, s.gnss_multipath_tau
-            extra = tuple((0.0, sm, 2 * sm * sm / tau, tau) for _ in range(3))
-            if s.gnss_common_sigma > 0.0:
-                sc, tc = s.gnss_common_sigma, s.gnss_common_tau
-                extra += tuple((0.0, sc, 2 * sc * sc / tc, tc) for _ in range(3))
-        #: GNSS error states within ``filter.extra``: multipath (3), then common mode (3)
-        self._mp = slice(0, len(extra))
-        #: this stop's deviation of (d_s, d_l) from their means: random constants, reset at every
-        #: new stop, so that repeated stop-line fixes share their error instead of averaging it
-        self._sl: slice | None = None
-        if spec.stop_line and gap is not None:
-            self._sl = slice(len(extra), len(extra) + 2)
-            extra += ((0.0, gap.sigma_xb, 0.0), (0.0, gap.sigma_yb, 0.0))
-        #: the driver's lateral offset from m_yb in the current lane: a random constant, redrawn
-        #: in each lane; with it, the stop-line fix's lateral row acts on it too (the same d_l)
-        self._lane: slice | None = None
-        if spec.stop_line and gap is not None and s.lane_constraint:
-            self._lane = slice(len(extra), len(extra) + 1)
-            extra += ((0.0, gap.sigma_yb, 0.0),)
-        #: the IMU-GNSS time offset (a random walk) within ``filter.extra``
-        self._dtau: int | None = None
-        if s.time_offset is not None:
-            self._dtau = len(extra)
-            extra += ((0.0, s.time_offset[0], s.time_offset[1] ** 2),)
+        extra = self._extra_states(spec, s, gap)
+        p0 = self._initial_variances(s, sigma_pos, heading_known)
+        n = s.noise
         self._lane_id: str | None = None
         self._lane_seen = -math.inf  #: sensor time the current lane was last confirmed [s]
         self._lane_checked = -math.inf  #: sensor time of the last call of :meth:`lane_line` [s]
@@ -358,6 +327,51 @@ class MethodFilter:
             self._track_constant(self._sl, np.array([gap.sigma_xb, gap.sigma_yb]))
         if self._lane is not None:
             self._track_constant(self._lane, np.array([gap.sigma_yb]))
+
+    @staticmethod
+    def _initial_variances(s: FilterSettings, sigma_pos: np.ndarray, heading_known: bool) -> np.ndarray:
+        """The navigation states' initial variances: attitude (yaw 60° until the course gives
+        it), velocity, position from the fix, and the biases (in-run and turn-on together)."""
+        n = s.noise
+        att = np.array(s.init_att_sigma)
+        if not heading_known:
+            att[2] = math.radians(60.0)
+        bg0 = math.hypot(n.gyro_bias_sigma, s.init_gyro_bias_sigma or 0.0)
+        ba0 = math.hypot(n.accel_bias_sigma, s.init_accel_bias_sigma or 0.0)
+        return np.concatenate([att, [s.init_vel_sigma] * 3, np.maximum(sigma_pos, 0.1),
+                               [max(bg0, 1e-6)] * 3, [max(ba0, 1e-4)] * 3]) ** 2
+
+    def _extra_states(self, spec: MethodSpec, s: FilterSettings, gap: StopGapModel | None) -> tuple:
+        """The filter's states beyond the navigation errors, their places kept in ``_mp``,
+        ``_sl``, ``_lane`` and ``_dtau``: GNSS multipath and common mode (Gauss-Markov), this
+        stop's gap deviations and this lane's offset (random constants), the time offset."""
+        extra: tuple = ()
+        if s.gnss_multipath_sigma:
+            sm, tau = s.gnss_multipath_sigma, s.gnss_multipath_tau
+            extra = tuple((0.0, sm, 2 * sm * sm / tau, tau) for _ in range(3))
+            if s.gnss_common_sigma > 0.0:
+                sc, tc = s.gnss_common_sigma, s.gnss_common_tau
+                extra += tuple((0.0, sc, 2 * sc * sc / tc, tc) for _ in range(3))
+        #: GNSS error states within ``filter.extra``: multipath (3), then common mode (3)
+        self._mp = slice(0, len(extra))
+        #: this stop's deviation of (d_s, d_l) from their means: random constants, reset at every
+        #: new stop, so that repeated stop-line fixes share their error instead of averaging it
+        self._sl: slice | None = None
+        if spec.stop_line and gap is not None:
+            self._sl = slice(len(extra), len(extra) + 2)
+            extra += ((0.0, gap.sigma_xb, 0.0), (0.0, gap.sigma_yb, 0.0))
+        #: the driver's lateral offset from m_yb in the current lane: a random constant, redrawn
+        #: in each lane; with it, the stop-line fix's lateral row acts on it too (the same d_l)
+        self._lane: slice | None = None
+        if spec.stop_line and gap is not None and s.lane_constraint:
+            self._lane = slice(len(extra), len(extra) + 1)
+            extra += ((0.0, gap.sigma_yb, 0.0),)
+        #: the IMU-GNSS time offset (a random walk) within ``filter.extra``
+        self._dtau: int | None = None
+        if s.time_offset is not None:
+            self._dtau = len(extra)
+            extra += ((0.0, s.time_offset[0], s.time_offset[1] ** 2),)
+        return extra
 
     def _init_from_fix_errors(self) -> None:
         """The initial position comes from a GNSS fix, so its error *is* that fix's error:
