@@ -509,53 +509,66 @@ class SourceSplit:
         if idx_weight is not None and (len(idx_weight) != len(idx) or not np.all(np.asarray(idx_weight) >= 0.0)):
             raise ValueError("idx_weight needs one weight >= 0 per minimised state")
         n = self.n
-        h = meas.H[0]
-        r_ind = float(meas.R[0, 0])
         if constants or self.const_labels:
             parts, constants = self._split_constants(parts, constants)
+        blk = self._blocks(P, meas.H[0], idx, idx_weight, constants)
+        r_ind, dep, terms, share = self._group_terms(blk, parts, float(meas.R[0, 0]))
+        s = self._choose_weights(blk, terms, r_ind, min_gain)
+        if s is None:
+            skip = UpdateResult(np.zeros(n), float("nan"), 1, False, meas.name, None, float("nan"), skipped=True)
+            return np.zeros(n), P, skip
+        w = [min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX) for sa, sb, *_ in terms]
+        return self._apply(P, meas, parts, w, dep, share, r_ind, blk, noise_labels, gate_probability, consider)
+
+    def _blocks(self, P: np.ndarray, h: np.ndarray, idx, idx_weight, constants) -> _Blocks:
+        """The blocks of the components on the states the measurement and ``idx`` touch, and
+        the exactly tracked constants' part (:meth:`update`, first step)."""
         # The weights depend on the states the measurement and idx touch only (for a range, the
         # horizontal position and velocity): they are chosen on those blocks of the components,
         # and the whole matrices are formed only for an update that is made (a few % of ranges).
         idx = [int(i) for i in idx]
         wd = np.ones(len(idx)) if idx_weight is None else np.asarray(idx_weight, float)
-        sw = np.sqrt(wd)  # the rows of the minimised states, scaled: their covariances times √w
         J = sorted(set(np.flatnonzero(h).tolist()) | set(idx))
         if J[-1] - J[0] < 2 * len(J):  # (nearly) contiguous (a range: position, velocity): views
-            Jx = slice(J[0], J[-1] + 1)
+            Jx: slice | np.ndarray = slice(J[0], J[-1] + 1)
             jj = [i - J[0] for i in idx]
             PJ = P[Jx, Jx]
         else:
             Jx = np.array(J)
             jj = [J.index(i) for i in idx]
             PJ = P[np.ix_(Jx, Jx)]
-        CJ = self._block(Jx)
-        hJ = h[Jx]
-        ownJ = PJ - CJ.sum(axis=0)
+        b = _Blocks(Jx, jj, wd, np.sqrt(wd), PJ, h[Jx], self._block(Jx))
+        b.ownJ = PJ - b.CJ.sum(axis=0)
         # the exactly tracked constants: my sensitivities G, the measurement's b; they add the
         # known cross-covariance G b and variance b·b, and are never inflated
         m_c = len(self.const_labels)
-        b_mine, new_labels, b_new, bb = None, [], [], 0.0
         if m_c or constants:
             at = {lab: k for k, lab in enumerate(self.const_labels)}
-            b_mine = np.zeros(m_c)
-            for lab, b in constants:
+            b.b_mine = np.zeros(m_c)
+            for lab, bv in constants:
                 k = at.get(lab)
                 if k is None:
-                    new_labels.append(lab)
-                    b_new.append(float(b))
+                    b.new_labels.append(lab)
+                    b.b_new.append(float(bv))
                 else:
-                    b_mine[k] += b
-            bb = float(b_mine @ b_mine) + sum(b * b for b in b_new)
+                    b.b_mine[k] += bv
+            b.bb = float(b.b_mine @ b.b_mine) + sum(x * x for x in b.b_new)
             GJ = self._const_rows(Jx)
-            gbJ = GJ @ b_mine
-            ownJ = ownJ - GJ @ GJ.T
-        mineJ = np.concatenate([ownJ[None], CJ])  # own first, (k+1, m, m)
-        ChJ = mineJ @ hJ
-        a_k = (ChJ @ hJ).tolist()
-        T_k = (mineJ[:, jj, jj] @ wd).tolist()
-        c_k = (ChJ[:, jj] * sw).tolist()  # per component, the m scaled covariances
+            b.gbJ = GJ @ b.b_mine
+            b.ownJ = b.ownJ - GJ @ GJ.T
+        return b
+
+    def _group_terms(self, blk: _Blocks, parts: list[SourcePart], r_ind: float):
+        """Per group of shared sources, my side (components) and the measurement's side
+        (variance b): ``(r_ind, dep, terms, share)``, the independent noise grown by the parts
+        no component of mine shares (:meth:`update`, second step)."""
+        mineJ = np.concatenate([blk.ownJ[None], blk.CJ])  # own first, (k+1, m, m)
+        ChJ = mineJ @ blk.hJ
+        jj = blk.jj
+        a_k = (ChJ @ blk.hJ).tolist()
+        T_k = (mineJ[:, jj, jj] @ blk.wd).tolist()
+        c_k = (ChJ[:, jj] * blk.sw).tolist()  # per component, the m scaled covariances
         groups = self._groups([self.own_labels] + self.labels, [p.labels for p in parts])
-        # per group: my side (components) and the measurement side (variance b)
         dep: list[tuple[list[int], list[int], float]] = []
         terms: list[tuple[float, ...]] = []
         # a part's share of its group's variance (more than its own when it may correlate)
@@ -579,31 +592,39 @@ class SourceSplit:
                 c = [sum(v) for v in zip(*(c_k[k] for k in gm))]
             dep.append((gm, gp, b))
             terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b, *c))
+        return r_ind, dep, terms, share
+
+    def _choose_weights(self, blk: _Blocks, terms: list, r_ind: float, min_gain: float) -> float | None:
+        """The weight parameter minimising the posterior trace of the chosen states, or None when
+        node selection declines the update (:meth:`update`, third step)."""
+        PJ, hJ, jj, wd = blk.PJ, blk.hJ, blk.jj, blk.wd
         Ph = PJ @ hJ
         hPh = float(hJ @ Ph)
         tr0 = float(PJ[jj, jj] @ wd)
-        if b_mine is not None:  # the innovation's variance and cross-covariance, exact part
-            hPh += 2.0 * float(hJ @ gbJ) + bb
-            Ph = Ph + gbJ
-        ph = (Ph[jj] * sw).tolist()
-
-        def weights(s: float) -> list[float]:
-            return [min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX)
-                    for sa, sb, *_ in terms]
-
+        if blk.b_mine is not None:  # the innovation's variance and cross-covariance, exact part
+            hPh += 2.0 * float(hJ @ blk.gbJ) + blk.bb
+            Ph = Ph + blk.gbJ
+        ph = (Ph[jj] * blk.sw).tolist()
         posterior_trace = _PosteriorTrace(terms, tr0, hPh, r_ind, *ph)
-
-        skip = UpdateResult(np.zeros(n), float("nan"), 1, False, meas.name, None, float("nan"), skipped=True)
         if min_gain > 0.0:
             # the plain Kalman gain, an upper bound (as :func:`agent.nav.fusion.naive_gain`)
             r_all = r_ind + sum(t[4] for t in terms)
             if hPh + r_all <= 0.0 or sum(v * v for v in ph) / (hPh + r_all) < min_gain * tr0:
-                return np.zeros(n), P, skip
+                return None
         s = float(fminbound(posterior_trace, OMEGA_MIN, OMEGA_MAX, xatol=1e-3)) if terms else 0.5
         if min_gain > 0.0 and tr0 - posterior_trace(s) < min_gain * tr0:
-            return np.zeros(n), P, skip
-        w = weights(s)
-        # the update, with whole matrices: my side of each group inflated by 1/ω_g
+            return None
+        return s
+
+    def _apply(self, P: np.ndarray, meas: Measurement, parts: list[SourcePart], w: list[float], dep: list,
+               share: list[float], r_ind: float, blk: _Blocks, noise_labels: frozenset[str],
+               gate_probability: float | None,
+               consider: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
+        """The update with whole matrices, my side of each group inflated by 1/ω_g; the
+        components carried through it (:meth:`update`, last step)."""
+        n = self.n
+        h = meas.H[0]
+        b_mine = blk.b_mine
         infl = np.ones(len(self.labels) + 1)  # own first
         for wg, (gm, _, _) in zip(w, dep):
             infl[gm] = 1.0 / wg
@@ -620,7 +641,7 @@ class SourceSplit:
         S = float(h @ P1h) + r1
         if b_mine is not None:
             gb = self._G @ b_mine  # (own() above applied the pending congruence)
-            S += 2.0 * float(h @ gb) + bb
+            S += 2.0 * float(h @ gb) + blk.bb
             P1h = P1h + gb
         z = float(meas.z[0])
         nis = z * z / S
@@ -650,9 +671,9 @@ class SourceSplit:
         if b_mine is not None:
             # G ← (I - K h)G - K b (the constants reach me through the measurement's error)
             self._G = self._G - np.outer(K, h @ self._G + b_mine)
-            if new_labels:
-                self._G = np.concatenate([self._G, -np.outer(K, b_new)], axis=1)
-                self.const_labels = self.const_labels + new_labels
+            if blk.new_labels:
+                self._G = np.concatenate([self._G, -np.outer(K, blk.b_new)], axis=1)
+                self.const_labels = self.const_labels + blk.new_labels
         scale_p = [1.0] * len(parts)
         for wg, (_, gp, _) in zip(w, dep):
             for j in gp:
@@ -679,6 +700,22 @@ class SourceSplit:
                 parts = parts + [SourcePart(frozenset({lab}), b * b) for lab, b in held]
                 constants = [(lab, b) for lab, b in constants if not (ANY in mine or lab in mine)]
         return parts, constants
+
+
+class _Blocks:
+    """One source-CI update's working blocks (:meth:`SourceSplit._blocks`)."""
+
+    __slots__ = ("Jx", "jj", "wd", "sw", "PJ", "hJ", "CJ", "ownJ", "b_mine", "new_labels", "b_new", "bb", "gbJ")
+
+    def __init__(self, Jx, jj: list[int], wd: np.ndarray, sw: np.ndarray, PJ: np.ndarray, hJ: np.ndarray,
+                 CJ: np.ndarray) -> None:
+        self.Jx, self.jj, self.wd, self.sw, self.PJ, self.hJ, self.CJ = Jx, jj, wd, sw, PJ, hJ, CJ
+        self.ownJ = PJ
+        self.b_mine: np.ndarray | None = None
+        self.new_labels: list[str] = []
+        self.b_new: list[float] = []
+        self.bb = 0.0
+        self.gbJ: np.ndarray | None = None
 
 
 class _PosteriorTrace:
