@@ -72,8 +72,39 @@ def _batch(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl, use_ran
     """The bound at every step, from the stacked trajectory (see the module docstring)."""
     nv = len(ids)
     n = _NV * nv + 2
-    c = slice(_NV * nv, n)
     K = len(ts)
+    Fs, Qs = _transitions(scn, specs, ids, ts, moving, first, lane, lanes, use_sl, lmap, per_lane,
+                          _batch_prior(scn, specs, ids))
+    # L_k: x_k as a linear map of θ = (x_0, w_1, ..., w_K-1)
+    L = [np.zeros((n, n * K)) for _ in range(K)]
+    L[0][:, :n] = np.eye(n)
+    for k in range(1, K):
+        L[k] = Fs[k] @ L[k - 1]
+        L[k][:, n * k:n * (k + 1)] += np.eye(n)
+    Sigma = np.zeros((n * K, n * K))
+    for k in range(K):
+        Sigma[n * k:n * (k + 1), n * k:n * (k + 1)] = Qs[k]
+    rows = _rows(scn, specs, ids, ts, pos, first, lane, lanes, use_sl, use_ranges, lmap)
+    out = {vid: np.zeros((K, 2, 2)) for vid in ids}
+    for k in range(K):
+        use = [(kk, h, var) for kk, h, var in rows if kk <= k]
+        M = np.vstack([h @ L[kk] for kk, h, _ in use])
+        R = np.diag([var for *_, var in use])
+        SMt = Sigma @ M.T
+        post = Sigma - SMt @ np.linalg.solve(M @ SMt + R, SMt.T)
+        Pk = L[k] @ post @ L[k].T
+        for i, vid in enumerate(ids):
+            out[vid][k] = Pk[_NV * i:_NV * i + 2, _NV * i:_NV * i + 2]
+    return out
+
+
+
+
+def _batch_prior(scn, specs, ids) -> np.ndarray:
+    """The prior of the batch's first state."""
+    nv = len(ids)
+    n = _NV * nv + 2
+    c = slice(_NV * nv, n)
     P0 = np.zeros((n, n))
     for i, vid in enumerate(ids):
         s, b = specs[vid], _NV * i
@@ -83,6 +114,14 @@ def _batch(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl, use_ran
         P0[b + 6, b + 6], P0[b + 7, b + 7] = s.stop_gap[1] ** 2, s.lateral[1] ** 2
         P0[b + 8, b + 8] = s.lateral[1] ** 2
     P0[c, c] = np.eye(2) * scn.common_mode_sigma**2
+    return P0
+
+
+def _transitions(scn, specs, ids, ts, moving, first, lane, lanes, use_sl, lmap, per_lane, P0):
+    """Each step's transition F_k and noise Q_k (the prior as the first noise)."""
+    nv = len(ids)
+    n = _NV * nv + 2
+    K = len(ts)
     # transitions x_k = F_k x_{k-1} + w_k, w_k ~ N(0, Q_k)
     Fs, Qs = [np.eye(n)], [P0]
     in_stop = {v: False for v in ids}
@@ -125,15 +164,14 @@ def _batch(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl, use_ran
         if k > 0:
             Fs.append(F)
             Qs.append(Q)
-    # L_k: x_k as a linear map of θ = (x_0, w_1, ..., w_K-1)
-    L = [np.zeros((n, n * K)) for _ in range(K)]
-    L[0][:, :n] = np.eye(n)
-    for k in range(1, K):
-        L[k] = Fs[k] @ L[k - 1]
-        L[k][:, n * k:n * (k + 1)] += np.eye(n)
-    Sigma = np.zeros((n * K, n * K))
-    for k in range(K):
-        Sigma[n * k:n * (k + 1), n * k:n * (k + 1)] = Qs[k]
+    return Fs, Qs
+
+
+def _rows(scn, specs, ids, ts, pos, first, lane, lanes, use_sl, use_ranges, lmap):
+    """Every measurement row: (step, row on that step's state, noise variance)."""
+    nv = len(ids)
+    n = _NV * nv + 2
+    K = len(ts)
     # measurement rows on the state at their step, and their noise variances
     rows: list[tuple[int, np.ndarray, float]] = []
 
@@ -170,17 +208,7 @@ def _batch(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl, use_ran
                     u = d / rho  # a range is relative: +u on one vehicle, -u on the other
                     row(k, {_NV * a: u[0], _NV * a + 1: u[1], _NV * bb: -u[0], _NV * bb + 1: -u[1]},
                         scn.uwb.sigma_los**2 / (p * per_step))
-    out = {vid: np.zeros((K, 2, 2)) for vid in ids}
-    for k in range(K):
-        use = [(kk, h, var) for kk, h, var in rows if kk <= k]
-        M = np.vstack([h @ L[kk] for kk, h, _ in use])
-        R = np.diag([var for *_, var in use])
-        SMt = Sigma @ M.T
-        post = Sigma - SMt @ np.linalg.solve(M @ SMt + R, SMt.T)
-        Pk = L[k] @ post @ L[k].T
-        for i, vid in enumerate(ids):
-            out[vid][k] = Pk[_NV * i:_NV * i + 2, _NV * i:_NV * i + 2]
-    return out
+    return rows
 
 
 @pytest.mark.parametrize("with_lanes", [False, True], ids=["stop-line", "stop-line+lanes"])

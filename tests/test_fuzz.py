@@ -84,20 +84,9 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
                 next_t += 0.05
                 for _ in range(BURST):
                     key = topics[int(rng.integers(len(topics)))]
-                    hist = latest.get(key)
-                    if key in agent_topics and hist and rng.random() < 0.35:
-                        kind = SEMANTIC[int(rng.integers(len(SEMANTIC)))]
-                        if kind == "duplicate":
-                            payload = hist[-1][1]
-                        elif kind == "replayed_old":
-                            payload = hist[0][1]
-                        else:
-                            payload = encode(time_jumped(rng, decode(hist[-1][1])))
-                    else:
-                        kind = MALFORMED[int(rng.integers(len(MALFORMED)))]
-                        payload = malformed(rng, decode(hist[-1][1]) if hist else _example(key), kind)
-                        receiver = agent_topics.get(key) or other_topics[key]
-                        expected_codec[receiver] += 1
+                    kind, payload = _bad_payload(rng, key, latest.get(key), key in agent_topics)
+                    if kind in MALFORMED:
+                        expected_codec[agent_topics.get(key) or other_topics[key]] += 1
                     mine.add(payload)
                     sent[kind] += 1
                     await fuzz_bus.publish(key, payload)
@@ -108,11 +97,7 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
         fz = asyncio.create_task(fuzzer())
         await emu.run()
         await fz
-        for _ in range(500):  # let the agents drain their queues before stopping
-            # (the non-waking queues, beacons and measurements, are drained at the stop)
-            if all(len(s) == 0 for a in agents.values() for s in a._subs.values() if s.wake):
-                break
-            await asyncio.sleep(0.01)
+        await _drained(agents)
         stop.set()
         await asyncio.gather(*tasks)  # an exception in any agent task fails the test here
         for t in rec_tasks:
@@ -129,7 +114,35 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
         assert all(d == 0 for d in a.dropped.values()), a.dropped
     assert emu.radio_stats.codec_errors == expected_codec["radio"]
     assert rec.codec_errors == expected_codec["recorder"]
-    # semantic ones counted by kind
+    _check_semantic_counts(agents)
+    _check_estimates(tmp_path / "messages.jsonl", agents, truth)
+
+
+def _bad_payload(rng, key: str, hist, semantic_ok: bool) -> tuple[str, bytes]:
+    """One bad payload for ``key``: a duplicate, replayed or time-jumped copy of a message seen
+    there (``semantic_ok``: a sensor or beacon topic with history), else a malformed one."""
+    if semantic_ok and hist and rng.random() < 0.35:
+        kind = SEMANTIC[int(rng.integers(len(SEMANTIC)))]
+        if kind == "duplicate":
+            return kind, hist[-1][1]
+        if kind == "replayed_old":
+            return kind, hist[0][1]
+        return kind, encode(time_jumped(rng, decode(hist[-1][1])))
+    kind = MALFORMED[int(rng.integers(len(MALFORMED)))]
+    return kind, malformed(rng, decode(hist[-1][1]) if hist else _example(key), kind)
+
+
+async def _drained(agents) -> None:
+    """Let the agents drain their queues before stopping (the non-waking queues, beacons and
+    measurements, are drained at the stop)."""
+    for _ in range(500):
+        if all(len(s) == 0 for a in agents.values() for s in a._subs.values() if s.wake):
+            return
+        await asyncio.sleep(0.01)
+
+
+def _check_semantic_counts(agents) -> None:
+    """The semantic bad payloads counted by kind."""
     total = collections.Counter()
     for a in agents.values():
         total.update(a.counters)
@@ -142,8 +155,11 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
               "uwb_time_jump", "seq_imu_out_of_order", "seq_late_dropped", "table_duplicate_or_old",
               "beacon_stale", "beacon_future"):
         assert total[k] > 0, k
-    # estimates finite everywhere, and V1 still finds its stop line
-    lines = [json.loads(line) for line in (tmp_path / "messages.jsonl").read_text().splitlines()]
+
+
+def _check_estimates(path, agents, truth) -> None:
+    """Estimates finite everywhere, and V1 still finds its stop line."""
+    lines = [json.loads(line) for line in path.read_text().splitlines()]
     est = [d for d in lines if d["type"] == "Estimate"]
     assert len(est) > 1000
     assert all(math.isfinite(x) for d in est for f in ("llh", "v_ned", "cov_pos") for x in np.ravel(d[f]))
@@ -157,6 +173,8 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
             k = int(np.searchsorted(vt.t, d["t"] - 1e-9))
             errs.append(np.hypot(*earth.ned_offset(*d["llh"], *vt.llh[k])[:2]))
     assert errs and float(np.sqrt(np.mean(np.square(errs)))) < 0.6
+
+
 
 
 def _example(key: str):
