@@ -36,10 +36,11 @@ from transport.messages import (
     UwbRound,
 )
 
+from .decision_step import first_stopped_step
 from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
 from .integrity import OWN_TWIN, check_separation
 from .lane_map import LaneMap
-from .methods import FilterSettings, MethodFilter, MethodSpec, first_stopped_step, initial_state
+from .methods import FilterSettings, MethodFilter, MethodSpec, initial_state
 from .misbehaviour import MisbehaviourDetector
 from .nav.measurements.stop_line import StopGapModel
 from .nav.motion import StationarityMonitor, ZuptGate, speed_sigma

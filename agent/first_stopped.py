@@ -269,7 +269,7 @@ class StopTracker:
         what :meth:`decide` returns then ("moving", without any geometry), else None.
 
         The caller can then skip the map and neighbour geometry, most of a decision's cost,
-        whenever the vehicle drives (:func:`agent.methods.first_stopped_step`)."""
+        whenever the vehicle drives (:func:`agent.decision_step.first_stopped_step`)."""
         if speed < self.s.stop_speed:
             if self.since is None:
                 self.since, self.vetoed, self._stop_marks = t, None, None

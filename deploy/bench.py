@@ -178,8 +178,8 @@ def _decision_costs(fresh, llh: np.ndarray, t: float, cfg, rm: float, n: int) ->
     behind): driving at 10 m/s (no geometry needed) and standing for 1 s at the stop line (the
     map and neighbour geometry; the stop-line fix it triggers applies once, then waits for its
     interval)."""
+    from agent.decision_step import first_stopped_step
     from agent.first_stopped import FirstStoppedDetector, StopTracker
-    from agent.methods import first_stopped_step
     from agent.neighbours import NeighbourTable
 
     out = {}

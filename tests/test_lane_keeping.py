@@ -195,7 +195,7 @@ def test_a_one_second_camera_error_does_not_name_a_lane_for_the_lane_row() -> No
     """Five frames settle a class for the first-stopped detector; a lane row, which holds the
     vehicle in the lane it names, waits for ten (2 s at 5 Hz): a 1 s camera error at the start
     (rush-hour E2, seed 6) no longer names the wrong lane."""
-    from agent.methods import LANE_MARKING_FRAMES
+    from agent.decision_step import LANE_MARKING_FRAMES
     from geo.lane_markings import MarkingWindow
 
     w = MarkingWindow()
@@ -215,7 +215,7 @@ def test_one_settled_side_does_not_name_a_lane_for_the_lane_row() -> None:
     against the frames, the lane row's classes never name the right lane; they name the left
     lane once both sides have settled again (with a vehicle that has not yet taken a lane: the
     lateral σ stays at 2.5 m)."""
-    from agent.methods import lane_row_markings
+    from agent.decision_step import lane_row_markings
     from geo.lane_markings import MarkingWindow
 
     reports = [(BOUNDARY, DIVIDER)] * 7 + [(BOUNDARY, BOUNDARY)] * 2 + [(DIVIDER, BOUNDARY)] * 2 \
