@@ -18,16 +18,12 @@ import logging
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 
 from geo import earth
 from transport.messages import (
     Beacon,
-    Diagnostics,
-    Estimate,
     GnssFix,
     ImuBatch,
     LaneMarkings,
@@ -37,86 +33,20 @@ from transport.messages import (
 )
 
 from .decision_step import first_stopped_step
-from .first_stopped import ApproachLane, FirstStoppedDetector, StopTracker
+from .engine_config import AgentConfig, RangeObserver
+from .engine_outputs import EngineOutputs
+from .first_stopped import FirstStoppedDetector, StopTracker
+from .input_checks import InputChecks
 from .integrity import OWN_TWIN, check_separation
-from .lane_map import LaneMap
-from .methods import FilterSettings, MethodFilter, MethodSpec, initial_state
+from .methods import MethodFilter, MethodSpec, initial_state
 from .misbehaviour import MisbehaviourDetector
-from .nav.measurements.stop_line import StopGapModel
 from .nav.motion import StationarityMonitor, ZuptGate, speed_sigma
-from .nav.rotation import quat_to_euler
 from .neighbours import NeighbourTable
 from .sequencer import Apply, Propagate, Sequencer
 
 log = logging.getLogger(__name__)
 
-#: (method, neighbour, range time [s], outcome) of every range a filter weighed
-RangeObserver = Callable[[str, str, float, "str | None"], None]
-
-
-class BeaconSigner(Protocol):
-    """Signs beacons (the host's; e.g. :class:`transport.security.BeaconSigner`)."""
-
-    def sign(self, beacon: Beacon) -> Beacon: ...
-
-
-class BeaconVerifier(Protocol):
-    """Checks a beacon's signature: "ok" or why not (e.g. :class:`transport.security.TrustStore`)."""
-
-    def verify(self, beacon: Beacon) -> str: ...
-
-
-@dataclass(frozen=True)
-class AgentConfig:
-    """Everything an agent needs (SI units; built at the config edge)."""
-
-    vehicle: str
-    methods: tuple[str, ...]
-    settings: FilterSettings
-    gap: StopGapModel
-    lanes: dict[str, ApproachLane]
-    origin_llh: tuple[float, float, float]
-    beacon_rate: float = 5.0
-    estimate_rate: float = 10.0
-    decision_rate: float = 10.0
-    queue_size: int = 4096
-    #: IMU batches are processed only once this much newer IMU data has arrived [s], so that
-    #: GNSS/UWB of earlier times, travelling on other topics, are applied in order
-    imu_hold: float = 0.25
-    #: a UWB range waits up to this long (filter time) for the neighbour's beacon of its time,
-    #: then is fused with the nearest beacon (or counted stale) [s]
-    range_defer: float = 1.0
-    #: signs this agent's beacons (None: unsigned)
-    signer: BeaconSigner | None = None
-    #: when set, only beacons signed by a key of this store for the sending vehicle are accepted
-    trust: BeaconVerifier | None = None
-    #: a beacon generated more than this before the agent's filter time is refused as stale, and
-    #: one more than ``max_beacon_future`` after it as from the future [s]. (Fusion itself uses a
-    #: beacon only within 0.3 s of the range time, see :class:`agent.neighbours.NeighbourTable`.)
-    max_beacon_age: float = 1.0
-    max_beacon_future: float = 2.0
-    #: a neighbour silent this long [s of sensor time] is gone (also when its liveliness token
-    #: vanishes, which is usually sooner)
-    neighbour_timeout: float = 1.5
-    #: an IMU batch starting more than this after the newest IMU time is a time jump, dropped
-    #: unless ``jump_confirm`` consecutive batches continue it (then the stream re-synchronises);
-    #: a GNSS fix or range this far ahead of the newest IMU time is dropped too [s]
-    max_time_jump: float = 5.0
-    jump_confirm: int = 5
-    #: check every neighbour's beacons and ranges for misbehaviour and exclude the flagged ones
-    #: (:mod:`agent.misbehaviour`); ``nlos_bias_max`` is the largest NLOS range bias expected [m]
-    misbehaviour_detection: bool = True
-    nlos_bias_max: float = 3.0
-    #: a neighbour lost (not excluded) counts, for ``ghost_memory`` seconds or until heard
-    #: again, as standing where it was last heard, with its covariance grown at ``ghost_speed``
-    #: [m/s]: a vehicle that cannot hear the queue ahead does not take the stop line
-    ghost_memory: float = 30.0
-    ghost_speed: float = 1.0
-    #: every lane of the site, for the SL methods' lane-keeping row (None: no lane map)
-    lane_map: LaneMap | None = None
-
-
-class VehicleEngine:
+class VehicleEngine(EngineOutputs):
     """One vehicle's methods, sequencing, first-stopped decisions and neighbour checks.
 
     ``handle`` takes any message; what the engine sends goes to ``outbox`` (beacons unsigned:
@@ -150,10 +80,7 @@ class VehicleEngine:
         self.rest = StationarityMonitor()
         self.zupt_gate = ZuptGate()
         self._imu_buffer: list[ImuBatch] = []
-        self._imu_newest: float | None = None  #: newest accepted IMU time [s]
-        self._jump_run: list[float] = []  #: ends of consecutive batches that jumped ahead
-        self._recent: deque = deque(maxlen=1024)  #: keys of the latest sensor messages (duplicates)
-        self._recent_set: set = set()
+        self.checks = InputChecks(cfg.vehicle, cfg.max_time_jump, cfg.jump_confirm, self._count)
         self._next: dict[str, float | None] = {"beacon": None, "estimate": None, "decision": None, "diag": None}
         self._timer_due = math.inf  #: earliest of ``_next`` [s sensor time]
         self._rest_checked = -math.inf  #: sensor time of the last rest/ZUPT check [s]
@@ -212,22 +139,17 @@ class VehicleEngine:
         out, self.outbox = self.outbox, []
         return out
 
-    def claim(self, method: str) -> bool:
-        """Whether ``method``'s filter currently claims "first stopped"."""
-        tr = self.trackers.get(method)
-        return tr is not None and tr.claim
-
     def _on_imu(self, msg: ImuBatch) -> None:
         if msg.vehicle != self.cfg.vehicle:
             self.counters["not_for_me"] += 1
             return
-        if self._duplicate("imu", (msg.seq, float(msg.t[0]))) or not self._imu_in_time(msg):
+        if self.checks.duplicate("imu", (msg.seq, float(msg.t[0]))) or not self.checks.imu_in_time(msg):
             return
         self.counters["imu_batches"] += 1
         # held in time order (a batch delivered late is put back in its place), processed once
         # imu_hold newer data has arrived
         bisect.insort(self._imu_buffer, msg, key=lambda b: float(b.t[-1]))
-        newest = self._imu_newest
+        newest = self.checks.imu_newest
         while self._imu_buffer and float(self._imu_buffer[0].t[-1]) <= newest - self.cfg.imu_hold:
             self._imu(self._imu_buffer.pop(0))
 
@@ -237,7 +159,7 @@ class VehicleEngine:
         if msg.vehicle != self.cfg.vehicle:
             self.counters["not_for_me"] += 1
             return
-        if self._ahead(msg.t, kind) or self._duplicate(kind, (msg.seq, msg.t)):
+        if self.checks.ahead(msg.t, kind) or self.checks.duplicate(kind, (msg.seq, msg.t)):
             return
         self.counters[kind] += 1
         if not self.filters:
@@ -259,7 +181,7 @@ class VehicleEngine:
         if v not in (msg.a, msg.b) or msg.a == msg.b:
             self.counters["not_for_me"] += 1
             return
-        if self._ahead(msg.t, "uwb") or self._duplicate("uwb", (msg.a, msg.b, msg.seq, msg.t)):
+        if self.checks.ahead(msg.t, "uwb") or self.checks.duplicate("uwb", (msg.a, msg.b, msg.seq, msg.t)):
             return
         self.counters["uwb"] += 1
         if self.filters:
@@ -270,7 +192,7 @@ class VehicleEngine:
         if msg.vehicle != v:
             self.counters["not_for_me"] += 1
             return
-        if self._ahead(msg.t, "uwb") or self._duplicate("uwb", (msg.seq, msg.t)):
+        if self.checks.ahead(msg.t, "uwb") or self.checks.duplicate("uwb", (msg.seq, msg.t)):
             return
         # each range as the UwbRange of its pair would be (the same sequencer path)
         for peer, r in zip(msg.peers, msg.ranges.tolist()):
@@ -312,19 +234,6 @@ class VehicleEngine:
                                                         msg.first_stopped)
 
     # ----------------------------------------------------------------- input checks
-    def _duplicate(self, kind: str, key: tuple) -> bool:
-        """True (counted ``duplicate_<kind>``) for a sensor message seen already (same stream, seq
-        and time); the last ``recent`` keys are remembered."""
-        k = (kind, *key)
-        if k in self._recent_set:
-            self._count(f"duplicate_{kind}")
-            return True
-        if len(self._recent) == self._recent.maxlen:
-            self._recent_set.discard(self._recent[0])
-        self._recent.append(k)
-        self._recent_set.add(k)
-        return False
-
     def _untrusted(self, msg: Beacon) -> bool:
         """Misbehaviour check of a verified beacon; True (counted ``beacon_excluded``) while its
         sender is flagged, in which case the sender is also dropped from the tables."""
@@ -351,34 +260,6 @@ class VehicleEngine:
             tab.remove(other)
         for tr in self.trackers.values():
             tr.forget(other)
-
-    def _imu_in_time(self, msg: ImuBatch) -> bool:
-        """False (counted ``imu_time_jump``) for a batch that jumps ahead of the stream; a jump
-        that ``jump_confirm`` consecutive batches continue is accepted as the new timeline."""
-        t0, t1 = float(msg.t[0]), float(msg.t[-1])
-        if self._imu_newest is None or t0 - self._imu_newest <= self.cfg.max_time_jump:
-            self._imu_newest = t1 if self._imu_newest is None else max(self._imu_newest, t1)
-            self._jump_run = []
-            return True
-        if self._jump_run and 0.0 < t0 - self._jump_run[-1] <= self.cfg.max_time_jump:
-            self._jump_run.append(t1)
-        else:
-            self._jump_run = [t1]
-        if len(self._jump_run) >= self.cfg.jump_confirm:
-            log.warning("%s: IMU time jumped from %.3f to %.3f s; following it", self.cfg.vehicle,
-                        self._imu_newest, t0)
-            self._imu_newest, self._jump_run = t1, []
-            self._count("imu_time_resync")
-            return True
-        self._count("imu_time_jump")
-        return False
-
-    def _ahead(self, t: float, kind: str) -> bool:
-        """True (counted ``<kind>_time_jump``) for a measurement too far ahead of the IMU stream."""
-        if self._imu_newest is not None and t - self._imu_newest > self.cfg.max_time_jump:
-            self._count(f"{kind}_time_jump")
-            return True
-        return False
 
     def _refuse_beacon(self, msg: Beacon) -> str | None:
         """Why a beacon is refused (signature, then freshness against the filter time), or None."""
@@ -568,66 +449,6 @@ class VehicleEngine:
             self._count(f"neighbour_lost_{how}")
             log.info("%s: neighbour %s gone (%s) at t=%.2f", self.cfg.vehicle, other, how, self.lost[other][0])
 
-
-    # ----------------------------------------------------------------- sensor-time timers
-    def _timers(self, t: float) -> None:
-        try:
-            self._run_timers(t)
-        finally:
-            self._timer_due = min((v for v in self._next.values() if v is not None), default=math.inf)
-
-    def _run_timers(self, t: float) -> None:
-        due = self._next
-        if due["decision"] is not None and t >= due["decision"]:
-            due["decision"] += 1.0 / self.cfg.decision_rate
-            self._decide(t)
-        if due["beacon"] is not None and t >= due["beacon"]:
-            due["beacon"] += 1.0 / self.cfg.beacon_rate
-            self._send_beacons(t)
-        if due["estimate"] is not None and t >= due["estimate"]:
-            due["estimate"] += 1.0 / self.cfg.estimate_rate
-            self._send_estimates(t)
-        if due["diag"] is not None and t >= due["diag"]:
-            due["diag"] += 1.0
-            self.outbox.append(self.diagnostics(t))
-
-    def _send_beacons(self, t: float) -> None:
-        self._beacon_seq += 1
-        for m, f in self.filters.items():
-            if f.spec.ranges or f.spec.stop_line:
-                llh, v, cov = f.beacon()
-                self.outbox.append(Beacon(self.cfg.vehicle, self._beacon_seq, m, t, llh, v, cov,
-                                          first_stopped=self.claim(m), sources=f.beacon_sources(),
-                                          constants=f.beacon_constants()))
-                self.counters["beacons_tx"] += 1
-
-    def _send_estimates(self, t: float) -> None:
-        for m, f in self.filters.items():
-            s = f.filter.state
-            # stamped in GNSS time: the IMU's time stamps lag it by the estimated offset
-            self.outbox.append(Estimate(self.cfg.vehicle, m, t + f.time_offset, s.llh.copy(), s.v.copy(),
-                                        quat_to_euler(s.q), f.position_cov, self.claim(m)))
-            self.counters["estimates_tx"] += 1
-
-    def diagnostics(self, t: float) -> Diagnostics:
-        """The counters (flat, ``<part>_<name>``) and the neighbour status at sensor time ``t``."""
-        counters = dict(self.counters)
-        counters.update({f"seq_{k}": v for k, v in self.seq.counters.items()})
-        for m, tab in self.tables.items():
-            counters.update({f"{m}_{k}": v for k, v in tab.counters.items()})
-        for m, f in self.filters.items():
-            counters.update({f"{m}_{k}": v for k, v in f.counters.items()})
-        if self.extra_counters is not None:
-            counters.update(self.extra_counters())
-        mb = self.misbehaviour
-        status = {"t": t, "neighbours": len(set().union(*(tab.vehicles() for tab in self.tables.values()))),
-                  "first_stopped": [m for m in self.trackers if self.claim(m)],
-                  "lost": {v: [lt, how] for v, (lt, how) in self.lost.items()},
-                  "departures": [list(d) for d in self.departures],
-                  "flagged": {v: [ft, why] for v, (ft, why) in mb.flagged.items()} if mb else {}}
-        if mb:
-            counters.update({f"mb_{k}": v for k, v in mb.counters.items()})
-        return Diagnostics(self.cfg.vehicle, t, counters, status)
 
     def _decide(self, t: float) -> None:
         for m, tab in self.tables.items():  # neighbours not heard for the table's timeout are gone

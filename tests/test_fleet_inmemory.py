@@ -107,7 +107,7 @@ def test_a_ranging_round_reaches_the_filters_as_its_single_ranges_would() -> Non
     def sequenced(messages):
         agent = Agent(agent_config(scn, "V1"), InMemoryNetwork().bus())
         agent.engine.filters = {"CP": object()}  # initialised: measurements go to the sequencer
-        agent.engine._imu_newest = 10.0
+        agent.engine.checks.imu_newest = 10.0
         pushed = []
         agent.seq.push = lambda t, kind, msg: pushed.append(
             (t, kind, msg.b if msg.a == "V1" else msg.a, msg.range_m)) or []
