@@ -39,7 +39,6 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     from geo import earth
     from hw_emulation.scenario import load_scenario
     from hw_emulation.truth import build_truth
-    from transport.codec import decode, encode
     from transport.messages import Beacon
 
     from .agent_configs import agent_config
@@ -95,7 +94,23 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
         f.stop_line(lane, stop_id=1.0)
     out["stop_line_update_us"] = _time_us(sl, n(500))
     out.update(_decision_costs(fresh, tr.llh[k], float(tr.t[k]), cfg, rm, n(500)))
-    b = Beacon("V1", 1, "SL-CP", 30.0, tr.llh[k], v, np.eye(3))
+    out.update(_beacon_costs(Beacon("V1", 1, "SL-CP", 30.0, tr.llh[k], v, np.eye(3)), n))
+    # one vehicle running the four methods: 100 Hz IMU steps, 5 Hz GNSS, 10 Hz ranges to 2
+    # neighbours for the two CP methods (the default rule), 1 Hz stop-line fix for the SL methods
+    per_s = (4 * 100 * out["imu_step_us"] + 4 * 5 * out["gnss_update_us"]
+             + 2 * 2 * 10 * out["range_update_source_ci_us"] + 2 * out["stop_line_update_us"])
+    out["four_methods_cpu_share"] = per_s / 1e6
+    return out
+
+
+def _beacon_costs(b, n) -> dict[str, float]:
+    """A beacon's encoding, decoding, signing and verification [µs] and its sizes [bytes]."""
+    import tempfile
+
+    from transport.codec import decode, encode
+    from transport.security import BeaconSigner, TrustStore, create_fleet
+
+    out: dict[str, float] = {}
     payload = encode(b)
     out["beacon_encode_us"] = _time_us(lambda: encode(b), n(5000))
     out["beacon_decode_us"] = _time_us(lambda: decode(payload), n(5000))
@@ -105,10 +120,6 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     out["beacon_bytes_source_ci"] = float(len(encode(dataclasses.replace(
         b, sources=tuple((lab, np.eye(3) / 6.0) for lab in labels)))))
     # signing (ECDSA P-256 / SHA-256 over the canonical encoding) and verifying
-    import tempfile
-
-    from transport.security import BeaconSigner, TrustStore, create_fleet
-
     with tempfile.TemporaryDirectory() as d:
         create_fleet(d, ["V1"])
         signer, store = BeaconSigner.from_file("V1", Path(d) / "V1.key"), TrustStore.from_dir(d)
@@ -116,11 +127,6 @@ def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     out["beacon_sign_us"] = _time_us(lambda: signer.sign(b), n(1000))
     out["beacon_verify_us"] = _time_us(lambda: store.verify(signed), n(1000))
     out["signed_beacon_bytes"] = float(len(encode(signed)))
-    # one vehicle running the four methods: 100 Hz IMU steps, 5 Hz GNSS, 10 Hz ranges to 2
-    # neighbours for the two CP methods (the default rule), 1 Hz stop-line fix for the SL methods
-    per_s = (4 * 100 * out["imu_step_us"] + 4 * 5 * out["gnss_update_us"]
-             + 2 * 2 * 10 * out["range_update_source_ci_us"] + 2 * out["stop_line_update_us"])
-    out["four_methods_cpu_share"] = per_s / 1e6
     return out
 
 

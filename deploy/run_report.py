@@ -40,6 +40,52 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
     ``lane_constraint`` says whether the SL methods kept to the lanes (for the bound).
     With a fault schedule, each fault's window is shaded on the plot and its recovery measured
     (:func:`fault_recovery`)."""
+    est, diags, bad_lines = _read_recording(path)
+    windows = window_bounds(truth)
+    bound = posterior_crlb(truth, tuple(methods), lane_constraint=lane_constraint)
+    scored: dict[tuple[str, str], _Scored] = {}
+    for vid, vt in truth.vehicles.items():
+        with open(out / "estimates" / f"{vid}.csv", "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(ESTIMATE_COLUMNS)
+            for m in methods:
+                scored[(vid, m)] = _score_method(vt, m, sorted(est.get((vid, m), []), key=lambda r: r["t"]), w)
+    series = {k: (sc.t, sc.err) for k, sc in scored.items()}
+    try:
+        from .plots import plot_run_errors, plot_scenario
+
+        plot_run_errors(series, windows, methods, out / "errors.png",
+                        f"{truth.scenario.name}: horizontal error per vehicle and method",
+                        {k: sc.sigma_h for k, sc in scored.items()}, bound, faults=faults)
+        shown = next((m for m in ("SL-CP", "CP", "SL-SP", "SP") if m in methods), None)
+        plot_scenario(truth, out / "map.png", event_times(truth), map_estimates(est, truth, shown), shown)
+    except ImportError:  # pragma: no cover - matplotlib is a dependency
+        log.warning("matplotlib unavailable: no plots")
+    detection: dict = {}
+    for (vid, m), sc in scored.items():
+        if MethodSpec.of(m).stop_line and (sc.claim.any() or sc.truth_first.any()):
+            detection.setdefault(vid, {})[m] = score_first_stopped(sc.t, sc.truth_first, sc.claim, sc.err[:, 0])
+    return {
+        "scenario": truth.scenario.name,
+        "events": event_times(truth),
+        "windows": {k: list(v) for k, v in windows.items()},
+        "faults": [fault_recovery(f, series, sorted(truth.vehicles)) for f in faults or []],
+        "rmse": _window_rows(scored, windows, bound),
+        "first_stopped": detection,
+        "unreadable_lines": bad_lines,
+        "estimates": {f"{v}/{m}": len(sc.t) for (v, m), sc in scored.items()},
+        "diagnostics": diags,
+    }
+
+
+ESTIMATE_COLUMNS = ["time_s", "method", "lat_deg", "lon_deg", "h_m", "vn_mps", "ve_mps", "vd_mps",
+                    "roll_deg", "pitch_deg", "yaw_deg", "sigma_n_m", "sigma_e_m", "cov_ne_m2", "first_stopped",
+                    "err_n_m", "err_e_m", "err_h_m", "err_along_m", "err_cross_m", "nees_h"]
+
+
+def _read_recording(path: Path) -> tuple[dict[tuple[str, str], list[dict]], dict[str, dict], int]:
+    """The recording's estimates per (vehicle, method), the last diagnostics per source, and the
+    number of lines that could not be read (e.g. a line cut short when a recorder was killed)."""
     est: dict[tuple[str, str], list[dict]] = {}
     diags: dict[str, dict] = {}
     bad_lines = 0
@@ -47,111 +93,75 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
         for line in fh:
             try:
                 r = json.loads(line)
-            except json.JSONDecodeError:  # e.g. a line cut short when a recorder was killed
+            except json.JSONDecodeError:
                 bad_lines += 1
                 continue
             if r["type"] == "Estimate":
                 est.setdefault((r["vehicle"], r["method"]), []).append(r)
             elif r["type"] == "Diagnostics":
                 diags[r["source"]] = r["counters"]
-    windows = window_bounds(truth)
-    bound = posterior_crlb(truth, tuple(methods), lane_constraint=lane_constraint)
-    rows: dict = {w: {} for w in windows}
-    series = {}
-    extra = {}
-    standing: dict[tuple[str, str], np.ndarray] = {}
-    sig_h = {}
-    for vid, vt in truth.vehicles.items():
-        tr = vt.truth
-        with open(out / "estimates" / f"{vid}.csv", "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["time_s", "method", "lat_deg", "lon_deg", "h_m", "vn_mps", "ve_mps", "vd_mps",
-                        "roll_deg", "pitch_deg", "yaw_deg", "sigma_n_m", "sigma_e_m", "cov_ne_m2", "first_stopped",
-                        "err_n_m", "err_e_m", "err_h_m", "err_along_m", "err_cross_m", "nees_h"])
-            for m in methods:
-                recs = sorted(est.get((vid, m), []), key=lambda r: r["t"])
-                ts, eh, nees, claim, truth_first, stands = [], [], [], [], [], []
-                for r in recs:
-                    k = min(int(np.searchsorted(tr.t, r["t"] - 1e-9)), len(tr.t) - 1)
-                    e = earth.ned_offset(*r["llh"], *tr.llh[k])
-                    yaw = tr.euler[k, 2]
-                    along = e[0] * math.cos(yaw) + e[1] * math.sin(yaw)
-                    cross = -e[0] * math.sin(yaw) + e[1] * math.cos(yaw)
-                    cov = np.array(r["cov_pos"])
-                    try:
-                        q = float(e[:2] @ np.linalg.solve(cov[:2, :2], e[:2]))
-                    except np.linalg.LinAlgError:
-                        q = math.inf
-                    w.writerow(
-                        [
-                            f"{r['t']:.3f}",
-                            m,
-                            f"{math.degrees(r['llh'][0]):.9f}",
-                            f"{math.degrees(r['llh'][1]):.9f}",
-                            f"{r['llh'][2]:.3f}",
-                            *(f"{x:.3f}" for x in r["v_ned"]),
-                            *(f"{math.degrees(x):.3f}" for x in r["rpy"]),
-                            f"{math.sqrt(cov[0][0]):.3f}",
-                            f"{math.sqrt(cov[1][1]):.3f}",
-                            f"{cov[0][1]:.4f}",
-                            int(r["first_stopped"]),
-                            f"{e[0]:.3f}",
-                            f"{e[1]:.3f}",
-                            f"{math.hypot(e[0], e[1]):.3f}",
-                            f"{along:.3f}",
-                            f"{cross:.3f}",
-                            f"{q:.4f}",
-                        ]
-                    )
-                    ts.append(r["t"])
-                    eh.append((math.hypot(e[0], e[1]), along, cross))
-                    nees.append(q)
-                    claim.append(bool(r["first_stopped"]))
-                    truth_first.append(bool(vt.first_stopped[k]))
-                    stands.append(bool(vt.stopped[k]))
-                series[(vid, m)] = (np.array(ts), np.array(eh).reshape(-1, 3))
-                extra[(vid, m)] = (np.array(nees), np.array(claim, bool), np.array(truth_first, bool))
-                standing[(vid, m)] = np.array(stands, bool)
-                sig_h[(vid, m)] = np.sqrt([r["cov_pos"][0][0] + r["cov_pos"][1][1] for r in recs])
-    try:
-        from .plots import plot_run_errors, plot_scenario
+    return est, diags, bad_lines
 
-        plot_run_errors(series, windows, methods, out / "errors.png",
-                        f"{truth.scenario.name}: horizontal error per vehicle and method", sig_h, bound,
-                        faults=faults)
-        shown = next((m for m in ("SL-CP", "CP", "SL-SP", "SP") if m in methods), None)
-        plot_scenario(truth, out / "map.png", event_times(truth), map_estimates(est, truth, shown), shown)
-    except ImportError:  # pragma: no cover - matplotlib is a dependency
-        log.warning("matplotlib unavailable: no plots")
-    for (vid, m), (ts, eh) in series.items():
-        # the scenario's windows, then the vehicle's own: the times it truly stands still
-        masks = [(wname, (ts >= a) & (ts <= b)) for wname, (a, b) in windows.items()]
-        for wname, sel in masks + [(STANDING_WINDOW, standing[(vid, m)])]:
+
+class _Scored:
+    """One vehicle and method's estimates against the truth, at the estimates' times."""
+
+    def __init__(self, t, err, nees, claim, truth_first, standing, sigma_h) -> None:
+        self.t = np.array(t)
+        self.err = np.array(err).reshape(-1, 3)  #: horizontal, along-track, cross-track [m]
+        self.nees = np.array(nees)
+        self.claim = np.array(claim, bool)
+        self.truth_first = np.array(truth_first, bool)
+        self.standing = np.array(standing, bool)
+        self.sigma_h = np.asarray(sigma_h, float)
+
+
+def _score_method(vt, m: str, recs: list[dict], w) -> _Scored:
+    """Score one method's estimates of vehicle ``vt``, writing a CSV row for each to ``w``."""
+    tr = vt.truth
+    ts, eh, nees, claim, truth_first, stands = [], [], [], [], [], []
+    for r in recs:
+        k = min(int(np.searchsorted(tr.t, r["t"] - 1e-9)), len(tr.t) - 1)
+        e = earth.ned_offset(*r["llh"], *tr.llh[k])
+        yaw = tr.euler[k, 2]
+        along = e[0] * math.cos(yaw) + e[1] * math.sin(yaw)
+        cross = -e[0] * math.sin(yaw) + e[1] * math.cos(yaw)
+        cov = np.array(r["cov_pos"])
+        try:
+            q = float(e[:2] @ np.linalg.solve(cov[:2, :2], e[:2]))
+        except np.linalg.LinAlgError:
+            q = math.inf
+        w.writerow([f"{r['t']:.3f}", m, f"{math.degrees(r['llh'][0]):.9f}", f"{math.degrees(r['llh'][1]):.9f}",
+                    f"{r['llh'][2]:.3f}", *(f"{x:.3f}" for x in r["v_ned"]),
+                    *(f"{math.degrees(x):.3f}" for x in r["rpy"]), f"{math.sqrt(cov[0][0]):.3f}",
+                    f"{math.sqrt(cov[1][1]):.3f}", f"{cov[0][1]:.4f}", int(r["first_stopped"]), f"{e[0]:.3f}",
+                    f"{e[1]:.3f}", f"{math.hypot(e[0], e[1]):.3f}", f"{along:.3f}", f"{cross:.3f}", f"{q:.4f}"])
+        ts.append(r["t"])
+        eh.append((math.hypot(e[0], e[1]), along, cross))
+        nees.append(q)
+        claim.append(bool(r["first_stopped"]))
+        truth_first.append(bool(vt.first_stopped[k]))
+        stands.append(bool(vt.stopped[k]))
+    sigma_h = np.sqrt([r["cov_pos"][0][0] + r["cov_pos"][1][1] for r in recs])
+    return _Scored(ts, eh, nees, claim, truth_first, stands, sigma_h)
+
+
+def _window_rows(scored: dict[tuple[str, str], _Scored], windows: dict, bound) -> dict:
+    """Window -> vehicle -> method -> RMSE (horizontal, along, cross), NEES and the bound: the
+    scenario's windows, then each vehicle's own, the times it truly stands still."""
+    rows: dict = {w: {} for w in windows}
+    for (vid, m), sc in scored.items():
+        masks = [(wname, (sc.t >= a) & (sc.t <= b)) for wname, (a, b) in windows.items()]
+        for wname, sel in masks + [(STANDING_WINDOW, sc.standing)]:
             if sel.any():
-                rms = np.sqrt(np.mean(eh[sel] ** 2, axis=0))
-                nees = extra[(vid, m)][0][sel]
-                lim = bound.at(m, vid, ts[sel])
+                rms = np.sqrt(np.mean(sc.err[sel] ** 2, axis=0))
+                lim = bound.at(m, vid, sc.t[sel])
                 rows.setdefault(wname, {}).setdefault(vid, {})[m] = {
                     "rmse_m": float(rms[0]), "along_rmse_m": float(rms[1]), "cross_rmse_m": float(rms[2]),
-                    "n": int(sel.sum()), "nees_h": float(np.mean(nees)), "bound_rms_m": float(np.sqrt(np.mean(lim**2))),
-                    "sigma_below_bound": float(np.mean(sig_h[(vid, m)][sel] < lim * 0.99))}
-    detection = {}
-    for (vid, m), (_nees, claim, truth_first) in extra.items():
-        if MethodSpec.of(m).stop_line and (claim.any() or truth_first.any()):
-            detection.setdefault(vid, {})[m] = score_first_stopped(series[(vid, m)][0], truth_first, claim,
-                                                                   series[(vid, m)][1][:, 0])
-    fault_rows = [fault_recovery(f, series, sorted(truth.vehicles)) for f in faults or []]
-    return {
-        "scenario": truth.scenario.name,
-        "events": event_times(truth),
-        "windows": {k: list(v) for k, v in windows.items()},
-        "faults": fault_rows,
-        "rmse": rows,
-        "first_stopped": detection,
-        "unreadable_lines": bad_lines,
-        "estimates": {f"{v}/{m}": len(s[0]) for (v, m), s in series.items()},
-        "diagnostics": diags,
-    }
+                    "n": int(sel.sum()), "nees_h": float(np.mean(sc.nees[sel])),
+                    "bound_rms_m": float(np.sqrt(np.mean(lim**2))),
+                    "sigma_below_bound": float(np.mean(sc.sigma_h[sel] < lim * 0.99))}
+    return rows
 
 
 def fault_recovery(fault, series: dict, vehicles: list[str], before: float = 5.0) -> dict:
@@ -199,6 +209,15 @@ def report_markdown(scn, metrics: dict) -> str:
         "(an unbiased filter whose σ is below the bound is overconfident).",
         "",
     ]
+    lines += _md_rmse(scn, metrics) + _md_detection(metrics) + _md_faults(metrics) + _md_restarts(metrics)
+    lines += ["## Events", "", ", ".join(f"{k} = {v:.1f} s" for k, v in metrics["events"].items()), "",
+              "![errors](errors.png)", "", "![map](map.png)", ""]
+    return "\n".join(lines)
+
+
+def _md_rmse(scn, metrics: dict) -> list[str]:
+    """The RMSE tables, one per window."""
+    lines: list[str] = []
     for w, table in metrics["rmse"].items():
         lines += [f"## {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 1) + "|"]
         for vid, cells in sorted(table.items()):
@@ -219,6 +238,12 @@ def report_markdown(scn, metrics: dict) -> str:
                     )
             lines.append(f"| {vid} | " + " | ".join(row) + " |")
         lines.append("")
+    return lines
+
+
+def _md_detection(metrics: dict) -> list[str]:
+    """First-stopped detection against the truth."""
+    lines: list[str] = []
     det = metrics.get("first_stopped", {})
     if det:
         lines += ["## First-stopped detection", "",
@@ -238,6 +263,12 @@ def report_markdown(scn, metrics: dict) -> str:
                     f"{f(d.get('sl_rmse_truth_first_m'), '{:.2f}')} / {f(d.get('sl_rmse_claimed_m'), '{:.2f}')} |"
                 )
         lines.append("")
+    return lines
+
+
+def _md_faults(metrics: dict) -> list[str]:
+    """Each fault's effect on the affected vehicles."""
+    lines: list[str] = []
     if metrics.get("faults"):
         lines += ["## Faults", "", "Error of each affected vehicle: mean over 5 s before the fault, maximum until 10 s "
                   "after it, and the time from its end until the error, past that maximum, is back within "
@@ -252,6 +283,12 @@ def report_markdown(scn, metrics: dict) -> str:
                     lines.append(f"| {f['kind']} ({who}) | {f['start_s']:.1f}–{f['end_s']:.1f} | {vid} | {m} | "
                                  f"{e['before_m']:.2f} | {e['max_m']:.2f} | {rec} |")
         lines.append("")
+    return lines
+
+
+def _md_restarts(metrics: dict) -> list[str]:
+    """The processes that were restarted."""
+    lines: list[str] = []
     restarts = metrics.get("processes", {}).get("restarts", [])
     if restarts:
         lines += [
@@ -264,9 +301,7 @@ def report_markdown(scn, metrics: dict) -> str:
             rj = "never" if r["rejoined_after_s"] is None else f"{r['rejoined_after_s']:.2f}"
             lines.append(f"| {r['process']} | {r['exit_code']} | {r['at_s']:.1f} | {rj} |")
         lines.append("")
-    lines += ["## Events", "", ", ".join(f"{k} = {v:.1f} s" for k, v in metrics["events"].items()), "",
-              "![errors](errors.png)", "", "![map](map.png)", ""]
-    return "\n".join(lines)
+    return lines
 
 
 def map_estimates(est: dict, truth, method: str | None) -> dict:

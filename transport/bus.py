@@ -13,7 +13,7 @@ import asyncio
 import heapq
 import itertools
 from collections import defaultdict, deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Protocol
 
 from .keys import matches
@@ -21,6 +21,11 @@ from .keys import matches
 #: arrival stamps shared by every subscription of the process (``next`` is atomic in CPython), so
 #: that a consumer of several queues can take their items in the order they arrived
 _arrival = itertools.count()
+
+#: ``callback(key, payload)`` of :meth:`Bus.tap` (its return value is ignored)
+TapCallback = Callable[[str, bytes], object]
+#: ``callback(key, alive)`` of :meth:`Bus.watch_alive` (its return value is ignored)
+AliveCallback = Callable[[str, bool], object]
 
 
 class Waker:
@@ -146,11 +151,11 @@ class Bus(Protocol):
 
     def declare_alive(self, key: str) -> None: ...
 
-    def tap(self, expr: str, callback) -> None:
+    def tap(self, expr: str, callback: TapCallback) -> None:
         """``callback(key, payload)`` at arrival, on the transport's own thread (for measurements:
         it must be quick and thread-safe)."""
 
-    def watch_alive(self, expr: str, callback) -> None: ...
+    def watch_alive(self, expr: str, callback: AliveCallback) -> None: ...
 
     async def close(self) -> None: ...
 
@@ -161,7 +166,7 @@ class InMemoryNetwork:
     def __init__(self) -> None:
         self.buses: list[InMemoryBus] = []
         self.alive: set[str] = set()
-        self.watchers: list[tuple[str, object]] = []
+        self.watchers: list[tuple[str, AliveCallback]] = []
 
     def bus(self) -> InMemoryBus:
         b = InMemoryBus(self)
@@ -176,8 +181,8 @@ class InMemoryBus:
         self.network = network
         self.subs: list[Subscription] = []
         self.tokens: list[str] = []
-        self.published = defaultdict(int)
-        self.taps: list[tuple[str, object]] = []
+        self.published: defaultdict[str, int] = defaultdict(int)
+        self.taps: list[tuple[str, TapCallback]] = []
 
     async def publish(self, key: str, payload: bytes) -> None:
         self.published[key] += 1
@@ -195,7 +200,7 @@ class InMemoryBus:
         self.subs.append(sub)
         return sub
 
-    def tap(self, expr: str, callback) -> None:
+    def tap(self, expr: str, callback: TapCallback) -> None:
         self.taps.append((expr, callback))
 
     def declare_alive(self, key: str) -> None:
@@ -205,7 +210,7 @@ class InMemoryBus:
             if matches(expr, key):
                 cb(key, True)
 
-    def watch_alive(self, expr: str, callback) -> None:
+    def watch_alive(self, expr: str, callback: AliveCallback) -> None:
         self.network.watchers.append((expr, callback))
         for key in sorted(self.network.alive):
             if matches(expr, key):

@@ -9,8 +9,9 @@ arrays are raw little-endian float64 bytes (``bin``) of the field's fixed or lea
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import MISSING, fields
-from typing import Any
+from typing import Any, cast
 
 import msgpack
 import numpy as np
@@ -24,8 +25,13 @@ MAX_STR = 64  #: max length of ids and method names
 MAX_SOURCES = 64  #: max components of a beacon's covariance by source, and labels per component
 _TYPE_NAME = {cls: name for name, cls in MESSAGE_TYPES.items()}
 
+#: an array field's shape: fixed, or a leading dimension n (None) and fixed inner dimensions
+_Shape = tuple[int, ...] | tuple[None, *tuple[int, ...]]
+#: a scalar field's validator: ``check(type name, field name, value)`` -> the checked value
+_Validator = Callable[[str, str, Any], object]
+
 #: per-type array fields and their shapes; None = leading dimension n (shared within the message)
-_ARRAYS: dict[str, dict[str, tuple]] = {
+_ARRAYS: dict[str, dict[str, _Shape]] = {
     "imu": {"t": (None,), "dt": (None,), "dtheta": (None, 3), "dvel": (None, 3)},
     "gnss": {"llh": (3,), "v_ned": (3,), "sigma_ned": (3,)},
     "lane": {},
@@ -64,7 +70,8 @@ def encode(msg: Message) -> bytes:
             out[f.name] = val.item()
         else:
             out[f.name] = val
-    return msgpack.packb(out, use_bin_type=True)
+    packed: bytes = msgpack.packb(out, use_bin_type=True)
+    return packed
 
 
 def _check_str(name: str, fname: str, val: Any) -> str:
@@ -97,14 +104,14 @@ def _check_bool(name: str, fname: str, val: Any) -> bool:
     return val
 
 
-def _check_counters(name: str, fname: str, val: Any) -> dict:
+def _check_counters(name: str, fname: str, val: Any) -> dict[str, int]:
     if not isinstance(val, dict) or not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
                                              for k, v in val.items()):
         raise CodecError(f"{name}.counters: must map strings to integers")
     return val
 
 
-def _check_status(name: str, fname: str, val: Any) -> dict:
+def _check_status(name: str, fname: str, val: Any) -> dict[str, Any]:
     if not isinstance(val, dict) or not all(isinstance(k, str) for k in val):
         raise CodecError(f"{name}.status: must be a map with string keys")
     return val
@@ -141,7 +148,7 @@ def _check_labels(name: str, labels: Any) -> tuple[str, ...]:
     return key
 
 
-def _check_sources(name: str, fname: str, val: Any) -> tuple:
+def _check_sources(name: str, fname: str, val: Any) -> tuple[tuple[tuple[str, ...], np.ndarray], ...]:
     if not isinstance(val, (list, tuple)) or len(val) > MAX_SOURCES:
         raise CodecError(f"{name}.sources: must be a list of at most {MAX_SOURCES} components")
     out: list[tuple[str, ...]] = []
@@ -166,10 +173,10 @@ def _check_sources(name: str, fname: str, val: Any) -> tuple:
     return tuple(zip(out, f.reshape(-1, 3, 3)))
 
 
-def _check_constants(name: str, fname: str, val: Any) -> tuple:
+def _check_constants(name: str, fname: str, val: Any) -> tuple[tuple[str, np.ndarray], ...]:
     if not isinstance(val, (list, tuple)) or len(val) > MAX_SOURCES:
         raise CodecError(f"{name}.constants: must be a list of at most {MAX_SOURCES} entries")
-    out = []
+    out: list[tuple[str, np.ndarray]] = []
     for item in val:
         if not isinstance(item, (list, tuple)) or len(item) != 2:
             raise CodecError(f"{name}.constants: each entry must be [name, sensitivity]")
@@ -185,7 +192,7 @@ def _check_constants(name: str, fname: str, val: Any) -> tuple:
     return tuple(out)
 
 
-_VALIDATORS = {
+_VALIDATORS: dict[str, _Validator] = {
     "auth": _check_auth,
     "sources": _check_sources,
     "constants": _check_constants,
@@ -196,7 +203,7 @@ _VALIDATORS = {
 }
 
 
-def _validator(fname: str):
+def _validator(fname: str) -> _Validator:
     if fname in _STRINGS:
         return _check_str
     if fname in _INTS:
@@ -208,9 +215,10 @@ def _validator(fname: str):
 
 #: per type: the class, its fields as (name, required, array shape or None, scalar validator),
 #: and the set of allowed keys; built once (dataclasses.fields() per message is slow)
-_SCHEMA: dict[str, tuple[type, tuple, frozenset]] = {}
+_Row = tuple[str, bool, _Shape | None, _Validator | None]
+_SCHEMA: dict[str, tuple[type[Message], tuple[_Row, ...], frozenset[str]]] = {}
 for _name, _cls in MESSAGE_TYPES.items():
-    _rows = []
+    _rows: list[_Row] = []
     for _f in fields(_cls):
         _required = _f.default is MISSING and _f.default_factory is MISSING
         _shape = _ARRAYS[_name].get(_f.name)
@@ -234,8 +242,7 @@ def decode(payload: bytes) -> Message:
     if obj.get("v") != SCHEMA_VERSION:
         raise CodecError(f"schema version {obj.get('v')!r}, expected {SCHEMA_VERSION}")
     name = obj.get("type")
-    schema = _SCHEMA.get(name) if isinstance(name, str) else None
-    if schema is None:
+    if not isinstance(name, str) or (schema := _SCHEMA.get(name)) is None:
         raise CodecError(f"unknown message type {name!r}")
     cls, rows, allowed = schema
     if not allowed.issuperset(obj):
@@ -250,13 +257,13 @@ def decode(payload: bytes) -> Message:
         if shape is not None:
             kwargs[fname], n_lead = _array(name, fname, obj[fname], shape, n_lead)
         else:
-            kwargs[fname] = check(name, fname, obj[fname])
+            kwargs[fname] = cast("_Validator", check)(name, fname, obj[fname])  # a scalar field has one
     if name == "uwb_round" and len(kwargs["peers"]) != len(kwargs["ranges"]):
         raise CodecError(f"uwb_round: {len(kwargs['peers'])} peers but {len(kwargs['ranges'])} ranges")
     return cls(**kwargs)
 
 
-def _array(name: str, fname: str, val: Any, shape: tuple, n_lead: int | None) -> tuple[np.ndarray, int | None]:
+def _array(name: str, fname: str, val: Any, shape: _Shape, n_lead: int | None) -> tuple[np.ndarray, int | None]:
     if not isinstance(val, bytes) or len(val) % 8:
         raise CodecError(f"{name}.{fname}: must be float64 bytes")
     arr = np.frombuffer(val, dtype="<f8").astype(float)

@@ -31,7 +31,9 @@ import hashlib
 import ipaddress
 import logging
 import os
+from collections.abc import Iterable
 from pathlib import Path
+from typing import cast
 
 from cryptography import x509
 from cryptography.exceptions import InvalidSignature
@@ -112,7 +114,7 @@ class TrustStore:
         valid CN or not on P-256 is refused with :class:`SecurityError`.
     """
 
-    def __init__(self, ca_cert: x509.Certificate, certificates) -> None:
+    def __init__(self, ca_cert: x509.Certificate, certificates: Iterable[x509.Certificate]) -> None:
         self.ca = ca_cert
         self._keys: dict[bytes, tuple[str, ec.EllipticCurvePublicKey]] = {}
         self.roles: dict[str, str] = {}  #: every valid identity (CN) -> role
@@ -199,9 +201,9 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
     written: list[Path] = []
     if overwrite or not (d / "ca.crt").exists():
         ca_key = ec.generate_private_key(_CURVE)
-        name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "slcp fleet CA")])
+        ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "slcp fleet CA")])
         ca_cert = (
-            _builder(name, name, ca_key.public_key(), days)
+            _builder(ca_name, ca_name, ca_key.public_key(), days)
             .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
             .add_extension(x509.KeyUsage(False, False, False, False, False, True, True, False, False), critical=True)
             .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
@@ -220,12 +222,13 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
         subject = x509.Name([x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, role),
                              x509.NameAttribute(NameOID.COMMON_NAME, name)])
         # key identifiers: RFC 5280 asks for them, and path validators of the web-PKI profile
-        # refuse a leaf without the authority's
+        # refuse a leaf without the authority's (the fleet CA's key is P-256, a key that can issue)
+        ca_public_key = cast(ec.EllipticCurvePublicKey, ca_cert.public_key())
         b = (_builder(subject, ca_cert.subject, key.public_key(), days)
              .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-             .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_cert.public_key()), critical=False)
+             .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_public_key), critical=False)
              .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False))
-        alt = [x509.DNSName(name)]
+        alt: list[x509.GeneralName] = [x509.DNSName(name)]
         for h in sans:
             try:
                 alt.append(x509.IPAddress(ipaddress.ip_address(h)))
@@ -236,7 +239,8 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
     return written
 
 
-def _builder(subject: x509.Name, issuer: x509.Name, public_key, days: int) -> x509.CertificateBuilder:
+def _builder(subject: x509.Name, issuer: x509.Name, public_key: ec.EllipticCurvePublicKey,
+             days: int) -> x509.CertificateBuilder:
     now = _dt.datetime.now(_dt.UTC)
     return (x509.CertificateBuilder().subject_name(subject).issuer_name(issuer).public_key(public_key)
             .serial_number(x509.random_serial_number())

@@ -16,10 +16,11 @@ import logging
 import os
 import re
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import zenoh
 
-from .bus import Subscription, Waker
+from .bus import AliveCallback, Subscription, TapCallback, Waker
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +74,7 @@ class ZenohConfig:
     lease_ms: int = 2000
     autoconnect_strategy: str = "greater-zid"
     config_file: str | None = None
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
 
     def to_zenoh(self) -> zenoh.Config:
         if self.mode not in ("peer", "client", "router"):
@@ -97,6 +98,12 @@ class ZenohConfig:
         return conf
 
 
+class _Undeclarable(Protocol):
+    """A publisher, subscriber or liveliness token: what :meth:`ZenohBus.close` undeclares."""
+
+    def undeclare(self) -> object: ...
+
+
 class ZenohBus:
     """Bus over a Zenoh session. Create inside a running event loop."""
 
@@ -116,10 +123,10 @@ class ZenohBus:
                 raise
             raise RuntimeError(f"Zenoh could not start (is ZENOH_RUNTIME={os.environ.get('ZENOH_RUNTIME')!r} "
                                f"valid?): {str(e)[:300]}") from None
-        self._publishers: dict[str, object] = {}
-        self._subscribers: list[object] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._subscribers: list[zenoh.Subscriber[None]] = []
         self._subs: list[Subscription] = []
-        self._tokens: list[object] = []
+        self._tokens: list[zenoh.LivelinessToken] = []
         self._closed = False
 
     def connected(self) -> bool:
@@ -141,17 +148,17 @@ class ZenohBus:
                   waker: Waker | None = None) -> Subscription:
         sub = Subscription(expr, maxsize, self.loop, wake, waker)
 
-        def on_sample(sample) -> None:  # zenoh thread: copy, queue, wake the loop at most once
+        def on_sample(sample: zenoh.Sample) -> None:  # zenoh thread: copy, queue, wake the loop at most once
             sub.offer(str(sample.key_expr), sample.payload.to_bytes(), threadsafe=True)
 
         self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
         self._subs.append(sub)
         return sub
 
-    def tap(self, expr: str, callback) -> None:
+    def tap(self, expr: str, callback: TapCallback) -> None:
         """``callback(key, payload)`` in Zenoh's thread at arrival (quick and thread-safe only)."""
 
-        def on_sample(sample) -> None:
+        def on_sample(sample: zenoh.Sample) -> None:
             callback(str(sample.key_expr), sample.payload.to_bytes())
 
         self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
@@ -159,11 +166,11 @@ class ZenohBus:
     def declare_alive(self, key: str) -> None:
         self._tokens.append(self.session.liveliness().declare_token(key))
 
-    def watch_alive(self, expr: str, callback) -> None:
+    def watch_alive(self, expr: str, callback: AliveCallback) -> None:
         """``callback(key, alive: bool)`` on the event loop for tokens matching ``expr``."""
         loop = self.loop
 
-        def on_sample(sample) -> None:
+        def on_sample(sample: zenoh.Sample) -> None:
             alive = sample.kind == zenoh.SampleKind.PUT
             try:
                 loop.call_soon_threadsafe(callback, str(sample.key_expr), alive)
@@ -178,9 +185,10 @@ class ZenohBus:
         self._closed = True
         for sub in self._subs:
             sub.closed = True
-        for obj in self._tokens + self._subscribers + list(self._publishers.values()):
+        entities: list[_Undeclarable] = [*self._tokens, *self._subscribers, *self._publishers.values()]
+        for obj in entities:
             try:
                 obj.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
-        self.session.close()
+        self.session.close()  # type: ignore[no-untyped-call]  # zenoh's stub leaves Session.close unannotated

@@ -25,6 +25,8 @@ Pure numpy/scipy; no I/O.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 
@@ -48,7 +50,7 @@ def _scalar_terms(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray,
             float(Rd[0, 0]), float(Ri[0, 0]))
 
 
-def _scalar_trace_fn(terms: tuple[float, ...]):
+def _scalar_trace_fn(terms: tuple[float, ...]) -> Callable[[float], float]:
     """The posterior ``idx`` variance as a function of ω for a scalar measurement (see
     :func:`_trace_fn`), from :func:`_scalar_terms`."""
     tr_d, tr_i, aa, ab, bb, ha, hb, rd, ri = terms
@@ -59,7 +61,8 @@ def _scalar_trace_fn(terms: tuple[float, ...]):
     return f
 
 
-def _trace_fn(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri: np.ndarray, idx: np.ndarray):
+def _trace_fn(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri: np.ndarray,
+              idx: np.ndarray) -> Callable[[float], float]:
     """The posterior variance over the states ``idx`` as a function of ω, precomputed.
 
     With a = P_d Hᵀ and b = P_i Hᵀ: P₁Hᵀ = a/ω + b, H P₁ Hᵀ = H a/ω + H b, and the posterior
@@ -144,7 +147,7 @@ def best_omega(Pd: np.ndarray, Pi: np.ndarray, H: np.ndarray, Rd: np.ndarray, Ri
     return _best(Pd, Rd, _trace_fn(Pd, Pi, H, Rd, Ri, idx))
 
 
-def fminbound(f, lo: float, hi: float, xatol: float = 1e-5, maxfun: int = 500) -> float:
+def fminbound(f: Callable[[float], float], lo: float, hi: float, xatol: float = 1e-5, maxfun: int = 500) -> float:
     """Minimiser of a scalar function on ``[lo, hi]`` by Brent's method (golden section with
     parabolic interpolation), step for step as ``scipy.optimize.minimize_scalar(method="bounded")``
     (the tests check both agree). Written out so that an agent does not import
@@ -212,7 +215,7 @@ def fminbound(f, lo: float, hi: float, xatol: float = 1e-5, maxfun: int = 500) -
     return xf
 
 
-def _best(Pd: np.ndarray, Rd: np.ndarray, f) -> float:
+def _best(Pd: np.ndarray, Rd: np.ndarray, f: Callable[[float], float]) -> float:
     if not np.any(Rd):
         return OMEGA_MAX  # nothing dependent on the measurement side: keep the prior whole
     if not np.any(Pd):
@@ -291,6 +294,6 @@ def split_ci_update(P: np.ndarray, P_ind: np.ndarray, meas: Measurement, R_dep: 
     dx, P_post, res = kalman_update(P1, Measurement(meas.z, meas.H, R1, meas.name), gate_probability)
     if not res.accepted:
         return dx, P, P_ind, UpdateResult(dx, res.nis, res.dof, False, res.name, None, omega)
-    K = res.gain
+    K = cast(np.ndarray, res.gain)  # an accepted update carries its gain
     P_ind_post = joseph(P_ind, K, meas.H, meas.R)
     return dx, P_post, P_ind_post, UpdateResult(dx, res.nis, res.dof, True, res.name, K, omega)

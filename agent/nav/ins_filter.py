@@ -9,7 +9,9 @@ fed back into the nominal state and reset to zero (closed loop).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -77,7 +79,7 @@ class InsFilter:
         scale_factors: tuple[float, float, float] | None = None,
     ) -> None:
         P = np.array(P, float)
-        specs = []
+        specs: list[tuple[float, ...]] = []
         if scale_factors is not None:
             sa, sg, tau = scale_factors
             specs += [(0.0, sa, 2 * sa * sa / tau, tau)] * 3 + [(0.0, sg, 2 * sg * sg / tau, tau)] * 3
@@ -178,18 +180,17 @@ class InsFilter:
             self.sources.add(frozenset({COMMON_MODE}), np.array(common_mode, float))
 
     # ------------------------------------------------------------------ propagation
-    def propagate(self, dtheta, dvel, dt: float) -> None:
+    def propagate(self, dtheta: np.ndarray | Sequence[float], dvel: np.ndarray | Sequence[float], dt: float) -> None:
         """Integrate one IMU interval of raw increments lasting ``dt`` s.
 
         ``dtheta`` [rad] and ``dvel`` [m/s] are 3-sequences (body FRD): arrays, lists or tuples.
         """
-        if isinstance(dtheta, np.ndarray):
-            dtheta = dtheta.tolist()
-        if isinstance(dvel, np.ndarray):
-            dvel = dvel.tolist()
-        self.propagate_run((dtheta,), (dvel,), (float(dt),))
+        th = dtheta.tolist() if isinstance(dtheta, np.ndarray) else dtheta
+        dv = dvel.tolist() if isinstance(dvel, np.ndarray) else dvel
+        self.propagate_run((th,), (dv,), (float(dt),))
 
-    def propagate_run(self, dtheta, dvel, dt) -> None:
+    def propagate_run(self, dtheta: Sequence[Sequence[float]], dvel: Sequence[Sequence[float]],
+                      dt: Sequence[float]) -> None:
         """Integrate ``n`` consecutive IMU intervals: the same as ``n`` calls of
         :meth:`propagate` (to rounding), at a fraction of the cost.
 
@@ -304,10 +305,11 @@ class InsFilter:
         meas = self._prepare(meas)
         dx, P, result = kalman_update(self.P, meas, gate_probability, self.consider)
         if result.accepted:
+            gain = cast(np.ndarray, result.gain)  # an accepted update carries its gain
             if self.P_ind is not None:  # an own-sensor measurement: independent information
-                self.P_ind = joseph(self.P_ind, result.gain, meas.H, meas.R)
+                self.P_ind = joseph(self.P_ind, gain, meas.H, meas.R)
             if self.sources is not None:  # the same: its noise is the own component's
-                self.sources.transform(result.gain, meas.H)
+                self.sources.transform(gain, meas.H)
             self._feedback(dx)
             self.P = P
         self.stats.count(result)
@@ -342,7 +344,7 @@ class InsFilter:
 
     def update_source_ci(self, meas: Measurement, parts: list[SourcePart], noise_labels: frozenset[str],
                          gate_probability: float | None = None, min_gain: float = 0.0,
-                         constants: list[tuple[str, float]] | tuple = (),
+                         constants: Sequence[tuple[str, float]] = (),
                          velocity_horizon: float = 0.0) -> UpdateResult:
         """Source-CI update (:mod:`agent.nav.source_fusion`) with closed-loop feedback.
 
@@ -463,13 +465,15 @@ class InsFilter:
     def position_cov(self) -> np.ndarray:
         """NED position error covariance, shape (3, 3) [m²]."""
         self.flush_covariance()
-        return self.P[POS, POS].copy()
+        cov: np.ndarray = self.P[POS, POS].copy()
+        return cov
 
     @property
     def velocity_cov(self) -> np.ndarray:
         """NED velocity error covariance, shape (3, 3) [m²/s²]."""
         self.flush_covariance()
-        return self.P[VEL, VEL].copy()
+        cov: np.ndarray = self.P[VEL, VEL].copy()
+        return cov
 
 
 _HORIZONTAL = np.array([POS.start, POS.start + 1])

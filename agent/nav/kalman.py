@@ -168,4 +168,5 @@ def joseph(P: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.nda
     IKH = -(K @ H)
     IKH.flat[:: P.shape[0] + 1] += 1.0
     P_post = IKH @ P @ IKH.T + K @ R @ K.T
-    return 0.5 * (P_post + P_post.T)
+    P_sym: np.ndarray = 0.5 * (P_post + P_post.T)
+    return P_sym

@@ -46,13 +46,14 @@ class StationaryDetector:
         mean = (c1[idx] - c1[lo]) / cnt
         var = np.maximum((c2[idx] - c2[lo]) / cnt - mean * mean, 0.0)
         gmean = (cw[idx] - cw[lo]) / cnt
-        out = (np.sqrt(var) < self.accel_std) & (gmean < self.gyro_mean)
+        out: np.ndarray = (np.sqrt(var) < self.accel_std) & (gmean < self.gyro_mean)
         out[: w - 1] = False  # not enough history yet
         return out
 
     def window_mean_gyro(self, gyro: np.ndarray, k: int) -> np.ndarray:
         """Mean angular rate over the trailing window ending at sample ``k``, shape (3,)."""
-        return gyro[max(0, k - self.window + 1): k + 1].mean(axis=0)
+        mean: np.ndarray = gyro[max(0, k - self.window + 1): k + 1].mean(axis=0)
+        return mean
 
 
 class StationarityMonitor:

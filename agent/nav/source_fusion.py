@@ -57,9 +57,11 @@ from __future__ import annotations
 
 import bisect
 import math
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .fusion import OMEGA_MAX, OMEGA_MIN, fminbound
 from .kalman import Measurement, UpdateResult, chi2_gate
@@ -84,6 +86,11 @@ CONSTANT_MARK = "~"
 def overlaps(a: frozenset[str], b: frozenset[str]) -> bool:
     """Whether two label sets may share a source (:data:`ANY` shares with all)."""
     return bool(a & b) or (ANY in a and bool(b)) or (ANY in b and bool(a))
+
+
+#: a group of shared sources in an update: (indices of my components, 0 the own one; indices of
+#: the measurement's parts; the measurement side's variance b)
+_DepGroup = tuple[list[int], list[int], float]
 
 
 class SourcePart(NamedTuple):
@@ -129,7 +136,7 @@ class SourceSplit:
     the choice of the weights needs only a few rows of ``A``.
     """
 
-    def __init__(self, me: str, n: int, unshared=(), shared_process=()) -> None:
+    def __init__(self, me: str, n: int, unshared: ArrayLike = (), shared_process: ArrayLike = ()) -> None:
         self.n = n
         self.own_labels: frozenset[str] = frozenset({me})
         self.labels: list[frozenset[str]] = []
@@ -141,7 +148,8 @@ class SourceSplit:
         self._unshared = np.asarray(unshared, int)
         s = np.asarray(shared_process, int)
         self._shared_process = np.ix_(s, s) if s.size else None
-        self._group_memo: dict[tuple, list[tuple[list[int], list[int]]]] = {}
+        self._group_memo: dict[tuple[tuple[frozenset[str], ...], tuple[frozenset[str], ...]],
+                               list[tuple[list[int], list[int]]]] = {}
         # pending: the true components are A C Aᵀ, plus Q for component k_q (see the Notes)
         self._A: np.ndarray | None = None
         self._Q: np.ndarray | None = None
@@ -150,7 +158,7 @@ class SourceSplit:
         # blocks of the last version are kept: a ranging round weighs several neighbours'
         # ranges against the same components, and declined ones change nothing
         self._version = 0
-        self._block_memo: tuple | None = None
+        self._block_memo: tuple[int, tuple[int, ...], np.ndarray] | None = None  # (version, states, blocks)
 
     def _touch(self) -> None:
         """The components (or their pending congruence) are about to change."""
@@ -234,7 +242,7 @@ class SourceSplit:
             out -= self._G @ self._G.T
         return out
 
-    def new_constants(self, labels: list[str], idx, sigma) -> None:
+    def new_constants(self, labels: list[str], idx: ArrayLike, sigma: ArrayLike) -> None:
         """States ``idx`` were just reset to a fresh prior of σ ``sigma`` (each its own random
         constant, uncorrelated with the rest): track them exactly under ``labels``."""
         self._sync()
@@ -309,7 +317,7 @@ class SourceSplit:
         mine = [self.own_labels] + self.labels
         k_old = len(self.labels)
         gone: set[int] = set()  # stored components merged into others or into the own one
-        new: list[list] = []  # [labels, weight of M, stored components summed in]
+        new: list[list[Any]] = []  # [labels, weight of M, stored components summed in]
         for gm, gp in _group(mine, [lab for lab, _ in items]):
             if not gp:
                 continue
@@ -338,8 +346,8 @@ class SourceSplit:
         S = np.zeros((len(plan), k_old))
         for r, (_, _, idx) in enumerate(plan):
             S[r, idx] = 1.0
-        w = np.array([p[1] for p in plan])
-        self._C = np.tensordot(S, self._C, axes=1) + w[:, None, None] * M
+        weights = np.array([p[1] for p in plan])
+        self._C = np.tensordot(S, self._C, axes=1) + weights[:, None, None] * M
         self.labels = [p[0] for p in plan]
 
     def propagate(self, phi: np.ndarray, qd: np.ndarray) -> None:
@@ -375,7 +383,7 @@ class SourceSplit:
         A.flat[:: self.n + 1] += 1.0
         self._compose(A, (K[:, 0], H[0]) if H.shape[0] == 1 else None)
 
-    def clear_states(self, idx) -> None:
+    def clear_states(self, idx: np.ndarray | Sequence[int]) -> None:
         """Zero the rows and columns ``idx`` of every stored component: a reset gives those states
         a fresh prior of the own kind."""
         self._sync()
@@ -460,7 +468,7 @@ class SourceSplit:
     # ------------------------------------------------------------------ the update
     def update(self, P: np.ndarray, meas: Measurement, parts: list[SourcePart], idx: np.ndarray,
                noise_labels: frozenset[str], gate_probability: float | None = None,
-               min_gain: float = 0.0, constants: list[tuple[str, float]] | tuple = (),
+               min_gain: float = 0.0, constants: Sequence[tuple[str, float]] = (),
                consider: np.ndarray | None = None,
                idx_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
         """One source-CI update with a scalar measurement.
@@ -520,22 +528,23 @@ class SourceSplit:
         w = [min(max(s * sa / (s * sa + (1.0 - s) * sb), OMEGA_MIN), OMEGA_MAX) for sa, sb, *_ in terms]
         return self._apply(P, meas, parts, w, dep, share, r_ind, blk, noise_labels, gate_probability, consider)
 
-    def _blocks(self, P: np.ndarray, h: np.ndarray, idx, idx_weight, constants) -> _Blocks:
+    def _blocks(self, P: np.ndarray, h: np.ndarray, idx: np.ndarray, idx_weight: np.ndarray | None,
+                constants: Sequence[tuple[str, float]]) -> _Blocks:
         """The blocks of the components on the states the measurement and ``idx`` touch, and
         the exactly tracked constants' part (:meth:`update`, first step)."""
         # The weights depend on the states the measurement and idx touch only (for a range, the
         # horizontal position and velocity): they are chosen on those blocks of the components,
         # and the whole matrices are formed only for an update that is made (a few % of ranges).
-        idx = [int(i) for i in idx]
-        wd = np.ones(len(idx)) if idx_weight is None else np.asarray(idx_weight, float)
-        J = sorted(set(np.flatnonzero(h).tolist()) | set(idx))
+        idx_list = [int(i) for i in idx]
+        wd = np.ones(len(idx_list)) if idx_weight is None else np.asarray(idx_weight, float)
+        J = sorted(set(np.flatnonzero(h).tolist()) | set(idx_list))
         if J[-1] - J[0] < 2 * len(J):  # (nearly) contiguous (a range: position, velocity): views
             Jx: slice | np.ndarray = slice(J[0], J[-1] + 1)
-            jj = [i - J[0] for i in idx]
+            jj = [i - J[0] for i in idx_list]
             PJ = P[Jx, Jx]
         else:
             Jx = np.array(J)
-            jj = [J.index(i) for i in idx]
+            jj = [J.index(i) for i in idx_list]
             PJ = P[np.ix_(Jx, Jx)]
         b = _Blocks(Jx, jj, wd, np.sqrt(wd), PJ, h[Jx], self._block(Jx))
         b.ownJ = PJ - b.CJ.sum(axis=0)
@@ -558,7 +567,8 @@ class SourceSplit:
             b.ownJ = b.ownJ - GJ @ GJ.T
         return b
 
-    def _group_terms(self, blk: _Blocks, parts: list[SourcePart], r_ind: float):
+    def _group_terms(self, blk: _Blocks, parts: list[SourcePart], r_ind: float,
+                     ) -> tuple[float, list[_DepGroup], list[tuple[float, ...]], list[float]]:
         """Per group of shared sources, my side (components) and the measurement's side
         (variance b): ``(r_ind, dep, terms, share)``, the independent noise grown by the parts
         no component of mine shares (:meth:`update`, second step)."""
@@ -569,7 +579,7 @@ class SourceSplit:
         T_k = (mineJ[:, jj, jj] @ blk.wd).tolist()
         c_k = (ChJ[:, jj] * blk.sw).tolist()  # per component, the m scaled covariances
         groups = self._groups([self.own_labels] + self.labels, [p.labels for p in parts])
-        dep: list[tuple[list[int], list[int], float]] = []
+        dep: list[_DepGroup] = []
         terms: list[tuple[float, ...]] = []
         # a part's share of its group's variance (more than its own when it may correlate)
         share = [p.variance for p in parts]
@@ -594,7 +604,8 @@ class SourceSplit:
             terms.append((math.sqrt(max(a, 1e-9 * T, 1e-300)), math.sqrt(b), T, a, b, *c))
         return r_ind, dep, terms, share
 
-    def _choose_weights(self, blk: _Blocks, terms: list, r_ind: float, min_gain: float) -> float | None:
+    def _choose_weights(self, blk: _Blocks, terms: list[tuple[float, ...]], r_ind: float,
+                        min_gain: float) -> float | None:
         """The weight parameter minimising the posterior trace of the chosen states, or None when
         node selection declines the update (:meth:`update`, third step)."""
         PJ, hJ, jj, wd = blk.PJ, blk.hJ, blk.jj, blk.wd
@@ -616,8 +627,8 @@ class SourceSplit:
             return None
         return s
 
-    def _apply(self, P: np.ndarray, meas: Measurement, parts: list[SourcePart], w: list[float], dep: list,
-               share: list[float], r_ind: float, blk: _Blocks, noise_labels: frozenset[str],
+    def _apply(self, P: np.ndarray, meas: Measurement, parts: list[SourcePart], w: list[float],
+               dep: list[_DepGroup], share: list[float], r_ind: float, blk: _Blocks, noise_labels: frozenset[str],
                gate_probability: float | None,
                consider: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
         """The update with whole matrices, my side of each group inflated by 1/ω_g; the
@@ -684,7 +695,8 @@ class SourceSplit:
             self._fold_constants()
         return dx, P_post, UpdateResult(dx, nis, 1, True, meas.name, K[:, None], omega)
 
-    def _split_constants(self, parts: list[SourcePart], constants) -> tuple[list[SourcePart], list]:
+    def _split_constants(self, parts: list[SourcePart], constants: Sequence[tuple[str, float]],
+                         ) -> tuple[list[SourcePart], Sequence[tuple[str, float]]]:
         """A constant is exact in an update only if both sides track it exactly: my columns
         that the measurement's parts name (or that :data:`ANY` may hold) are folded first, and
         the measurement's constants that my components name join its parts (variance b²)."""
@@ -707,8 +719,8 @@ class _Blocks:
 
     __slots__ = ("Jx", "jj", "wd", "sw", "PJ", "hJ", "CJ", "ownJ", "b_mine", "new_labels", "b_new", "bb", "gbJ")
 
-    def __init__(self, Jx, jj: list[int], wd: np.ndarray, sw: np.ndarray, PJ: np.ndarray, hJ: np.ndarray,
-                 CJ: np.ndarray) -> None:
+    def __init__(self, Jx: slice | np.ndarray, jj: list[int], wd: np.ndarray, sw: np.ndarray, PJ: np.ndarray,
+                 hJ: np.ndarray, CJ: np.ndarray) -> None:
         self.Jx, self.jj, self.wd, self.sw, self.PJ, self.hJ, self.CJ = Jx, jj, wd, sw, PJ, hJ, CJ
         self.ownJ = PJ
         self.b_mine: np.ndarray | None = None
@@ -791,7 +803,8 @@ def _rank_one_transform(C: np.ndarray, k: np.ndarray, h: np.ndarray, kk: np.ndar
     c = C @ h  # (..., n)
     kc = k[:, None] * c[..., None, :]  # k cᵀ
     out = C - kc - np.swapaxes(kc, -1, -2) + (c @ h)[..., None, None] * kk
-    return 0.5 * (out + np.swapaxes(out, -1, -2))
+    sym: np.ndarray = 0.5 * (out + np.swapaxes(out, -1, -2))
+    return sym
 
 
 def _combine(parts: list[SourcePart]) -> float:

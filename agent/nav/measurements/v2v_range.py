@@ -19,6 +19,7 @@ vertical σ at 30 m is +1.7 m) nor drain its information.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -120,7 +121,7 @@ def range_measurement(
     return Measurement(np.array([predicted - measured_range]), H[None, :], np.array([[r]]), "v2v_range")
 
 
-def quadratic_rows(P: list[list[float]], u) -> float:
+def quadratic_rows(P: list[list[float]], u: Sequence[float]) -> float:
     """``uᵀ P u`` for a 3x3 ``P`` given as rows of floats and a 3-vector ``u`` (a sequence of
     floats): without numpy, for the per-range arithmetic."""
     return sum(u[i] * (P[i][0] * u[0] + P[i][1] * u[1] + P[i][2] * u[2]) for i in range(3))
