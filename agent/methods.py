@@ -74,33 +74,7 @@ class MethodFilter(RangeUpdates, SiteUpdates):
         if s.fusion not in FUSION_RULES:
             raise ValueError(f"unknown fusion rule {s.fusion!r}; choose from {', '.join(FUSION_RULES)}")
         if spec.ranges and s.fusion in ("split-ci", "source-ci"):
-            # the common-mode GNSS error is shared with the neighbours: what we know of it is
-            # not independent of their estimates
-            cm = tuple(range(3, self._mp.stop)) if self._mp.stop > 3 else ()
-            # a horizontal range observes the horizontal position (and, through the dynamics, the
-            # horizontal velocity and the shared GNSS error); every other state (attitude, IMU
-            # biases, the vertical channel, the stop-gap states) stays out of the CI inflation,
-            # which otherwise compounds there with nothing to shrink it: a vehicle standing in a
-            # queue for 30 s reached a yaw σ of 30° and diverged when it drove off
-            unshared = ()
-            if s.range_height_sigma is not None:
-                off = self.filter.extra_offset
-                shared_h = {VEL.start, VEL.start + 1, POS.start, POS.start + 1}
-                shared_h |= {off + k for k in range(self._mp.stop) if k % 3 != 2}
-                if self._sl is not None:
-                    # the stop-gap states carry my stop-line fix, which reaches my neighbours'
-                    # estimates through my beacons: counted as independent, the fix came back
-                    # through the ranges as news (paper-1 V1's σ went 1 % below the joint
-                    # bound); they are reset when the vehicle drives off (:meth:`end_stop`),
-                    # so nothing inflates them between stops
-                    shared_h |= {off + k for k in range(self._sl.start, self._sl.stop)}
-                if self._lane is not None:  # the same, for the lane offset (reset between lanes)
-                    shared_h.add(off + self._lane.start)
-                unshared = tuple(i for i in range(self.filter.n) if i not in shared_h)
-            if s.fusion == "split-ci":
-                self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=unshared)
-            else:
-                self.filter.track_sources(vehicle, self._common_mode_part(), shared=cm, unshared=unshared)
+            self._track_fusion(s, vehicle)
         self.gap = gap
         self.origin = origin_llh
         self.heading_known = heading_known
@@ -139,6 +113,36 @@ class MethodFilter(RangeUpdates, SiteUpdates):
             self._track_constant(self._sl, np.array([gap.sigma_xb, gap.sigma_yb]))
         if self._lane is not None:
             self._track_constant(self._lane, np.array([gap.sigma_yb]))
+
+    def _track_fusion(self, s: FilterSettings, vehicle: str) -> None:
+        """Split or source CI: track what of the covariance came from where."""
+        # the common-mode GNSS error is shared with the neighbours: what we know of it is
+        # not independent of their estimates
+        cm = tuple(range(3, self._mp.stop)) if self._mp.stop > 3 else ()
+        # a horizontal range observes the horizontal position (and, through the dynamics, the
+        # horizontal velocity and the shared GNSS error); every other state (attitude, IMU
+        # biases, the vertical channel, the stop-gap states) stays out of the CI inflation,
+        # which otherwise compounds there with nothing to shrink it: a vehicle standing in a
+        # queue for 30 s reached a yaw σ of 30° and diverged when it drove off
+        unshared = ()
+        if s.range_height_sigma is not None:
+            off = self.filter.extra_offset
+            shared_h = {VEL.start, VEL.start + 1, POS.start, POS.start + 1}
+            shared_h |= {off + k for k in range(self._mp.stop) if k % 3 != 2}
+            if self._sl is not None:
+                # the stop-gap states carry my stop-line fix, which reaches my neighbours'
+                # estimates through my beacons: counted as independent, the fix came back
+                # through the ranges as news (paper-1 V1's σ went 1 % below the joint
+                # bound); they are reset when the vehicle drives off (:meth:`end_stop`),
+                # so nothing inflates them between stops
+                shared_h |= {off + k for k in range(self._sl.start, self._sl.stop)}
+            if self._lane is not None:  # the same, for the lane offset (reset between lanes)
+                shared_h.add(off + self._lane.start)
+            unshared = tuple(i for i in range(self.filter.n) if i not in shared_h)
+        if s.fusion == "split-ci":
+            self.filter.track_independent(self._common_mode_part(), shared=cm, unshared=unshared)
+        else:
+            self.filter.track_sources(vehicle, self._common_mode_part(), shared=cm, unshared=unshared)
 
     @staticmethod
     def _initial_variances(s: FilterSettings, sigma_pos: np.ndarray, heading_known: bool) -> np.ndarray:

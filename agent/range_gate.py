@@ -310,46 +310,11 @@ class NlosLinkTracker:
         if lk is None or t - lk.t > self.max_gap:
             return self._restart(link, t, measured, rate, lk, start_var)
         dt = max(t - lk.t, 0.0)
-        # predict the level (constant velocity, white relative acceleration)
         q = self.accel_psd_standing if standing else self.accel_psd
-        # straight relative motion: the line-of-sight part of the relative velocity is the
-        # rate, the rest (w) is across it
-        w2 = max(rel_speed2 - lk.rd * lk.rd, 0.0)
-        along, across = lk.r + lk.rd * dt, math.sqrt(w2) * dt
-        r_p = math.hypot(along, across)
-        rd_p = (along * lk.rd + w2 * dt) / max(r_p, 1e-6)
-        p11 = lk.p11 + dt * (2.0 * lk.p12 + dt * lk.p22) + q * dt**3 / 3.0
-        p12 = lk.p12 + dt * lk.p22 + q * dt * dt / 2.0
-        p22 = lk.p22 + q * dt
-        if rate_var is not None:  # the estimates' range rate now
-            s_rate = p22 + rate_var
-            k1, k2 = p12 / s_rate, p22 / s_rate
-            innov = rate - rd_p
-            r_p, rd_p = r_p + k1 * innov, rd_p + k2 * innov
-            p11, p12, p22 = p11 - k1 * p12, p12 - k1 * p22, p22 - k2 * p22
+        r_p, rd_p, p11, p12, p22 = _predict_level(lk, dt, q, rel_speed2, rate, rate_var)
         var = p11 + self.sigma**2
         nu = measured - r_p
-        # the two-state chain over dt
-        pi = m.steady
-        e = math.exp(-(m.enter + m.exit) * dt)
-        p_nn = pi + (1.0 - pi) * e
-        p_ln = pi * (1.0 - e)
-        p_los = 1.0 - lk.p
-        stay = _log_normal(nu, var)
-        logs = {
-            "LL": _safe_log(p_los * (1.0 - p_ln)) + stay,
-            "NN": _safe_log(lk.p * p_nn) + stay,
-            "LN": _safe_log(p_los * p_ln) + m.log_bias_likelihood(nu, var),
-            # an episode's end shortens the range by its bias, at least bias_min
-            "NL": (_safe_log(lk.p * (1.0 - p_nn)) + _log_normal(nu + lk.b, var + max(lk.b2 - lk.b**2, 0.0))
-                   if nu < 3.0 * math.sqrt(var) - m.bias_min else -math.inf),
-        }
-        if m.outlier_prob > 0.0:
-            for k in logs:
-                logs[k] += math.log1p(-m.outlier_prob)
-            sd = math.sqrt(var)
-            z = _cdf_between((m.outlier_min - abs(nu)) / sd, (m.outlier_max - abs(nu)) / sd)
-            logs["out"] = _safe_log(m.outlier_prob * z / (2.0 * (m.outlier_max - m.outlier_min)))
+        logs = _hypotheses(m, lk, dt, nu, var)
         top = max(logs.values())
         w = {k: math.exp(v - top) for k, v in logs.items()}
         total = w["LL"] + w["NN"] + w["LN"] + w["NL"]
@@ -376,15 +341,7 @@ class NlosLinkTracker:
             k1, k2 = p11 / var, p12 / var
             lk.r, lk.rd = r_p + k1 * nu, rd_p + k2 * nu
             lk.p11, lk.p12, lk.p22 = p11 - k1 * p11, p12 - k1 * p12, p22 - k2 * p12
-        # the bias moments given NLOS: a fresh bias near the step, or the link's own
-        nlos = w["LN"] + w["NN"]
-        if nlos > 0.0:
-            b_on = min(max(nu, m.bias_min), m.bias_max)
-            lk.b = (w["LN"] * b_on + w["NN"] * lk.b) / nlos
-            lk.b2 = (w["LN"] * (b_on * b_on + min(var, m.bias_mean_square)) + w["NN"] * lk.b2) / nlos
-        else:
-            lk.b, lk.b2 = m.bias_mean, m.bias_mean_square
-        lk.p = nlos / total
+        _update_bias(m, lk, w, nu, var, total)
         lk.t = t
         return LinkBelief(lk.p, lk.b2)
 
@@ -416,3 +373,67 @@ class NlosLinkTracker:
 
 def _safe_log(x: float) -> float:
     return math.log(x) if x > 0.0 else -math.inf
+
+
+def _predict_level(lk, dt: float, q: float, rel_speed2: float, rate: float,
+                   rate_var: float | None) -> tuple[float, float, float, float, float]:
+    """A link's level predicted over ``dt`` [s] (constant velocity, white relative acceleration
+    of PSD ``q``), then updated with the estimates' range rate when ``rate_var`` is given:
+    (range, rate, and the covariance p11, p12, p22)."""
+    # straight relative motion: the line-of-sight part of the relative velocity is the
+    # rate, the rest (w) is across it
+    w2 = max(rel_speed2 - lk.rd * lk.rd, 0.0)
+    along, across = lk.r + lk.rd * dt, math.sqrt(w2) * dt
+    r_p = math.hypot(along, across)
+    rd_p = (along * lk.rd + w2 * dt) / max(r_p, 1e-6)
+    p11 = lk.p11 + dt * (2.0 * lk.p12 + dt * lk.p22) + q * dt**3 / 3.0
+    p12 = lk.p12 + dt * lk.p22 + q * dt * dt / 2.0
+    p22 = lk.p22 + q * dt
+    if rate_var is not None:  # the estimates' range rate now
+        s_rate = p22 + rate_var
+        k1, k2 = p12 / s_rate, p22 / s_rate
+        innov = rate - rd_p
+        r_p, rd_p = r_p + k1 * innov, rd_p + k2 * innov
+        p11, p12, p22 = p11 - k1 * p12, p12 - k1 * p22, p22 - k2 * p22
+    return r_p, rd_p, p11, p12, p22
+
+
+def _hypotheses(m: NlosModel, lk, dt: float, nu: float, var: float) -> dict[str, float]:
+    """Log-likelihoods of the link's transitions over ``dt`` given the innovation ``nu`` of
+    variance ``var``: LOS stays LOS (LL), NLOS stays (NN), an episode starts (LN) or ends (NL),
+    and with outliers modelled, an outlier ("out")."""
+    # the two-state chain over dt
+    pi = m.steady
+    e = math.exp(-(m.enter + m.exit) * dt)
+    p_nn = pi + (1.0 - pi) * e
+    p_ln = pi * (1.0 - e)
+    p_los = 1.0 - lk.p
+    stay = _log_normal(nu, var)
+    logs = {
+        "LL": _safe_log(p_los * (1.0 - p_ln)) + stay,
+        "NN": _safe_log(lk.p * p_nn) + stay,
+        "LN": _safe_log(p_los * p_ln) + m.log_bias_likelihood(nu, var),
+        # an episode's end shortens the range by its bias, at least bias_min
+        "NL": (_safe_log(lk.p * (1.0 - p_nn)) + _log_normal(nu + lk.b, var + max(lk.b2 - lk.b**2, 0.0))
+               if nu < 3.0 * math.sqrt(var) - m.bias_min else -math.inf),
+    }
+    if m.outlier_prob > 0.0:
+        for k in logs:
+            logs[k] += math.log1p(-m.outlier_prob)
+        sd = math.sqrt(var)
+        z = _cdf_between((m.outlier_min - abs(nu)) / sd, (m.outlier_max - abs(nu)) / sd)
+        logs["out"] = _safe_log(m.outlier_prob * z / (2.0 * (m.outlier_max - m.outlier_min)))
+    return logs
+
+
+def _update_bias(m: NlosModel, lk, w: dict[str, float], nu: float, var: float, total: float) -> None:
+    """The link's NLOS probability and bias moments given NLOS: a fresh bias near the step, or
+    the link's own (``w`` the hypotheses' weights, ``total`` their sum without an outlier)."""
+    nlos = w["LN"] + w["NN"]
+    if nlos > 0.0:
+        b_on = min(max(nu, m.bias_min), m.bias_max)
+        lk.b = (w["LN"] * b_on + w["NN"] * lk.b) / nlos
+        lk.b2 = (w["LN"] * (b_on * b_on + min(var, m.bias_mean_square)) + w["NN"] * lk.b2) / nlos
+    else:
+        lk.b, lk.b2 = m.bias_mean, m.bias_mean_square
+    lk.p = nlos / total

@@ -88,43 +88,53 @@ class RangeUpdates:
         if s.fusion == "paper":
             res = self.filter.update(m, s.range_gate)
         else:
-            # innovation and its variance HPHᵀ + R: the model's row acts on the position only
-            nu = -float(m.z[0])
-            hp = m.H[0, POS].tolist()
-            var = quadratic_rows(own_rows, hp) + float(m.R[0, 0])
-            if s.uwb_nlos is not None and s.uwb_nlos.classify(nu, var, s.nlos_reject_probability,
-                                                              None if link is None else link.p_nlos):
-                return self._count_range("gate_nlos")
-            r_bias = s.uwb_nlos_sigma**2 if link is None else link.bias_variance
-            # the NIS gate on the whole spread, uninflated: the split-CI update gates on its
-            # inflated covariances, P/ω and R_dep/(1-ω), and when most of P is shared with the
-            # neighbours ω is small and a gross outlier passes (rush-hour seed 7 in the fleet:
-            # after two rate-gate rejections W1 fused a range that moved it 23 m at an
-            # along-track σ of 2.2 m, and W2 followed through W1's beacons)
-            if self._range_gate_nis is not None and nu * nu / max(var + r_bias, 1e-12) > self._range_gate_nis:
-                return self._count_range("gate_nis")
-            own_var, nb_var = own_rows[0][0] + own_rows[1][1], nb_rows[0][0] + nb_rows[1][1]
-            if self._decline_held(neighbour.vehicle, t_meas, own_var, nb_var, u):
-                self.counters["ranges_skipped_held"] += 1
-                return self._count_range("skipped")
-            # the neighbour's estimate is wholly dependent: it may contain our information, and
-            # its own-sensor errors (multipath) persist from one range to the next; so does an
-            # NLOS bias. The UWB white noise (and the second-order term) is independent.
-            h = m.H[0, POS]  # the line of sight as the model uses it (horizontal or 3-D)
-            r_nb = max(quadratic_rows(nb_rows, hp), 0.0)
-            m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
-            if s.fusion == "source-ci":
-                res = self._range_source_ci(m_ind, h, neighbour, r_nb, r_bias)
-            else:
-                r_dep = np.array([[r_nb + r_bias]])
-                res = self.filter.update_split_ci(m_ind, r_dep, own_independent=s.fusion == "split-ci",
-                                                  gate_probability=s.range_gate, min_gain=s.min_gain)
-            if res.skipped and s.selection_hold > 0.0:
-                horiz = max(math.hypot(u[0], u[1]), 1e-9)
-                self._declined[neighbour.vehicle] = (t_meas, own_var, nb_var, u[0] / horiz, u[1] / horiz)
-            else:
-                self._declined.pop(neighbour.vehicle, None)
+            res = self._range_ci(m, neighbour, t_meas, own_rows, nb_rows, u, link)
+            if isinstance(res, str):
+                return self._count_range(res)
         return self._count_range("skipped" if res.skipped else "fused" if res.accepted else "gate_nis")
+
+    def _range_ci(self, m: Measurement, neighbour: NeighbourState, t_meas: float, own_rows: list, nb_rows: list,
+                  u: tuple[float, float, float], link) -> UpdateResult | str:
+        """A range under a CI rule: the NLOS and NIS gates on the whole spread, node selection
+        held for a declined neighbour, then the update; an outcome string when gated."""
+        s = self.settings
+        # innovation and its variance HPHᵀ + R: the model's row acts on the position only
+        nu = -float(m.z[0])
+        hp = m.H[0, POS].tolist()
+        var = quadratic_rows(own_rows, hp) + float(m.R[0, 0])
+        if s.uwb_nlos is not None and s.uwb_nlos.classify(nu, var, s.nlos_reject_probability,
+                                                          None if link is None else link.p_nlos):
+            return "gate_nlos"
+        r_bias = s.uwb_nlos_sigma**2 if link is None else link.bias_variance
+        # the NIS gate on the whole spread, uninflated: the split-CI update gates on its
+        # inflated covariances, P/ω and R_dep/(1-ω), and when most of P is shared with the
+        # neighbours ω is small and a gross outlier passes (rush-hour seed 7 in the fleet:
+        # after two rate-gate rejections W1 fused a range that moved it 23 m at an
+        # along-track σ of 2.2 m, and W2 followed through W1's beacons)
+        if self._range_gate_nis is not None and nu * nu / max(var + r_bias, 1e-12) > self._range_gate_nis:
+            return "gate_nis"
+        own_var, nb_var = own_rows[0][0] + own_rows[1][1], nb_rows[0][0] + nb_rows[1][1]
+        if self._decline_held(neighbour.vehicle, t_meas, own_var, nb_var, u):
+            self.counters["ranges_skipped_held"] += 1
+            return "skipped"
+        # the neighbour's estimate is wholly dependent: it may contain our information, and
+        # its own-sensor errors (multipath) persist from one range to the next; so does an
+        # NLOS bias. The UWB white noise (and the second-order term) is independent.
+        h = m.H[0, POS]  # the line of sight as the model uses it (horizontal or 3-D)
+        r_nb = max(quadratic_rows(nb_rows, hp), 0.0)
+        m_ind = Measurement(m.z, m.H, m.R - r_nb, m.name)
+        if s.fusion == "source-ci":
+            res = self._range_source_ci(m_ind, h, neighbour, r_nb, r_bias)
+        else:
+            r_dep = np.array([[r_nb + r_bias]])
+            res = self.filter.update_split_ci(m_ind, r_dep, own_independent=s.fusion == "split-ci",
+                                              gate_probability=s.range_gate, min_gain=s.min_gain)
+        if res.skipped and s.selection_hold > 0.0:
+            horiz = max(math.hypot(u[0], u[1]), 1e-9)
+            self._declined[neighbour.vehicle] = (t_meas, own_var, nb_var, u[0] / horiz, u[1] / horiz)
+        else:
+            self._declined.pop(neighbour.vehicle, None)
+        return res
 
     def _decline_held(self, vehicle: str, t: float, own_var: float, nb_var: float,
                       u: tuple[float, float, float]) -> bool:

@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.nav.ins_filter import split_increment
-from agent.nav.mechanization import mechanize
+from agent.nav.mechanization import mechanize, split_increment
 from agent.nav.rotation import euler_to_quat, quat_to_euler, wrap_angle
 from agent.nav.state import NavState
 from geo import earth

@@ -486,16 +486,3 @@ def level_from_accel(f_b_mean: np.ndarray) -> tuple[float, float]:
     roll = math.atan2(-fy, -fz)
     pitch = math.atan2(fx, math.hypot(fy, fz))
     return roll, pitch
-
-
-def split_increment(
-    dtheta: np.ndarray, dvel: np.ndarray, t0: float, t1: float, t_split: float
-) -> tuple[tuple[np.ndarray, np.ndarray, float], tuple[np.ndarray, np.ndarray, float]]:
-    """Split an IMU interval [t0, t1] at ``t_split`` (e.g. a GNSS epoch) by linear interpolation.
-
-    Returns two ``(dtheta, dvel, dt)`` parts; increments are shared in proportion to time.
-    """
-    if not t0 < t_split < t1:
-        raise ValueError(f"split time {t_split} outside ({t0}, {t1})")
-    a = (t_split - t0) / (t1 - t0)
-    return (a * dtheta, a * dvel, t_split - t0), ((1 - a) * dtheta, (1 - a) * dvel, t1 - t_split)

@@ -85,6 +85,9 @@ def mechanize_run(
            tuple[float, float, float], tuple[float, float, float]]:
     """:func:`mechanize` over ``n`` consecutive IMU intervals, sample by sample.
 
+    Long: the strapdown step unrolled in scalar float arithmetic, one loop and no calls, the
+    hot path of every filter (a call per term costs more than the term).
+
     The same algorithm and arithmetic as ``n`` calls of :func:`mechanize_fast` (results agree
     to rounding), with the state held in local floats between samples: no per-sample state
     objects, which is most of the cost in Python.
@@ -263,3 +266,16 @@ def continuous_dynamics(
     v_dot = c @ f_b - np.cross(2.0 * w_ie + w_en, state.v) + g
     c_dot = c @ skew(omega_ib_b) - skew(w_ie + w_en) @ c
     return np.array(earth.geodetic_rates(state.lat, state.h, state.v)), v_dot, c_dot
+
+
+def split_increment(
+    dtheta: np.ndarray, dvel: np.ndarray, t0: float, t1: float, t_split: float
+) -> tuple[tuple[np.ndarray, np.ndarray, float], tuple[np.ndarray, np.ndarray, float]]:
+    """Split an IMU interval [t0, t1] at ``t_split`` (e.g. a GNSS epoch) by linear interpolation.
+
+    Returns two ``(dtheta, dvel, dt)`` parts; increments are shared in proportion to time.
+    """
+    if not t0 < t_split < t1:
+        raise ValueError(f"split time {t_split} outside ({t0}, {t1})")
+    a = (t_split - t0) / (t1 - t0)
+    return (a * dtheta, a * dvel, t_split - t0), ((1 - a) * dtheta, (1 - a) * dvel, t1 - t_split)
