@@ -17,8 +17,8 @@ from .nav.rotation import quat_to_euler
 from .neighbours import NeighbourTable
 
 #: classified camera reports a side needs before its class names a lane for the lane row (2 s
-#: at 5 Hz): a lane row holds the vehicle in the lane it names, so a 1 s camera error at the
-#: start, which settled five frames, put a vehicle a lane off for the whole run
+#: at 5 Hz): a lane row holds the vehicle in the lane it names, so a camera error must not
+#: settle within the window
 LANE_MARKING_FRAMES = 10
 
 
@@ -26,9 +26,8 @@ def lane_row_markings(window: MarkingWindow, t: float) -> tuple[int, int]:
     """The camera's (left, right) classes at sensor time ``t`` [s] that may name a lane for the
     lane row: both sides settled over :data:`LANE_MARKING_FRAMES` reports, or nothing. One
     side is not enough: a side's error episode can outlast the window, and then the other
-    side's gaps let the wrong side name the neighbouring lane alone (in the fleet, rush-hour
-    E2, seed 6: the left side read divider for 2.6 s, the right side had too few reports to
-    settle, and the lane row moved E2 3.6 m into the next lane for the whole run)."""
+    side's gaps let the wrong side name the neighbouring lane alone, and the lane row then
+    holds the vehicle in the wrong lane for the rest of the run."""
     marks = window.settled(t, LANE_MARKING_FRAMES)
     return (UNSEEN, UNSEEN) if UNSEEN in marks else marks
 

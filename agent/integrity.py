@@ -14,8 +14,7 @@ fused range after range and amplified by the geometry (a range nearly across a v
 moves it along the track by the innovation over the small direction cosine), until the
 cooperative estimate stands metres off at a decimetre σ. Its χ² gates then refuse the very
 measurements that could correct it (the lane rows, and the first-stopped claim whose gate is
-its own σ). paper-1 seed 2 with ``consider_constants``: V0's SL-CP 6.4 m off at σ 0.96 m for the
-last 30 s while its SL-SP, standing on its stop line, was 0.12 m off at σ 0.18 m.
+its own σ), while its own-sensor twin, standing on its stop line, is right.
 
 The test: ``dᵀ (P_coop + P_own)⁻¹ d`` over the horizontal position, against the χ² quantile
 (2 degrees of freedom) of ``1 - p`` for a false-alarm probability ``p`` per test. The two
@@ -91,9 +90,8 @@ def check_separation(coop: MethodFilter, own: MethodFilter) -> bool:
     The test also fires when the *twin* is the faulty one (its GNSS locked on an NLOS fix, a
     wrong first-stopped claim); so a disagreement widens ``coop`` once, and while the two keep
     disagreeing after that, ``coop`` is left to its own measurements (``integrity_held``) until
-    they agree again. Without this latch, rush-hour seed 13 widened E2's SL-CP 496 times while
-    its SL-SP stood 9 m off at an ANEES of 21, and E2's SL-CP went from its usual 0.2-1.6 m to
-    2.6 m. Counts ``integrity_tests``, ``integrity_resets`` and ``integrity_held`` in
+    they agree again: without the latch a faulty twin would have ``coop`` widened at every
+    test and drag it off too. Counts ``integrity_tests``, ``integrity_resets`` and ``integrity_held`` in
     ``coop.counters``. Returns whether ``coop`` was widened.
     """
     p = coop.settings.separation_false_alarm

@@ -7,9 +7,8 @@ association is conservative, like the first-stopped decision:
 1. the estimated heading runs with a lane segment within ``heading_tol``, and its σ is at most
    that: a vehicle turning inside the junction is left alone (at 10° into a turn of 10 m
    radius it stands 0.15 m off the lane's line), and so is one whose heading is not known (a
-   vehicle that starts standing: its yaw had wandered to the oncoming lane's, rush-hour E4).
-   A third of it also kept vehicles standing in a queue, whose yaw σ grows, out of their lane
-   (paper-2, 8 seeds: SL-CP 0.88 -> 1.30 m for V1);
+   vehicle that starts standing, whose yaw may point down the oncoming lane). A tolerance a
+   third as wide keeps vehicles standing in a queue, whose yaw σ grows, out of their lane;
 2. the estimate lies across the segment no farther outside the lane than ``lane_k_sigma`` of
    its lateral σ, and along it no farther beyond its ends than as many σ along it (a queue head
    stands at the lane's end, and an along-track error of metres put it into the junction: its
@@ -23,7 +22,7 @@ association is conservative, like the first-stopped decision:
    line, not by its estimate growing wider. Without this, a queue's cooperative updates, which
    widen the estimate across the lane (covariance intersection inflates every shared
    direction; a range along the queue shrinks only one), made the lane ambiguous, the rows
-   stopped, and the lateral σ grew unchecked (paper-1 V1: 0.12 -> 0.51 m before it stopped).
+   stopped, and the lateral σ grew unchecked.
    A lane row refused by its χ² gate releases the lane
    (:meth:`agent.methods.MethodFilter.lane_line`).
 

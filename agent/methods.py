@@ -132,8 +132,8 @@ class MethodFilter(RangeUpdates, SiteUpdates):
             if self._sl is not None:
                 # the stop-gap states carry my stop-line fix, which reaches my neighbours'
                 # estimates through my beacons: counted as independent, the fix came back
-                # through the ranges as news (paper-1 V1's σ went 1 % below the joint
-                # bound); they are reset when the vehicle drives off (:meth:`end_stop`),
+                # through the ranges as news (a σ below the joint bound); they are reset when
+                # the vehicle drives off (:meth:`end_stop`),
                 # so nothing inflates them between stops
                 shared_h |= {off + k for k in range(self._sl.start, self._sl.stop)}
             if self._lane is not None:  # the same, for the lane offset (reset between lanes)
@@ -208,7 +208,7 @@ class MethodFilter(RangeUpdates, SiteUpdates):
         taken with the opposite sign. The fixes see position plus GNSS error, and a fault that
         pulled the position away while the fixes kept agreeing has put its error into the GNSS
         error states too: widened alone, the position is pinned again by the next fix, where it
-        stands (paper-1 seed 2: σ 6.6 -> 1.4 m with the error still 6 m)."""
+        stands."""
         f = self.filter
         delta = np.zeros((f.n, f.n))
         for i in range(2):
@@ -285,8 +285,7 @@ class MethodFilter(RangeUpdates, SiteUpdates):
     def _await_heading(self, v_ned: np.ndarray, sigma_v: float) -> bool:
         """Heading unknown: take it (and the velocity) from the GNSS course as soon as the course
         is good to 5° (0.6 m/s); until then the INS turns the first metres of travel the wrong
-        way and the filter explains it with tilt and gyro biases (1500 °/h and 1.5° of pitch
-        from a start at 1.5 m/s, rush-hour E4, seed 1). A vehicle that backs off is taken as
+        way and the filter explains it with tilt and gyro biases. A vehicle that backs off is taken as
         driving ahead. Returns whether this fix must wait: moving, the course not yet good,
         the fixes' innovations would go to tilt and gyro biases (0.4 s of them put the gyro
         bias 7 σ off); they wait at most HEADING_WAIT s (a car creeping off for seconds drifted

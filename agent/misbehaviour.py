@@ -90,9 +90,9 @@ class MisbehaviourDetector:
     #: range-rate test: reference ranges between these ages [s]; relative-velocity uncertainty
     #: [m/s]; a step of the receiver's own estimate within the window (GNSS update) [m]
     rate_window: tuple[float, float] = (0.4, 1.0)
-    #: run the range-rate test. Off by default: on rush-hour (seed 0) it flagged honest vehicles
-    #: about 25 times in the first minute, around the moments a receiver's own estimate steps
-    #: (its first fixes, a multipath jump) and moves every claimed distance at once
+    #: run the range-rate test. Off by default: it flags honest vehicles around the moments a
+    #: receiver's own estimate steps (its first fixes, a multipath jump) and moves every claimed
+    #: distance at once
     rate_test: bool = False
     sigma_rate: float = 0.5
     sigma_step: float = 0.5

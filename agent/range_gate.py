@@ -168,15 +168,12 @@ class NlosModel:
         An NLOS bias only lengthens a range, and a range that starts a link can already carry
         one (no jump for :class:`RangeRateGate` to see). The prior is the chain's steady share,
         not the link's history: successive innovations share the vehicles' persistent position
-        errors, and chaining them as independent evidence ratcheted a link to "NLOS" on a
-        1.5 m error at σ 2.5 m (paper-2 in process, 10 seeds: CP rejected 12.9 % of its clean
-        ranges). A range that is kept carries the bias's prior mean square p₀ E[b²] as
-        dependent noise (``FilterSettings.uwb_nlos_sigma``), not the posterior's
-        p · E[b² | ν, NLOS]: that trusts an innovation whose state part is itself
-        misestimated. In paper-2 seed 13, V2 (4.4 m off at σ 1.9 m) took a first range
-        to V0 1.6 m too long for a clean one (p = 0.04), kept the 1.6 m at σ 0.3 m, and then
-        refused the clean ranges; over seeds 10-14 in process, V2's SL-CP ANEES was 26.9
-        against 3.15, and 18.9 % of the clean ranges were rejected against 0.4 %.
+        errors, and chaining them as independent evidence ratchets a link to "NLOS" on an
+        error well inside the position σ. A range that is kept carries the bias's prior mean
+        square p₀ E[b²] as dependent noise (``FilterSettings.uwb_nlos_sigma``), not the
+        posterior's p · E[b² | ν, NLOS]: that trusts an innovation whose state part is itself
+        misestimated, and a vehicle metres off keeps a wrong bias and refuses the clean ranges
+        after it (evidence: docs/decisions/0002-evidence-for-the-defaults.md).
 
         ``prior`` replaces the steady share by the link's NLOS probability from its own range
         series (:class:`NlosLinkTracker`): evidence that does not share the position errors.
@@ -359,8 +356,8 @@ class NlosLinkTracker:
         p = pi if old is None else pi + (old.p - pi) * math.exp(-(m.enter + m.exit) * max(t - old.t, 0.0))
         b, b2 = (m.bias_mean, m.bias_mean_square) if old is None else (old.b, old.b2)
         # the estimates' rate is only as good as their line of sight: at a few metres with
-        # metres of position error it can have the wrong sign (rush-hour N5 at the start:
-        # -8.9 m/s for +10.7); without its variance, take the relative speed squared
+        # metres of position error it can have the wrong sign; without its variance, take the
+        # relative speed squared
         self._links[link] = _Link(t, measured, rate, self.sigma**2, 0.0, max(self.rate_sigma**2, rate_var),
                                   p, b, b2)
         self._pending.pop(link, None)

@@ -108,9 +108,8 @@ class RangeUpdates:
         r_bias = s.uwb_nlos_sigma**2 if link is None else link.bias_variance
         # the NIS gate on the whole spread, uninflated: the split-CI update gates on its
         # inflated covariances, P/ω and R_dep/(1-ω), and when most of P is shared with the
-        # neighbours ω is small and a gross outlier passes (rush-hour seed 7 in the fleet:
-        # after two rate-gate rejections W1 fused a range that moved it 23 m at an
-        # along-track σ of 2.2 m, and W2 followed through W1's beacons)
+        # neighbours ω is small and a gross outlier passes, and moves the vehicle (and through
+        # its beacons, its neighbours) by tens of metres
         if self._range_gate_nis is not None and nu * nu / max(var + r_bias, 1e-12) > self._range_gate_nis:
             return "gate_nis"
         own_var, nb_var = own_rows[0][0] + own_rows[1][1], nb_rows[0][0] + nb_rows[1][1]

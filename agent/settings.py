@@ -49,10 +49,8 @@ class FilterSettings:
     gnss_gate: float | None = 0.999
     #: after this long [s] with every fix rejected, the position is re-anchored on the fix
     #: (its covariance widened by the innovation): a wrong solution is not kept for ever. It
-    #: must outlast NLOS episodes (two may follow each other): re-anchoring after 20 s followed
-    #: 5-60 s jumps and made rush-hour's SP worse than no gate (6.06 -> 7.49 m, seed 1); after
-    #: 60 s it re-anchored on the last seconds of 4 long episodes in 8 fleet seeds (errors of
-    #: 14-45 m to the end of the run)
+    #: must outlast NLOS episodes, which last up to a minute and may follow each other:
+    #: re-anchoring on one keeps its error to the end of the run
     gnss_reset_after: float = 120.0
     init_att_sigma: tuple[float, float, float] = (math.radians(2.0), math.radians(2.0), math.radians(5.0))
     init_vel_sigma: float = 0.3
@@ -88,13 +86,13 @@ class FilterSettings:
     #: (Schmidt-Kalman): never estimated, their errors stay the constants themselves, wholly in
     #: the exact part, so that covariance intersection has nothing of theirs to inflate. On by
     #: default since the cooperative integrity test (``separation_false_alarm``) catches the
-    #: overconfident approach it let through (paper-1 seed 2: V0 6.4 m off at σ 0.96 m)
+    #: overconfident approach it can let through
     consider_constants: bool = True
     #: source CI chooses its weights to minimise the horizontal position variance plus τ² times
     #: the horizontal velocity variance, τ this horizon [s]; 0 minimises the position alone,
     #: which lets a range that the position gains little from inflate the velocity it does not
-    #: observe by 1/ω, range after range (paper-1 seed 0 with ``consider_constants``: V0's
-    #: velocity σ 0.12 -> 23 m/s in 3 s, its position error following)
+    #: observe by 1/ω, range after range, until the velocity σ is metres per second and the
+    #: position error follows
     ci_velocity_horizon: float = 1.0
     #: node selection for the CI rules: fuse a range only if it is expected to reduce the
     #: horizontal position variance (source CI: the sum its weights minimise, with

@@ -138,8 +138,8 @@ class ZenohBus:
         pub = self._publishers.get(key)
         if pub is None:
             # BLOCK: Zenoh's default (DROP) discards a message that finds a link's queue full
-            # for 1 ms; through a busy router that lost IMU batches of a fleet playing at 20x
-            # (rush-hour: 3 of 1,300 per agent). slcp's loss is the emulated radio's to inject
+            # for 1 ms, which a busy router does to sensor data of a fleet playing fast. slcp's
+            # loss is the emulated radio's to inject
             pub = self._publishers[key] = self.session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK)
         pub.put(payload)

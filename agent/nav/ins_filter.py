@@ -393,8 +393,8 @@ class InsFilter:
         """While ``yaw_free``: the heading takes no part in an update (its correlations with
         the other states are dropped). A vehicle that starts standing has no heading; linearised
         about a heading 60° σ off, the updates turned its yaw by over 100° in 6 s through the
-        estimated accelerometer bias and learned gyro biases of 2000 °/h (10 σ), which sent the
-        yaw 20-40° off for a minute after it drove off (rush-hour E4, seed 1)."""
+        estimated accelerometer bias and learned gyro biases of 10 σ, which sent the yaw tens
+        of degrees off for a minute after it drove off."""
         if not self.yaw_free:
             return
         for P in (self.P, self.P_ind):

@@ -118,9 +118,9 @@ class ZuptGate:
     is below ``max_speed`` [m/s] by ``k_sigma`` of its standard deviation. The last condition
     matters: to an IMU without vibration, cruising or creeping at constant speed looks like
     rest, but the INS velocity still says "moving" (it integrated the deceleration of a real
-    stop) -- if the filter is sure of it. After 16 s without GNSS, paper-2's V1 (seed 13)
-    creeping at 2.4 m/s had an INS speed of 0.98 ± 2 m/s; a ZUPT then shrank its position σ
-    from 8 to 2 m while it was 13 m off, and every fix after the outage failed the χ² gate.
+    stop) -- if the filter is sure of it: after a long GNSS outage a creeping vehicle's INS
+    speed can be below the threshold with a σ larger than it, and a ZUPT then would shrink a
+    position σ of metres around an error of metres that every later fix fails the χ² gate on.
     At most once per ``interval`` s.
     """
 

@@ -3,8 +3,8 @@
 Split CI (:mod:`agent.nav.fusion`) counts a vehicle's own information as independent of a
 neighbour's estimate. It is not, once the two have exchanged ranges: the neighbour's estimate
 holds some of our own information, and our own information comes back to us through its beacon
-as if it were news (paper-2's head vehicle reported a σ up to 4 % below the posterior Cramér-Rao
-bound). Plain CI counts everything as dependent and throws most of the information away.
+as if it were news (a vehicle then reports a σ below the posterior Cramér-Rao bound). Plain CI
+counts everything as dependent and throws most of the information away.
 
 Source CI tracks where information came from. Every error covariance is kept as a sum of
 components by *source*, the vehicle whose sensors' noise made that part of the error (a source
