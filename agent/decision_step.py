@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pymap3d
 
-from geo.lane_markings import UNSEEN, MarkingWindow
+from slcp.geo.lane_markings import UNSEEN, MarkingWindow
 
 from .first_stopped import ApproachLane, Decision, StopTracker
 from .lane_map import LaneMap

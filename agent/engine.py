@@ -21,8 +21,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from geo import earth
-from transport.messages import (
+from slcp.geo import earth
+from slcp.transport.messages import (
     Beacon,
     GnssFix,
     ImuBatch,
@@ -233,7 +233,7 @@ class VehicleEngine(EngineOutputs):
             self.trackers[msg.method].observe_neighbour(msg.vehicle, msg.t, float(np.hypot(*msg.v_ned[:2])),
                                                         msg.first_stopped)
 
-    # ----------------------------------------------------------------- input checks
+    # ----------------------------------------------------------------- neighbours
     def _untrusted(self, msg: Beacon) -> bool:
         """Misbehaviour check of a verified beacon; True (counted ``beacon_excluded``) while its
         sender is flagged, in which case the sender is also dropped from the tables."""
@@ -275,13 +275,10 @@ class VehicleEngine(EngineOutputs):
                 return "future"
         return None
 
-
     def _count(self, name: str, n: int = 1) -> None:
         self.counters[name] = self.counters.get(name, 0) + n
 
-
     # ----------------------------------------------------------------- processing
-
     def _imu(self, msg: ImuBatch) -> None:
         if not self.filters:
             if not self._init(msg):
@@ -432,7 +429,6 @@ class VehicleEngine(EngineOutputs):
                 keep.append(item)
         self._deferred = keep
 
-
     def _lose(self, other: str, how: str) -> None:
         """Stop using neighbour ``other`` (gone: its liveliness token vanished, or silent for the
         table timeout); remembered in ``lost`` as (sensor time, how) for the diagnostics, and its
@@ -448,7 +444,6 @@ class VehicleEngine(EngineOutputs):
             self.departures.append((self.lost[other][0], other, how))
             self._count(f"neighbour_lost_{how}")
             log.info("%s: neighbour %s gone (%s) at t=%.2f", self.cfg.vehicle, other, how, self.lost[other][0])
-
 
     def _decide(self, t: float) -> None:
         for m, tab in self.tables.items():  # neighbours not heard for the table's timeout are gone

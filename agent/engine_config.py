@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from transport.messages import Beacon
+from slcp.transport.messages import Beacon
 
 from .first_stopped import ApproachLane
 from .lane_map import LaneMap

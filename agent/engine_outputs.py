@@ -8,7 +8,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 
-from transport.messages import Beacon, Diagnostics, Estimate, Message
+from slcp.transport.messages import Beacon, Diagnostics, Estimate, Message
 
 from .engine_config import AgentConfig
 from .first_stopped import StopTracker

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geo.lane_markings import UNSEEN, LaneEdges, MarkingWindow, consistent, marking_classes
+from slcp.geo.lane_markings import UNSEEN, LaneEdges, MarkingWindow, consistent, marking_classes
 
 from .nav.measurements.stop_line import StopGapModel, StopLineApproach
 from .nav.rotation import wrap_angle

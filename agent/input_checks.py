@@ -7,7 +7,7 @@ import logging
 from collections import deque
 from collections.abc import Callable
 
-from transport.messages import ImuBatch
+from slcp.transport.messages import ImuBatch
 
 log = logging.getLogger(__name__)
 

@@ -37,7 +37,7 @@ import math
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from .methods import MethodFilter
 

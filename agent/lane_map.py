@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geo.lane_markings import UNSEEN, LaneEdges, consistent, marking_classes
+from slcp.geo.lane_markings import UNSEEN, LaneEdges, consistent, marking_classes
 
 from .nav.measurements.stop_line import Line2D
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 
 @dataclass

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 
 @dataclass(frozen=True)

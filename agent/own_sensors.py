@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from .nav.ins_filter import InsFilter
 from .nav.kalman import Measurement, UpdateResult

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from .nav.ins_filter import InsFilter
 from .nav.kalman import Measurement, UpdateResult

@@ -12,10 +12,10 @@ import asyncio
 import logging
 from typing import Any
 
-from transport import keys
-from transport.bus import Bus, Subscription, Waker, drain_in_arrival_order
-from transport.codec import CodecError, decode, encode
-from transport.messages import Beacon, Diagnostics, Estimate, Message
+from slcp.transport import keys
+from slcp.transport.bus import Bus, Subscription, Waker, drain_in_arrival_order
+from slcp.transport.codec import CodecError, decode, encode
+from slcp.transport.messages import Beacon, Diagnostics, Estimate, Message
 
 from .engine import AgentConfig, VehicleEngine
 

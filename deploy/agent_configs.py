@@ -5,16 +5,16 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from agent.engine import AgentConfig
-from agent.first_stopped import ApproachLane
-from agent.lane_map import LaneMap
-from agent.methods import DEFAULT_FUSION, METHODS, FilterSettings
-from agent.nav.error_model import ImuNoise
-from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
-from agent.range_gate import NlosModel
-from hw_emulation.scenario import Scenario
-from hw_emulation.sensors import params
-from hw_emulation.sensors.imu import ImuModel
+from slcp.agent.engine import AgentConfig
+from slcp.agent.first_stopped import ApproachLane
+from slcp.agent.lane_map import LaneMap
+from slcp.agent.methods import DEFAULT_FUSION, METHODS, FilterSettings
+from slcp.agent.nav.error_model import ImuNoise
+from slcp.agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
+from slcp.agent.range_gate import NlosModel
+from slcp.hw_emulation.scenario import Scenario
+from slcp.hw_emulation.sensors import params
+from slcp.hw_emulation.sensors.imu import ImuModel
 
 
 def _triple(obj, name: str, positive_entries: bool = False) -> None:

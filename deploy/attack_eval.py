@@ -21,20 +21,20 @@ import statistics
 
 import numpy as np
 
-from hw_emulation.attacks import ATTACKS, Attack
+from slcp.hw_emulation.attacks import ATTACKS, Attack
 
 
 def _truth(scenario: str):
-    from hw_emulation.scenario import load_scenario
-    from hw_emulation.truth import build_truth
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.truth import build_truth
 
     return build_truth(load_scenario(scenario))
 
 
 def _fleet(truth, seed: int, attack: Attack | None, until: float | None):
-    from agent.runtime import Agent
-    from hw_emulation.service import EmulatorService
-    from transport.bus import InMemoryNetwork
+    from slcp.agent.runtime import Agent
+    from slcp.hw_emulation.service import EmulatorService
+    from slcp.transport.bus import InMemoryNetwork
 
     from .agent_configs import agent_config
 

@@ -33,13 +33,13 @@ def _time_us(fn, n: int, repeats: int = 5) -> float:
 
 def micro_benchmarks(quick: bool = False) -> dict[str, float]:
     """Step costs [µs] of the pieces of an agent, on paper-1's V1 at its stop."""
-    from agent.methods import MethodFilter, MethodSpec, initial_state
-    from agent.nav.mechanization import mechanize_fast
-    from agent.neighbours import NeighbourState
-    from geo import earth
-    from hw_emulation.scenario import load_scenario
-    from hw_emulation.truth import build_truth
-    from transport.messages import Beacon
+    from slcp.agent.methods import MethodFilter, MethodSpec, initial_state
+    from slcp.agent.nav.mechanization import mechanize_fast
+    from slcp.agent.neighbours import NeighbourState
+    from slcp.geo import earth
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.truth import build_truth
+    from slcp.transport.messages import Beacon
 
     from .agent_configs import agent_config
 
@@ -107,8 +107,8 @@ def _beacon_costs(b, n) -> dict[str, float]:
     """A beacon's encoding, decoding, signing and verification [µs] and its sizes [bytes]."""
     import tempfile
 
-    from transport.codec import decode, encode
-    from transport.security import BeaconSigner, TrustStore, create_fleet
+    from slcp.transport.codec import decode, encode
+    from slcp.transport.security import BeaconSigner, TrustStore, create_fleet
 
     out: dict[str, float] = {}
     payload = encode(b)
@@ -147,9 +147,9 @@ def _source_ci_cost(cfg, st0, t: float, nb, n: int) -> float:
     beacon of thirteen, most of whose sources the vehicle also holds; and exactly tracked
     constants: the vehicle's own three (stop gap, lane offset) and five of others, the beacon
     eight (the same five, three others)."""
-    from agent.methods import MethodFilter, MethodSpec
-    from agent.nav.source_fusion import COMMON_MODE
-    from agent.neighbours import NeighbourState
+    from slcp.agent.methods import MethodFilter, MethodSpec
+    from slcp.agent.nav.source_fusion import COMMON_MODE
+    from slcp.agent.neighbours import NeighbourState
 
     settings = dataclasses.replace(cfg.settings, fusion="source-ci", min_gain=0.0)
     f = MethodFilter(MethodSpec.of("SL-CP"), st0.copy(), np.array([3.0, 3.0, 5.0]), settings, t, cfg.gap,
@@ -184,9 +184,9 @@ def _decision_costs(fresh, llh: np.ndarray, t: float, cfg, rm: float, n: int) ->
     behind): driving at 10 m/s (no geometry needed) and standing for 1 s at the stop line (the
     map and neighbour geometry; the stop-line fix it triggers applies once, then waits for its
     interval)."""
-    from agent.decision_step import first_stopped_step
-    from agent.first_stopped import FirstStoppedDetector, StopTracker
-    from agent.neighbours import NeighbourTable
+    from slcp.agent.decision_step import first_stopped_step
+    from slcp.agent.first_stopped import FirstStoppedDetector, StopTracker
+    from slcp.agent.neighbours import NeighbourTable
 
     out = {}
     for name, speed in (("decision_moving_us", 10.0), ("decision_standing_us", 0.0)):

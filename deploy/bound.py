@@ -36,11 +36,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.lane_map import LaneMap
-from agent.methods import METHODS, STOP_LINE_MAP_SIGMA, MethodSpec
-from agent.nav.measurements.stop_line import stop_line_fix
-from geo import earth
-from hw_emulation.truth import ScenarioTruth
+from slcp.agent.lane_map import LaneMap
+from slcp.agent.methods import METHODS, STOP_LINE_MAP_SIGMA, MethodSpec
+from slcp.agent.nav.measurements.stop_line import stop_line_fix
+from slcp.geo import earth
+from slcp.hw_emulation.truth import ScenarioTruth
 
 from .agent_configs import approach_lanes, lane_map
 

@@ -1,6 +1,6 @@
 """The command-line reference page, made from the parsers themselves (``docs/reference-cli.md``).
 
-``python -m deploy.cli_reference > docs/reference-cli.md`` regenerates it; the test suite fails
+``python -m slcp.deploy.cli_reference > docs/reference-cli.md`` regenerates it; the test suite fails
 when the committed page and the parsers disagree, or when an option has no help text.
 """
 
@@ -12,7 +12,7 @@ import sys
 HEADER = """# Command-line reference
 
 Every `slcp` command and option, generated from the parsers
-(`python -m deploy.cli_reference > docs/reference-cli.md`); [Command line](cli.md) explains
+(`python -m slcp.deploy.cli_reference > docs/reference-cli.md`); [Command line](cli.md) explains
 them with examples.
 """
 

@@ -1,7 +1,7 @@
 """The configuration and file-format reference page, made from the dataclasses that the files
 fill (``docs/reference-config.md``).
 
-``python -m deploy.config_reference > docs/reference-config.md`` regenerates it; the test suite
+``python -m slcp.deploy.config_reference > docs/reference-config.md`` regenerates it; the test suite
 fails when the committed page and the dataclasses disagree, or a field has no description.
 """
 
@@ -15,7 +15,7 @@ import sys
 HEADER = """# Configuration and file-format reference
 
 The fields of the TOML tables that slcp reads, generated from the dataclasses they fill
-(`python -m deploy.config_reference > docs/reference-config.md`). Values are in SI units and
+(`python -m slcp.deploy.config_reference > docs/reference-config.md`). Values are in SI units and
 radians unless a field says otherwise. [Scenario format](scenario-format.md), [Command
 line](cli.md) (agent configuration) and [Security, faults and misbehaviour](security.md) (fault
 schedules) explain them with examples.
@@ -23,13 +23,13 @@ schedules) explain them with examples.
 
 
 def _tables():
-    from hw_emulation.faults import Fault
-    from hw_emulation.sensors.camera import LaneCameraModel
-    from hw_emulation.sensors.gnss import GnssModel
-    from hw_emulation.sensors.imu import ImuModel
-    from hw_emulation.sensors.radio import RadioModel
-    from hw_emulation.sensors.uwb import UwbModel
-    from transport.zenoh_bus import ZenohConfig
+    from slcp.hw_emulation.faults import Fault
+    from slcp.hw_emulation.sensors.camera import LaneCameraModel
+    from slcp.hw_emulation.sensors.gnss import GnssModel
+    from slcp.hw_emulation.sensors.imu import ImuModel
+    from slcp.hw_emulation.sensors.radio import RadioModel
+    from slcp.hw_emulation.sensors.uwb import UwbModel
+    from slcp.transport.zenoh_bus import ZenohConfig
 
     from .agent_configs import FilterOptions
 

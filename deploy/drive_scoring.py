@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pymap3d
 
-from agent.nav.rotation import euler_to_dcm
-from geo import earth
-from transport.messages import Estimate
+from slcp.agent.nav.rotation import euler_to_dcm
+from slcp.geo import earth
+from slcp.transport.messages import Estimate
 
 
 def antenna_positions(est: list[Estimate], lever_arm: tuple[float, float, float]) -> np.ndarray:

@@ -45,10 +45,10 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.methods import DEFAULT_FUSION
-from hw_emulation.grid import grid_scenario_toml
-from transport import keys
-from transport.codec import decode
+from slcp.agent.methods import DEFAULT_FUSION
+from slcp.hw_emulation.grid import grid_scenario_toml
+from slcp.transport import keys
+from slcp.transport.codec import decode
 
 log = logging.getLogger(__name__)
 

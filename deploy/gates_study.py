@@ -15,8 +15,8 @@ REJECTED_PREFIX = "gate"
 
 
 def _one_seed(args: tuple[str, int]) -> dict[str, dict[str, dict[str, int]]]:
-    from hw_emulation.scenario import load_scenario
-    from hw_emulation.truth import build_truth
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.truth import build_truth
 
     from .inprocess import run_inprocess
 

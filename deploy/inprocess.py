@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.engine import VehicleEngine
-from agent.methods import DEFAULT_FUSION, METHODS
-from geo import earth
-from hw_emulation.playback import Radio, SensorPlayback
-from hw_emulation.truth import ScenarioTruth
-from transport.messages import Beacon, Estimate, Message
+from slcp.agent.engine import VehicleEngine
+from slcp.agent.methods import DEFAULT_FUSION, METHODS
+from slcp.geo import earth
+from slcp.hw_emulation.playback import Radio, SensorPlayback
+from slcp.hw_emulation.truth import ScenarioTruth
+from slcp.transport.messages import Beacon, Estimate, Message
 
 from .agent_configs import agent_config
 

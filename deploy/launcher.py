@@ -28,11 +28,11 @@ import socket
 import time
 from pathlib import Path
 
-from agent.methods import DEFAULT_FUSION, METHODS
-from hw_emulation.faults import load_faults
-from hw_emulation.scenario import load_scenario
-from hw_emulation.truth import build_truth
-from transport.security import create_fleet
+from slcp.agent.methods import DEFAULT_FUSION, METHODS
+from slcp.hw_emulation.faults import load_faults
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.hw_emulation.truth import build_truth
+from slcp.transport.security import create_fleet
 
 from .progress import FleetProgress
 from .run_report import evaluate_recording, report_markdown

@@ -58,8 +58,8 @@ def plot_scenario(truth, path: Path, events: dict[str, float] | None = None, est
     ellipses every ``ellipse_every`` seconds."""
     import numpy as np
 
-    from geo import earth
-    from hw_emulation.geometry import offset_polyline
+    from slcp.geo import earth
+    from slcp.hw_emulation.geometry import offset_polyline
 
     scn = truth.scenario
     fig, ax = plt.subplots(figsize=(8, 8))

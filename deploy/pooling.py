@@ -9,7 +9,7 @@ common-mode error is shared, and nothing is carried over time. So it shows what 
 of what each vehicle knows by itself is worth, beside the joint bound that also pools over time
 (docs/algorithms.md, *The physical limit*).
 
-``python -m deploy.pooling rush-hour --seeds 0,1`` runs the fleet in process and prints, per
+``python -m slcp.deploy.pooling rush-hour --seeds 0,1`` runs the fleet in process and prints, per
 vehicle, the RMSE, ANEES and RMSE over the SL-CP bound while it truly stands: the pooled
 reference beside SL-SP and SL-CP. Pure numpy apart from the run itself.
 """
@@ -75,12 +75,12 @@ def standing_scores(result, truth, source: str = "SL-SP", compare: tuple[str, ..
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.pooling", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m slcp.deploy.pooling", description=__doc__.split("\n\n")[0])
     ap.add_argument("scenario", help="shipped scenario name or .toml")
     ap.add_argument("--seeds", default="0", help="comma-separated run seeds (default 0)")
     args = ap.parse_args(argv)
-    from hw_emulation.scenario import load_scenario
-    from hw_emulation.truth import build_truth
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.truth import build_truth
 
     from .inprocess import run_inprocess
 

@@ -40,7 +40,7 @@ import signal
 import tomllib
 from pathlib import Path
 
-from transport.zenoh_bus import AUTOCONNECT_STRATEGIES, ZenohConfig
+from slcp.transport.zenoh_bus import AUTOCONNECT_STRATEGIES, ZenohConfig
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ def _read_toml(path: Path, what: str) -> dict:
 
 def _agent_section(a: dict, path: Path, vehicle: str | None) -> dict:
     """The ``[agent]`` section, checked, with its defaults."""
-    from agent.methods import DEFAULT_FUSION, FUSION_RULES, METHODS, MethodSpec
+    from slcp.agent.methods import DEFAULT_FUSION, FUSION_RULES, METHODS, MethodSpec
 
     vid = vehicle or a.get("vehicle")
     if not isinstance(vid, str) or not vid:
@@ -137,8 +137,8 @@ def _agent_section(a: dict, path: Path, vehicle: str | None) -> dict:
 def _filter_config(a: dict, data: dict, path: Path):
     """The engine's configuration: the site's (a scenario) or none, then the ``[imu]`` and
     ``[gnss]`` sections and the integrity setting."""
-    from hw_emulation.scenario import load_scenario, model_from_table
-    from hw_emulation.sensors.imu import ImuModel
+    from slcp.hw_emulation.scenario import load_scenario, model_from_table
+    from slcp.hw_emulation.sensors.imu import ImuModel
 
     from .agent_configs import FilterOptions, agent_config, siteless_agent_config, with_filter, with_gnss, with_imu
 
@@ -203,7 +203,7 @@ def _gnss_table(d, path: Path) -> dict:
 
 def security_config(d: dict, path: Path, vehicle: str) -> dict:
     """The signer and trust store of a ``[security]`` section (paths relative to the file)."""
-    from transport.security import BeaconSigner, SecurityError, TrustStore
+    from slcp.transport.security import BeaconSigner, SecurityError, TrustStore
 
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: [security]: must be a table")
@@ -272,8 +272,8 @@ def settle_gc() -> None:
 
 
 async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> int:
-    from agent.runtime import Agent
-    from transport.zenoh_bus import ZenohBus
+    from slcp.agent.runtime import Agent
+    from slcp.transport.zenoh_bus import ZenohBus
 
     cfg, zcfg = load_agent_config(config_path, vehicle)
     if nice:  # a lower scheduling priority (launcher: emulated hardware first on a shared machine)
@@ -298,7 +298,7 @@ async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> i
 
 async def router_main(zcfg: ZenohConfig) -> int:
     """An infrastructure router (Zenoh router mode) until SIGINT/SIGTERM."""
-    from transport.zenoh_bus import ZenohBus
+    from slcp.transport.zenoh_bus import ZenohBus
 
     stop = asyncio.Event()
     _install_signals(stop)
@@ -329,7 +329,7 @@ async def report_reachability(bus, endpoints: tuple[str, ...], who: str, first: 
 
 async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
     """Record every estimate and diagnostics message to ``path`` (appending) until SIGINT/SIGTERM."""
-    from transport.zenoh_bus import ZenohBus
+    from slcp.transport.zenoh_bus import ZenohBus
 
     from .recorder import Recorder
 
@@ -352,17 +352,17 @@ async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
 async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: ZenohConfig,
                         wait_for_agents: float = 20.0, faults_path: Path | None = None,
                         start_at: float | None = None) -> int:
-    from hw_emulation.scenario import load_scenario
-    from hw_emulation.service import EmulatorService
-    from hw_emulation.truth import build_truth
-    from transport import keys
-    from transport.zenoh_bus import ZenohBus
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.service import EmulatorService
+    from slcp.hw_emulation.truth import build_truth
+    from slcp.transport import keys
+    from slcp.transport.zenoh_bus import ZenohBus
 
     scn = load_scenario(scenario)
     truth = build_truth(scn, stop_seed=seed)
     faults = []
     if faults_path is not None:
-        from hw_emulation.faults import load_faults
+        from slcp.hw_emulation.faults import load_faults
 
         faults = load_faults(faults_path, set(truth.vehicles))
     stop = asyncio.Event()

@@ -15,9 +15,9 @@ from typing import IO
 
 import numpy as np
 
-from transport.bus import Subscription
-from transport.codec import CodecError, decode
-from transport.messages import Diagnostics, Estimate, Message
+from slcp.transport.bus import Subscription
+from slcp.transport.codec import CodecError, decode
+from slcp.transport.messages import Diagnostics, Estimate, Message
 
 
 def to_json(m: Message) -> dict:
@@ -85,7 +85,7 @@ class Recorder:
     def start(self, bus) -> list:
         """Subscribe on ``bus`` to every estimate and diagnostics message and record them; returns
         the two recording tasks (cancel them, then :meth:`close`)."""
-        from transport import keys
+        from slcp.transport import keys
 
         return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000, wake=False))),
                 asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False)))]

@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.engine import AgentConfig, VehicleEngine
-from agent.nav.error_model import ImuNoise
-from agent.own_sensors import IMU_MEMORY
-from transport.messages import Estimate
+from slcp.agent.engine import AgentConfig, VehicleEngine
+from slcp.agent.nav.error_model import ImuNoise
+from slcp.agent.own_sensors import IMU_MEMORY
+from slcp.transport.messages import Estimate
 
 from .datasets.rtklib import RtklibDrive
 from .drive_scoring import score_estimates

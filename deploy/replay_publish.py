@@ -25,9 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from transport import keys
-from transport.codec import CodecError, decode, encode
-from transport.messages import Estimate, GnssFix, Message
+from slcp.transport import keys
+from slcp.transport.codec import CodecError, decode, encode
+from slcp.transport.messages import Estimate, GnssFix, Message
 
 from .datasets.rtklib import RtklibDrive
 from .drive_scoring import score_estimates
@@ -171,7 +171,7 @@ async def wait_for_agent(bus, vehicle: str, timeout: float) -> bool:
 async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent: float,
                               settle: float = 2.0, lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict:
     """Publish over Zenoh, collect the agent's estimates, and score them (see module doc)."""
-    from transport.zenoh_bus import ZenohBus
+    from slcp.transport.zenoh_bus import ZenohBus
 
     from .processes import _install_signals
 

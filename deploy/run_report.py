@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.methods import METHODS, MethodSpec
-from geo import earth
-from hw_emulation.events import event_times, window_bounds
-from hw_emulation.faults import load_faults
-from hw_emulation.scenario import STANDING_WINDOW, load_scenario
-from hw_emulation.truth import build_truth
+from slcp.agent.methods import METHODS, MethodSpec
+from slcp.geo import earth
+from slcp.hw_emulation.events import event_times, window_bounds
+from slcp.hw_emulation.faults import load_faults
+from slcp.hw_emulation.scenario import STANDING_WINDOW, load_scenario
+from slcp.hw_emulation.truth import build_truth
 
 from .bound import posterior_crlb
 from .detection import score_first_stopped

@@ -13,15 +13,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.nav.ins_filter import InsFilter
-from agent.nav.measurements.gnss import gnss_position, gnss_velocity
-from agent.nav.rotation import euler_to_quat
-from agent.nav.state import NavState, apply_error
-from geo import earth
-from hw_emulation.emulate import VehicleSensors, emulate_vehicle_sensors
-from hw_emulation.events import window_bounds
-from hw_emulation.sensors.imu import ImuModel
-from hw_emulation.truth import ScenarioTruth, VehicleTruth
+from slcp.agent.nav.ins_filter import InsFilter
+from slcp.agent.nav.measurements.gnss import gnss_position, gnss_velocity
+from slcp.agent.nav.rotation import euler_to_quat
+from slcp.agent.nav.state import NavState, apply_error
+from slcp.geo import earth
+from slcp.hw_emulation.emulate import VehicleSensors, emulate_vehicle_sensors
+from slcp.hw_emulation.events import window_bounds
+from slcp.hw_emulation.sensors.imu import ImuModel
+from slcp.hw_emulation.truth import ScenarioTruth, VehicleTruth
 
 from .agent_configs import imu_noise_of
 

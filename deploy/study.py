@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.methods import DEFAULT_FUSION, METHODS
+from slcp.agent.methods import DEFAULT_FUSION, METHODS
 
 from .study_report import PAIRS, study_markdown  # noqa: F401  (study_markdown: the study's report)
 
@@ -59,7 +59,7 @@ def stance_check(scn, seeds: list[int]) -> dict:
     more (or less) spread than the model, and a consistent filter's ANEES where that error
     dominates is expected outside its band too.
     """
-    from hw_emulation.truth import stance_draws
+    from slcp.hw_emulation.truth import stance_draws
 
     n = len(seeds)
     draws = [stance_draws(scn, s) for s in seeds]
@@ -232,7 +232,7 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     study["failed_seeds"] = {str(s): r for s, r in sorted(failed.items())}
     study["fusion"] = fusion
     study["lane_constraint"] = lane_constraint
-    from hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.scenario import load_scenario
 
     study["stance_draws"] = stance_check(load_scenario(scenario), sorted(per_seed))
     (out / "study.json").write_text(json.dumps(study, indent=2))
@@ -359,7 +359,7 @@ def rebuild_study(out: Path) -> dict:
         raise ValueError(f"{out}: no seed-* runs")
     study = aggregate(out, per_seed)
     try:  # a study of a scenario file that has moved keeps the draws it had
-        from hw_emulation.scenario import load_scenario
+        from slcp.hw_emulation.scenario import load_scenario
 
         study["stance_draws"] = stance_check(load_scenario(study["scenario"]), sorted(per_seed))
     except (ValueError, OSError):

@@ -3,7 +3,7 @@ drivers' draws and first-stopped detection of :func:`deploy.study.aggregate`'s s
 
 from __future__ import annotations
 
-from agent.methods import METHODS
+from slcp.agent.methods import METHODS
 
 PAIRS = (("CP", "SP"), ("SL-CP", "SP"), ("SL-CP", "CP"), ("SL-SP", "SP"))
 

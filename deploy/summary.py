@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from agent.methods import METHODS
+from slcp.agent.methods import METHODS
 
 from .study import anees_band
 

@@ -19,8 +19,8 @@ import threading
 import time
 from pathlib import Path
 
-from agent.methods import METHODS
-from hw_emulation.faults import PROCESS_FAULTS
+from slcp.agent.methods import METHODS
+from slcp.hw_emulation.faults import PROCESS_FAULTS
 
 from .processes import SUPERVISOR_ENV
 from .progress import FleetProgress
@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 
 
 def _slcp(*args: str) -> list[str]:
-    return [sys.executable, "-m", "deploy.cli", *args]
+    return [sys.executable, "-m", "slcp.deploy.cli", *args]
 
 
 def _check_resume_progressed(restarts: list[dict], t_now: float, how: str, out: Path) -> None:
@@ -61,7 +61,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
     ``stats["emulator_killed_at_end"]``; its scenario was played, so the run goes on). A resumed
     emulator that fails again before the fleet gets past its resume point is not restarted a
     second time there: the run fails with what was seen (:func:`_check_resume_progressed`)."""
-    from transport.zenoh_bus import ZenohBus, ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
     router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,)))
     sup = _Supervisor(vehicles, configs, out, progress, max_restarts, faults or [], monitor, wait_agents,
@@ -92,7 +92,7 @@ class _Supervisor:
     def __init__(self, vehicles, configs, out: Path, progress, max_restarts: int, faults: list, monitor,
                  wait_agents: float, agent_nice: int, end_t: float | None, stall_s: float,
                  exit_grace_s: float, title: str) -> None:
-        from transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
+        from slcp.transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
 
         self.vehicles, self.configs, self.out = vehicles, configs, out
         self.progress, self.max_restarts, self.monitor = progress, max_restarts, monitor

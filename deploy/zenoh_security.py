@@ -22,9 +22,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from transport import keys
-from transport.security import INFRASTRUCTURE, VEHICLE, TrustStore
-from transport.zenoh_bus import ZenohConfig
+from slcp.transport import keys
+from slcp.transport.security import INFRASTRUCTURE, VEHICLE, TrustStore
+from slcp.transport.zenoh_bus import ZenohConfig
 
 _R = keys.ROOT
 

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geo import earth
-from transport.messages import Beacon
+from slcp.geo import earth
+from slcp.transport.messages import Beacon
 
 ATTACKS = ("constant_position", "constant_offset", "random_position", "random_offset", "eventual_stop",
            "overconfident")

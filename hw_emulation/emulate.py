@@ -14,8 +14,8 @@ from itertools import combinations
 
 import numpy as np
 
-from geo import earth
-from geo.lane_markings import UNSEEN, LaneEdges, marking_classes
+from slcp.geo import earth
+from slcp.geo.lane_markings import UNSEEN, LaneEdges, marking_classes
 
 from .scenario import Scenario
 from .sensors.camera import simulate_markings

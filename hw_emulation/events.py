@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from .scenario import EventSpec
 from .truth import ScenarioTruth

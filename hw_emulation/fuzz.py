@@ -20,8 +20,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from transport.codec import MAX_PAYLOAD, SCHEMA_VERSION, encode
-from transport.messages import Message
+from slcp.transport.codec import MAX_PAYLOAD, SCHEMA_VERSION, encode
+from slcp.transport.messages import Message
 
 MALFORMED = ("random_bytes", "truncated", "oversized", "wrong_type", "nan_inf", "wrong_version",
              "unknown_type", "missing_field", "unknown_field", "bad_array")

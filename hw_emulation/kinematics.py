@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline
 
-from geo import earth
+from slcp.geo import earth
 
 
 class KinematicProfile(Protocol):

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pymap3d
 
-from transport.messages import Beacon, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
+from slcp.transport.messages import Beacon, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
 
 from .emulate import emulate_uwb, emulate_vehicle_sensors
 from .faults import LINK_FAULTS

@@ -452,10 +452,10 @@ def shipped_scenario_text(name: str) -> str:
     """The TOML text of the shipped scenario ``name`` (:class:`ScenarioError` if there is none)."""
     if name not in shipped_scenarios():
         raise ScenarioError(f"unknown scenario {name!r}; shipped: {', '.join(shipped_scenarios())}")
-    return resources.files("hw_emulation.scenarios").joinpath(f"{name}.toml").read_text()
+    return resources.files("slcp.hw_emulation.scenarios").joinpath(f"{name}.toml").read_text()
 
 
 def shipped_scenarios() -> list[str]:
     """Names of the scenarios shipped with the package."""
-    root = resources.files("hw_emulation.scenarios")
+    root = resources.files("slcp.hw_emulation.scenarios")
     return sorted(f.name[:-5] for f in root.iterdir() if f.name.endswith(".toml"))

@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from transport import keys
-from transport.bus import Bus
-from transport.codec import CodecError, decode, encode
-from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
+from slcp.transport import keys
+from slcp.transport.bus import Bus
+from slcp.transport.codec import CodecError, decode, encode
+from slcp.transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
 
 from .playback import Radio, RadioStats, SensorPlayback
 from .truth import ScenarioTruth

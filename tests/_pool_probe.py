@@ -21,7 +21,7 @@ def job(path: str) -> None:
 
 
 if __name__ == "__main__":
-    from deploy.study import _interruptible, _stop_with_parent
+    from slcp.deploy.study import _interruptible, _stop_with_parent
 
     pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
     if len(sys.argv) == 2:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from transport.zenoh_bus import ZenohBus, ZenohConfig  # noqa: E402
+from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig  # noqa: E402
 
 
 async def main(name: str, endpoint: str, lease_ms: int, strategy: str, out: Path) -> None:

@@ -18,7 +18,7 @@ TRIES_FILE = "tries.txt"  #: each try of the bad seed appends a line here (in th
 
 def runner(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
            agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client") -> dict:
-    from deploy import launcher, supervisor
+    from slcp.deploy import launcher, supervisor
 
     if seed == BAD_SEED:
         with open(Path(out).parent / TRIES_FILE, "a") as fh:

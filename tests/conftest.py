@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.nav.error_model import ImuNoise
-from agent.nav.rotation import euler_to_quat
-from agent.nav.state import NavState
+from slcp.agent.nav.error_model import ImuNoise
+from slcp.agent.nav.rotation import euler_to_quat
+from slcp.agent.nav.state import NavState
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -48,7 +48,7 @@ def short_scenario(folder: Path, name: str = "paper-1", duration: float = 25.0) 
     sensor time (for tests of mechanisms that need the fleet running, not the whole drive)."""
     from importlib import resources
 
-    text = resources.files("hw_emulation.scenarios").joinpath(f"{name}.toml").read_text()
+    text = resources.files("slcp.hw_emulation.scenarios").joinpath(f"{name}.toml").read_text()
     cut = re.sub(r"(?m)^duration = [0-9.]+$", f"duration = {duration!r}", text, count=1)
     assert cut != text, f"{name}.toml has no duration line to cut"
     path = Path(folder) / f"{name}-{duration:g}s.toml"
@@ -140,8 +140,8 @@ def mechanization_drift(truth, n: int | None = None, every: int = 100):
     Returns ``(final_state, worst_position_error_m)`` over the first ``n`` intervals (all by
     default), checking the position every ``every`` samples and at the end.
     """
-    from agent.nav.mechanization import mechanize
-    from geo import earth as _earth
+    from slcp.agent.nav.mechanization import mechanize
+    from slcp.geo import earth as _earth
 
     n = len(truth.t) - 1 if n is None else min(n, len(truth.t) - 1)
     s = NavState(*truth.llh[0], truth.v_ned[0].copy(), euler_to_quat(*truth.euler[0]))

@@ -9,11 +9,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from deploy.bound import _run
-from hw_emulation.sensors.gnss import GnssModel
-from hw_emulation.sensors.imu import ImuModel
-from hw_emulation.sensors.radio import RadioModel
-from hw_emulation.sensors.uwb import UwbModel
+from slcp.deploy.bound import _run
+from slcp.hw_emulation.sensors.gnss import GnssModel
+from slcp.hw_emulation.sensors.imu import ImuModel
+from slcp.hw_emulation.sensors.radio import RadioModel
+from slcp.hw_emulation.sensors.uwb import UwbModel
 
 
 def _fleet(n: int, gnss: GnssModel, common: float = 1e-6, uwb: UwbModel | None = None):
@@ -64,7 +64,7 @@ def test_a_range_adds_information_along_the_line_only() -> None:
 
 @pytest.mark.timeout(120)
 def test_methods_are_ordered_and_the_cli_prints_them(capsys) -> None:
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     assert main(["bound", "paper-1", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)["rows"]
@@ -79,9 +79,9 @@ def test_the_stop_line_information_counts_from_the_step_in_which_the_vehicle_sto
     """The bound at step k stands for [t_k, t_k+1) (``Bound.at``); a detector may claim, and fix,
     as soon as the vehicle stops inside it, so the stop line's information is in from that step
     (paper-2 seed 0: V0 stops at 21.46 s, between the 5 Hz steps 21.4 and 21.6 s)."""
-    from deploy.bound import posterior_crlb
-    from hw_emulation.scenario import load_scenario
-    from hw_emulation.truth import build_truth
+    from slcp.deploy.bound import posterior_crlb
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.truth import build_truth
 
     truth = build_truth(load_scenario("paper-2"), stop_seed=0)
     tr = truth.vehicles["V0"]
@@ -99,7 +99,7 @@ def test_an_offset_redrawn_in_each_lane_knows_less_than_one_kept_by_the_driver(c
     """``--lane-offset lane`` (the filters' driver model) discards what the emulated drivers'
     constant offset tells across lanes: paper-1's SL bounds rise where a vehicle changes lanes
     and the bounds without lane information are unchanged."""
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     rows = {}
     for model in ("vehicle", "lane"):
@@ -119,7 +119,7 @@ def test_an_offset_redrawn_in_each_lane_knows_less_than_one_kept_by_the_driver(c
 
 
 def test_an_unknown_lane_offset_model_is_refused() -> None:
-    from deploy.bound import posterior_crlb
+    from slcp.deploy.bound import posterior_crlb
 
     with pytest.raises(ValueError, match="lane_offset"):
         posterior_crlb(SimpleNamespace(), lane_offset="driver")
@@ -134,7 +134,7 @@ def test_a_sub_fleet_knows_less_and_a_vehicle_alone_is_its_own_bound(capsys) -> 
     its SP and SL-SP bounds (paper-2, seed 3's stop draws). The ``standing`` rows cover the
     times a vehicle truly stands: V0 is first stopped then, and its SL-SP bound is the stop
     line's decimetres."""
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     rows = {}
     for sub in (None, "V0,V1", "V0"):
@@ -161,7 +161,7 @@ def test_a_sub_fleet_knows_less_and_a_vehicle_alone_is_its_own_bound(capsys) -> 
 
 
 def test_a_sub_fleet_with_an_unknown_vehicle_is_refused(capsys) -> None:
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     assert main(["bound", "paper-1", "--vehicles", "V0,V9"]) == 2
     err = capsys.readouterr().err
@@ -174,7 +174,7 @@ def test_the_bound_s_map_frame_is_the_local_ned_within_two_centimetres() -> None
     (400 m each way, 60 m up) it is pymap3d's exact local NED within 2 cm."""
     import pymap3d
 
-    from deploy.bound import map_ne
+    from slcp.deploy.bound import map_ne
 
     o = (math.radians(39.9552), math.radians(116.3194), 50.0)
     rng = np.random.default_rng(11)

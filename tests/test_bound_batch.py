@@ -18,13 +18,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from agent.methods import STOP_LINE_MAP_SIGMA
-from agent.nav.measurements.stop_line import Line2D, StopLineApproach, stop_line_fix
-from deploy.bound import _NV, _run
-from hw_emulation.sensors.gnss import GnssModel
-from hw_emulation.sensors.imu import ImuModel
-from hw_emulation.sensors.radio import RadioModel
-from hw_emulation.sensors.uwb import UwbModel
+from slcp.agent.methods import STOP_LINE_MAP_SIGMA
+from slcp.agent.nav.measurements.stop_line import Line2D, StopLineApproach, stop_line_fix
+from slcp.deploy.bound import _NV, _run
+from slcp.hw_emulation.sensors.gnss import GnssModel
+from slcp.hw_emulation.sensors.imu import ImuModel
+from slcp.hw_emulation.sensors.radio import RadioModel
+from slcp.hw_emulation.sensors.uwb import UwbModel
 
 # per vehicle, as the bound's docstring lays them out: p 0-1, v 2-3, multipath 4-5, stop gap
 # errors 6 (d_s) and 7 (d_l), lane offset 8; then the common mode (2)
@@ -278,7 +278,7 @@ def test_one_step_range_weight_in_closed_form() -> None:
 
 
 def test_the_bound_at_a_time_is_the_latest_step_not_after_it() -> None:
-    from deploy.bound import Bound
+    from slcp.deploy.bound import Bound
 
     cov = np.zeros((3, 2, 2))
     cov[:, 0, 0] = [9.0, 4.0, 1.0]

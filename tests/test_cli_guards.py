@@ -15,13 +15,13 @@ from pathlib import Path
 
 import pytest
 
-from deploy import cli_types
-from deploy.cli import build_parser, main
-from deploy.run_dirs import RunDirError, folder_stem, next_free, prepare_out
+from slcp.deploy import cli_types
+from slcp.deploy.cli import build_parser, main
+from slcp.deploy.run_dirs import RunDirError, folder_stem, next_free, prepare_out
 
 from conftest import short_scenario
 
-CLI = [sys.executable, "-m", "deploy.cli"]
+CLI = [sys.executable, "-m", "slcp.deploy.cli"]
 
 
 def _refused(argv: list[str], capsys) -> str:
@@ -95,19 +95,19 @@ def test_every_option_has_help_text() -> None:
 def test_the_cli_reference_page_is_the_parsers(monkeypatch) -> None:
     """docs/reference-cli.md is what the parsers generate (regenerate it with the command in its
     header after changing an option)."""
-    from deploy.cli_reference import cli_reference_markdown
+    from slcp.deploy.cli_reference import cli_reference_markdown
 
     monkeypatch.setenv("COLUMNS", "100")
     page = Path(__file__).resolve().parents[1] / "docs" / "reference-cli.md"
     assert page.read_text() == cli_reference_markdown(build_parser()), \
-        "docs/reference-cli.md is out of date: python -m deploy.cli_reference > docs/reference-cli.md"
+        "docs/reference-cli.md is out of date: python -m slcp.deploy.cli_reference > docs/reference-cli.md"
 
 
 def test_the_config_reference_page_is_the_dataclasses() -> None:
     """docs/reference-config.md is what the dataclasses generate, and every field is described."""
     import dataclasses
 
-    from deploy.config_reference import _tables, config_reference_markdown, field_docs
+    from slcp.deploy.config_reference import _tables, config_reference_markdown, field_docs
 
     for _, _, cls in _tables():
         undocumented = [f.name for f in dataclasses.fields(cls) if not f.name.startswith("_")
@@ -115,7 +115,7 @@ def test_the_config_reference_page_is_the_dataclasses() -> None:
         assert undocumented == [], f"{cls.__name__}: {undocumented} have no description"
     page = Path(__file__).resolve().parents[1] / "docs" / "reference-config.md"
     assert page.read_text() == config_reference_markdown(), \
-        "docs/reference-config.md is out of date: python -m deploy.config_reference > docs/reference-config.md"
+        "docs/reference-config.md is out of date: python -m slcp.deploy.config_reference > docs/reference-config.md"
 
 
 def test_version(capsys) -> None:
@@ -128,7 +128,7 @@ def test_version(capsys) -> None:
 
 
 def test_a_shipped_scenario_exports_to_a_file_that_runs_as_it(tmp_path, capsys) -> None:
-    from hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.scenario import load_scenario
 
     assert main(["scenario", "export", "paper-1"]) == 0
     text = capsys.readouterr().out
@@ -285,7 +285,7 @@ def test_a_client_whose_router_is_not_there_is_one_clean_error(tmp_path, capsys)
     router: the error names the endpoint and carries no Rust source path."""
     import asyncio
 
-    from transport.zenoh_bus import ZenohBus, ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
     from conftest import free_port
 
@@ -330,8 +330,8 @@ def test_the_readme_is_a_front_page() -> None:
 
 
 def test_the_terminal_summary_is_a_compact_plain_table_that_flags_nees(tmp_path) -> None:
-    from deploy.summary import NEES_BAND, terminal_summary
-    from hw_emulation.scenario import load_scenario
+    from slcp.deploy.summary import NEES_BAND, terminal_summary
+    from slcp.hw_emulation.scenario import load_scenario
 
     scn = load_scenario("paper-1")
 

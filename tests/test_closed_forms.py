@@ -14,9 +14,9 @@ from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from agent.nav.fusion import fminbound
-from agent.nav.kalman import chi2_gate, chi2_survival
-from agent.nav.rotation import dcm_to_quat, euler_to_dcm, euler_to_quat, quat_to_dcm
+from slcp.agent.nav.fusion import fminbound
+from slcp.agent.nav.kalman import chi2_gate, chi2_survival
+from slcp.agent.nav.rotation import dcm_to_quat, euler_to_dcm, euler_to_quat, quat_to_dcm
 
 
 def test_euler_and_quaternion_conversions_equal_scipys(rng) -> None:
@@ -71,11 +71,11 @@ def test_an_agent_process_imports_no_scipy() -> None:
     """Loading an agent's configuration (scenario site map and sensors) and its runtime pulls in
     no scipy module: scipy's packages would take an agent past its 80 MB memory budget."""
     code = ("import sys, tempfile, pathlib\n"
-            "from deploy.processes import load_agent_config\n"
+            "from slcp.deploy.processes import load_agent_config\n"
             "p = pathlib.Path(tempfile.mkdtemp()) / 'a.toml'\n"
             "p.write_text('[agent]\\nvehicle = \"V1\"\\nscenario = \"paper-1\"\\n')\n"
             "load_agent_config(p, None)\n"
-            "import agent.runtime, transport.zenoh_bus, transport.security, deploy.processes\n"
+            "import slcp.agent.runtime, slcp.transport.zenoh_bus, slcp.transport.security, slcp.deploy.processes\n"
             "print(sorted(m for m in sys.modules if m == 'scipy' or m.startswith('scipy.')))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr

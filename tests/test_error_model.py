@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from agent.nav.error_model import ImuNoise, discretize, noise_input_matrix, system_matrix
-from agent.nav.mechanization import continuous_dynamics
-from agent.nav.rotation import dcm_to_quat
-from agent.nav.state import N_STATES, NavState, apply_error, state_error
-from geo import earth
+from slcp.agent.nav.error_model import ImuNoise, discretize, noise_input_matrix, system_matrix
+from slcp.agent.nav.mechanization import continuous_dynamics
+from slcp.agent.nav.rotation import dcm_to_quat
+from slcp.agent.nav.state import N_STATES, NavState, apply_error, state_error
+from slcp.geo import earth
 
 from conftest import EPS, MEMS_NOISE, moving_state, numerical_jacobian
 
@@ -144,7 +144,7 @@ def test_gravity_and_radii_closed_form() -> None:
 
 
 def test_constant_noise_density_equals_G_Qc_Gt() -> None:
-    from agent.nav.error_model import process_noise_density
+    from slcp.agent.nav.error_model import process_noise_density
 
     for yaw in (0.0, 1.0, -2.0):
         st = moving_state(yaw)

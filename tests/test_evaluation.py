@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from deploy.run_report import evaluate_recording
-from geo import earth
-from hw_emulation.scenario import STANDING_WINDOW, load_scenario
-from hw_emulation.truth import build_truth
+from slcp.deploy.run_report import evaluate_recording
+from slcp.geo import earth
+from slcp.hw_emulation.scenario import STANDING_WINDOW, load_scenario
+from slcp.hw_emulation.truth import build_truth
 
 
 def _estimate(vid: str, method: str, t: float, llh, north: float, sigma: float) -> dict:

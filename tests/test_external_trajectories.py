@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from geo import earth
-from hw_emulation.external import TrajectoryError, read_csv_tracks, read_sumo_fcd, truth_from_tracks
+from slcp.geo import earth
+from slcp.hw_emulation.external import TrajectoryError, read_csv_tracks, read_sumo_fcd, truth_from_tracks
 
 from conftest import mechanization_drift
 

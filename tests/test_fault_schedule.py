@@ -8,7 +8,7 @@ import asyncio
 import numpy as np
 import pytest
 
-from hw_emulation.faults import Fault, FaultError, load_faults, parse_faults
+from slcp.hw_emulation.faults import Fault, FaultError, load_faults, parse_faults
 
 
 def test_a_schedule_file_is_read_and_its_errors_name_the_fault(tmp_path) -> None:
@@ -46,14 +46,14 @@ def test_a_schedule_file_is_read_and_its_errors_name_the_fault(tmp_path) -> None
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_link_and_sensor_faults_on_a_running_fleet() -> None:
-    from agent.runtime import Agent
-    from deploy.agent_configs import agent_config
-    from hw_emulation.scenario import load_scenario
-    from hw_emulation.service import EmulatorService
-    from hw_emulation.truth import build_truth
-    from transport import keys
-    from transport.bus import InMemoryNetwork
-    from transport.codec import decode
+    from slcp.agent.runtime import Agent
+    from slcp.deploy.agent_configs import agent_config
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.service import EmulatorService
+    from slcp.hw_emulation.truth import build_truth
+    from slcp.transport import keys
+    from slcp.transport.bus import InMemoryNetwork
+    from slcp.transport.codec import decode
 
     scn = load_scenario("paper-1")
     truth = build_truth(scn)

@@ -33,7 +33,7 @@ def _t_of(line: str) -> float | None:
 def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None:
     out = tmp_path / "run"
     scn = short_scenario(tmp_path, "paper-1", 25.0)
-    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", str(scn), "--out", str(out)],
+    p = subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "run", str(scn), "--out", str(out)],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         rec = out / "recorded" / "messages.jsonl"
@@ -92,7 +92,7 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
 
     schedule = Path(__file__).resolve().parents[1] / "deploy" / "faults" / "paper-1.toml"
     out = tmp_path / "run"
-    r = run_group([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--faults", str(schedule),
+    r = run_group([sys.executable, "-m", "slcp.deploy.cli", "run", "paper-1", "--faults", str(schedule),
                    "--out", str(out)], timeout=200)
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
@@ -130,15 +130,15 @@ def test_a_killed_recorder_keeps_what_it_wrote_and_a_restarted_one_continues(tmp
 
     import numpy as np
 
-    from transport import keys
-    from transport.codec import encode
-    from transport.messages import Estimate
-    from transport.zenoh_bus import ZenohBus, ZenohConfig
+    from slcp.transport import keys
+    from slcp.transport.codec import encode
+    from slcp.transport.messages import Estimate
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     out = tmp_path / "messages.jsonl"
-    cli = [sys.executable, "-m", "deploy.cli"]
+    cli = [sys.executable, "-m", "slcp.deploy.cli"]
     router = subprocess.Popen([*cli, "router", "--listen", ep], start_new_session=True,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     procs = [router]
@@ -202,7 +202,7 @@ def test_a_launcher_killed_with_sigkill_leaves_no_process_behind(tmp_path) -> No
     """`slcp run` killed with SIGKILL cannot stop its processes; they notice it is gone (their
     parent changes) and stop by themselves within about a second."""
     out = tmp_path / "run"
-    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--speed", "1", "--out", str(out)],
+    p = subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "run", "paper-1", "--speed", "1", "--out", str(out)],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
 
     def children() -> set[int]:

@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from agent.nav.error_model import ImuNoise
-from agent.nav.ins_filter import InsFilter
-from agent.nav.kalman import Measurement
-from agent.nav.measurements.gnss import gnss_position, gnss_velocity
-from agent.nav.rotation import euler_to_quat
-from agent.nav.state import NavState, apply_error
-from geo import earth
-from hw_emulation.kinematics import SinusoidProfile, generate
+from slcp.agent.nav.error_model import ImuNoise
+from slcp.agent.nav.ins_filter import InsFilter
+from slcp.agent.nav.kalman import Measurement
+from slcp.agent.nav.measurements.gnss import gnss_position, gnss_velocity
+from slcp.agent.nav.rotation import euler_to_quat
+from slcp.agent.nav.state import NavState, apply_error
+from slcp.geo import earth
+from slcp.hw_emulation.kinematics import SinusoidProfile, generate
 
 NOISE = ImuNoise(arw=math.radians(0.2) / 60, vrw=0.1 / 60,
                  gyro_bias_sigma=math.radians(20) / 3600, gyro_bias_tau=3600.0,

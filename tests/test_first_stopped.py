@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView, StopTracker
-from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
-from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN, LaneEdges, MarkingWindow, marking_classes
+from slcp.agent.first_stopped import ApproachLane, FirstStoppedDetector, NeighbourView, StopTracker
+from slcp.agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
+from slcp.geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN, LaneEdges, MarkingWindow, marking_classes
 
 GAP = StopGapModel(1.5, 0.3, 1.75, 0.15, 2.5)
 
@@ -107,7 +107,7 @@ def test_a_claim_ends_as_soon_as_the_vehicle_moves_and_neighbour_noise_does_not_
 
 
 def test_imu_rest_is_told_from_constant_acceleration_and_turning() -> None:
-    from agent.nav.motion import StationarityMonitor, ZuptGate
+    from slcp.agent.nav.motion import StationarityMonitor, ZuptGate
 
     g = np.array([0.0, 0.0, -9.81])  # specific force at rest, level FRD
     dt = 0.01
@@ -150,7 +150,7 @@ def test_imu_rest_is_told_from_constant_acceleration_and_turning() -> None:
 
 
 def test_speed_sigma_is_the_standard_deviation_along_the_velocity() -> None:
-    from agent.nav.motion import speed_sigma
+    from slcp.agent.nav.motion import speed_sigma
 
     cov = np.diag([4.0, 0.25, 9.0])
     assert speed_sigma(np.array([3.0, 0.0, 1.0]), cov) == pytest.approx(2.0)

@@ -11,13 +11,13 @@ import time
 import numpy as np
 import pytest
 
-from deploy.fleet_bench import FleetMonitor, _proc_cpu_s, _proc_peak_rss_mb
-from hw_emulation.grid import grid_scenario_toml
-from hw_emulation.scenario import load_scenario
-from transport import keys
-from transport.bus import InMemoryNetwork
-from transport.codec import encode
-from transport.messages import GnssFix
+from slcp.deploy.fleet_bench import FleetMonitor, _proc_cpu_s, _proc_peak_rss_mb
+from slcp.hw_emulation.grid import grid_scenario_toml
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.transport import keys
+from slcp.transport.bus import InMemoryNetwork
+from slcp.transport.codec import encode
+from slcp.transport.messages import GnssFix
 
 
 def test_the_grid_has_the_vehicles_and_at_most_seven_neighbours_each(tmp_path) -> None:
@@ -26,7 +26,7 @@ def test_the_grid_has_the_vehicles_and_at_most_seven_neighbours_each(tmp_path) -
     scn = load_scenario(p)
     assert len(scn.vehicles) == 19 and scn.duration == 20.0
     assert scn.radio.latency_max == 0.0 and scn.radio.stale_prob == 0.0
-    from hw_emulation.truth import build_truth
+    from slcp.hw_emulation.truth import build_truth
 
     truth = build_truth(scn)
     ids = sorted(truth.vehicles)
@@ -45,8 +45,8 @@ def test_the_grid_has_the_vehicles_and_at_most_seven_neighbours_each(tmp_path) -
 
 @pytest.mark.parametrize(("stagger", "batch"), [(True, 10), (False, 10), (True, 20)])
 def test_staggered_imu_batches_end_at_evenly_spread_phases(tmp_path, stagger, batch) -> None:
-    from hw_emulation.service import EmulatorService
-    from hw_emulation.truth import build_truth
+    from slcp.hw_emulation.service import EmulatorService
+    from slcp.hw_emulation.truth import build_truth
 
     p = tmp_path / "grid.toml"
     p.write_text(grid_scenario_toml(5, duration=3.0, imu_stagger=stagger, imu_batch=batch))
@@ -114,7 +114,7 @@ def test_the_monitor_pairs_deliveries_with_publications_and_reads_proc() -> None
 
 def test_the_monitor_reports_each_window_of_the_steady_part() -> None:
     """Machine CPU and beacon p99 per WINDOW_S: a busy middle window stands out of the average."""
-    from deploy.fleet_bench import WINDOW_S
+    from slcp.deploy.fleet_bench import WINDOW_S
 
     mon = FleetMonitor(["G0"])
     # 1 s samples over 16 s: two processes, the agent busy (1.9 cores in all) from 5 to 10 s

@@ -9,14 +9,14 @@ import time
 import numpy as np
 import pytest
 
-from agent.runtime import Agent
-from deploy.agent_configs import agent_config
-from hw_emulation.scenario import load_scenario
-from hw_emulation.service import EmulatorService
-from hw_emulation.truth import build_truth
-from transport import keys
-from transport.bus import InMemoryNetwork
-from transport.codec import decode
+from slcp.agent.runtime import Agent
+from slcp.deploy.agent_configs import agent_config
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.hw_emulation.service import EmulatorService
+from slcp.hw_emulation.truth import build_truth
+from slcp.transport import keys
+from slcp.transport.bus import InMemoryNetwork
+from slcp.transport.codec import decode
 
 pytestmark = pytest.mark.slow
 
@@ -63,7 +63,7 @@ def test_fleet_on_the_in_memory_bus() -> None:
     # SL-SP error of V1 while it claims first
     vt = truth.vehicles["V1"].truth
     errs = []
-    from geo import earth
+    from slcp.geo import earth
     for r in records:
         if r.vehicle == "V1" and r.method == "SL-SP" and r.first_stopped:
             k = int(np.searchsorted(vt.t, r.t - 1e-9))
@@ -77,7 +77,7 @@ def test_fleet_on_the_in_memory_bus() -> None:
 def test_an_unusable_range_is_counted_and_the_agent_goes_on() -> None:
     """A range whose fusion raises (here: the neighbour's beacon at our own position) is dropped and
     counted; it must not stay queued and break every later IMU batch."""
-    from agent.neighbours import NeighbourState
+    from slcp.agent.neighbours import NeighbourState
 
     scn = load_scenario("paper-1")
     agent = Agent(agent_config(scn, "V1"), InMemoryNetwork().bus())
@@ -100,7 +100,7 @@ def test_an_unusable_range_is_counted_and_the_agent_goes_on() -> None:
 def test_a_ranging_round_reaches_the_filters_as_its_single_ranges_would() -> None:
     """A UwbRound (one message per vehicle and round) is sequenced exactly as the UwbRange of
     each of its pairs; a peer equal to the receiver and a repeated round are counted, not used."""
-    from transport.messages import UwbRange, UwbRound
+    from slcp.transport.messages import UwbRange, UwbRound
 
     scn = load_scenario("paper-1")
 
@@ -167,8 +167,8 @@ def test_an_agent_that_stalls_the_clock_is_waited_for_once_then_set_aside_until_
 def test_the_filters_start_from_the_fix_nearest_the_first_imu_sample_whatever_had_arrived() -> None:
     """Which GNSS fixes an agent holds when its first IMU batch is processed depends on message
     timing; the start does not: the fix nearest in time, moved to the IMU start by its velocity."""
-    from geo import earth
-    from transport.messages import GnssFix, ImuBatch
+    from slcp.geo import earth
+    from slcp.transport.messages import GnssFix, ImuBatch
 
     scn = load_scenario("paper-1")
     cfg = agent_config(scn, "V1", methods=("SP",))
@@ -208,8 +208,8 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
 
     import pymap3d
 
-    from hw_emulation.playback import Radio
-    from transport.messages import Beacon
+    from slcp.hw_emulation.playback import Radio
+    from slcp.transport.messages import Beacon
 
     truth = build_truth(load_scenario("rush-hour"))
     radio = Radio(truth, seed=0)

@@ -10,7 +10,7 @@ import subprocess
 
 import pytest
 
-from deploy.launcher import run_fleet
+from slcp.deploy.launcher import run_fleet
 
 from conftest import short_scenario
 
@@ -47,7 +47,7 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
     cell = m["rmse"]["t_s1-t_e"]["V2"]["SL-CP"]
     assert 0.0 < cell["bound_rms_m"] < m["rmse"]["t_s1-t_e"]["V2"]["SP"]["bound_rms_m"]
     (out / "metrics.json").unlink()
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     assert main(["report", str(out)]) == 0
     again = json.loads((out / "metrics.json").read_text())
@@ -70,7 +70,7 @@ def test_sigterm_to_the_launcher_stops_every_child(tmp_path, extra, up) -> None:
     import time
 
     out = tmp_path / "run"
-    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "paper-1", "--out", str(out), *extra],
+    p = subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "run", "paper-1", "--out", str(out), *extra],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
@@ -97,7 +97,7 @@ def test_a_termination_signal_while_a_child_starts_still_leaves_it_to_be_stopped
     import signal
     import sys
 
-    from deploy import supervisor
+    from slcp.deploy import supervisor
 
     real_popen = subprocess.Popen
 
@@ -124,7 +124,7 @@ def test_a_termination_signal_while_a_child_starts_still_leaves_it_to_be_stopped
 
 def _emulator_replaced(monkeypatch, command) -> None:
     """Make the launcher start ``command(emulator_argv)`` (an argv) in place of the emulator."""
-    from deploy import supervisor
+    from slcp.deploy import supervisor
 
     real = supervisor._slcp
     monkeypatch.setattr(supervisor, "_slcp", lambda *a: command(real(*a)) if "emulate" in a else real(*a))
@@ -139,7 +139,7 @@ def test_an_emulator_that_does_not_exit_after_the_scenario_is_killed_and_the_run
     import functools
     import sys
 
-    from deploy import launcher
+    from slcp.deploy import launcher
 
     hang_after = "import sys, time; from deploy.cli import main; main(sys.argv[1:]); time.sleep(600)"
     _emulator_replaced(monkeypatch, lambda argv: [sys.executable, "-c", hang_after, *argv[3:]])
@@ -174,7 +174,7 @@ def test_a_silent_emulator_is_killed_and_restarted_then_given_up(tmp_path, monke
     import sys
     import time
 
-    from deploy import launcher
+    from slcp.deploy import launcher
 
     _emulator_replaced(monkeypatch, lambda argv: [sys.executable, "-c", "import time; time.sleep(600)", *argv])
     # up to three restarts allowed, but the resumed emulator fails at the same point (t = 0)

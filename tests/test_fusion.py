@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent.nav.fusion import _posterior_trace, best_omega, split_ci_update
-from agent.nav.kalman import Measurement, kalman_update
+from slcp.agent.nav.fusion import _posterior_trace, best_omega, split_ci_update
+from slcp.agent.nav.kalman import Measurement, kalman_update
 
 IDX = np.array([0, 1])
 
@@ -75,7 +75,7 @@ def test_split_ci_is_consistent_for_unknown_correlation_where_the_kalman_rule_is
 
 @pytest.mark.parametrize("m", [1, 2])
 def test_precomputed_trace_equals_the_explicit_posterior(m: int) -> None:
-    from agent.nav.fusion import _trace_fn
+    from slcp.agent.nav.fusion import _trace_fn
 
     rng = np.random.default_rng(4)
     Pd, Pi = _spd(rng, 6), _spd(rng, 6, 0.5)
@@ -91,7 +91,7 @@ def test_precomputed_trace_equals_the_explicit_posterior(m: int) -> None:
 def test_plain_gain_bounds_split_ci_so_the_screen_changes_no_decision(m: int) -> None:
     """Node selection screens a range by its plain Kalman gain before the ω search: that gain
     bounds every ω's, so what the screen skips the search would have skipped too."""
-    from agent.nav.fusion import _trace_fn, naive_gain
+    from slcp.agent.nav.fusion import _trace_fn, naive_gain
 
     rng = np.random.default_rng(7)
     skipped = 0
@@ -123,7 +123,7 @@ def test_the_exact_scalar_screen_agrees_with_a_dense_search_over_omega() -> None
     """For a scalar measurement the screen decides "does some ω gain more than T" in closed form
     (a cubic's maximum); a dense grid over ω must agree wherever the grid's best is clearly on
     one side of T, including the common case where every ω loses (the best is ω → 1)."""
-    from agent.nav.fusion import OMEGA_MAX, OMEGA_MIN, _scalar_terms, _scalar_trace_fn, scalar_gain_exceeds
+    from slcp.agent.nav.fusion import OMEGA_MAX, OMEGA_MIN, _scalar_terms, _scalar_trace_fn, scalar_gain_exceeds
 
     rng = np.random.default_rng(11)
     grid = np.concatenate([np.geomspace(OMEGA_MIN, 0.5, 4000), 1.0 - np.geomspace(0.5, 1.0 - OMEGA_MAX, 4000)])
@@ -151,8 +151,8 @@ def test_unshared_states_stay_out_of_the_inflation(unshared: bool) -> None:
     """Repeated split-CI ranges in the horizontal inflate the dependent part of every state by
     1/ω, the vertical channel included, which no range observes and nothing shrinks; declared
     unshared, the vertical keeps its variance."""
-    from agent.nav.error_model import ImuNoise
-    from agent.nav.ins_filter import InsFilter
+    from slcp.agent.nav.error_model import ImuNoise
+    from slcp.agent.nav.ins_filter import InsFilter
 
     from conftest import moving_state
 

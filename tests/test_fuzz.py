@@ -13,17 +13,17 @@ import math
 import numpy as np
 import pytest
 
-from agent.runtime import Agent
-from deploy.agent_configs import agent_config
-from deploy.recorder import Recorder
-from geo import earth
-from hw_emulation.fuzz import MALFORMED, SEMANTIC, malformed, time_jumped
-from hw_emulation.scenario import load_scenario
-from hw_emulation.service import EmulatorService
-from hw_emulation.truth import build_truth
-from transport import keys
-from transport.bus import InMemoryNetwork
-from transport.codec import CodecError, decode, encode
+from slcp.agent.runtime import Agent
+from slcp.deploy.agent_configs import agent_config
+from slcp.deploy.recorder import Recorder
+from slcp.geo import earth
+from slcp.hw_emulation.fuzz import MALFORMED, SEMANTIC, malformed, time_jumped
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.hw_emulation.service import EmulatorService
+from slcp.hw_emulation.truth import build_truth
+from slcp.transport import keys
+from slcp.transport.bus import InMemoryNetwork
+from slcp.transport.codec import CodecError, decode, encode
 
 from conftest import short_scenario
 
@@ -179,7 +179,7 @@ def _check_estimates(path, agents, truth) -> None:
 
 def _example(key: str):
     """A valid message for a topic nothing has been seen on yet (to derive malformed ones from)."""
-    from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
+    from slcp.transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, UwbRange
 
     z3 = np.zeros(3)
     llh = np.array([0.7, 2.0, 50.0])
@@ -200,7 +200,7 @@ def _example(key: str):
 def test_malformed_payloads_never_decode() -> None:
     """Each malformed kind, derived from each message type, is refused by the codec."""
     rng = np.random.default_rng(7)
-    from transport.messages import UwbRound
+    from slcp.transport.messages import UwbRound
 
     examples = [_example(key) for key in (keys.imu("V1"), keys.gnss("V1"), keys.uwb("V1"), keys.radio_rx("V1"),
                                           keys.estimate("V1", "CP"), keys.diag("V1"))]

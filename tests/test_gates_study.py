@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from deploy.cli import main
+from slcp.deploy.cli import main
 
 from conftest import short_scenario
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deploy.detection import score_first_stopped
-from deploy.inprocess import run_inprocess
-from hw_emulation.scenario import load_scenario
-from hw_emulation.truth import build_truth
+from slcp.deploy.detection import score_first_stopped
+from slcp.deploy.inprocess import run_inprocess
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.hw_emulation.truth import build_truth
 
 from conftest import short_scenario
 
@@ -81,7 +81,7 @@ def test_cooperation_improves_the_fleet(run) -> None:
 def test_cli_evaluate_json(capsys, tmp_path) -> None:
     import json
 
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     # paper-1 to 25 s: V1 stands first at the stop line from about 18 s
     assert main(["scenario", "evaluate", str(short_scenario(tmp_path, "paper-1", 25.0)), "--json"]) == 0

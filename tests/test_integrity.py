@@ -9,10 +9,10 @@ import pytest
 from scipy.stats import chi2
 from test_methods import ORIGIN, _stopped_filter
 
-from agent.integrity import OWN_TWIN, check_separation, separation, separation_threshold
-from agent.nav.kalman import Measurement
-from agent.nav.measurements.gnss import gnss_position
-from geo import earth
+from slcp.agent.integrity import OWN_TWIN, check_separation, separation, separation_threshold
+from slcp.agent.nav.kalman import Measurement
+from slcp.agent.nav.measurements.gnss import gnss_position
+from slcp.geo import earth
 
 
 def _offset(llh: np.ndarray, north: float, east: float) -> np.ndarray:
@@ -131,17 +131,17 @@ def test_an_agent_without_the_twin_method_warns_that_it_has_no_integrity_test(ca
     """SL-CP alone has nothing to be tested against: said once, at start, in the log."""
     import logging
 
-    from agent.runtime import Agent
-    from deploy.agent_configs import agent_config
-    from hw_emulation.scenario import load_scenario
-    from transport.bus import InMemoryNetwork
+    from slcp.agent.runtime import Agent
+    from slcp.deploy.agent_configs import agent_config
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.transport.bus import InMemoryNetwork
 
     scn = load_scenario("paper-1")
-    with caplog.at_level(logging.WARNING, logger="agent.engine"):
+    with caplog.at_level(logging.WARNING, logger="slcp.agent.engine"):
         Agent(agent_config(scn, "V1", methods=("SP", "SL-CP")), InMemoryNetwork().bus())
     assert [r.getMessage() for r in caplog.records] == [
         "V1: no cooperative integrity test for SL-CP: it needs SL-SP among the methods too"]
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="agent.engine"):
+    with caplog.at_level(logging.WARNING, logger="slcp.agent.engine"):
         Agent(agent_config(scn, "V1", methods=("SP", "CP", "SL-SP", "SL-CP")), InMemoryNetwork().bus())
     assert caplog.records == []

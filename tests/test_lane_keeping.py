@@ -8,15 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from agent.lane_map import LaneMap
-from agent.methods import FilterSettings, MethodFilter, MethodSpec, initial_state
-from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
-from deploy.agent_configs import lane_map
-from deploy.bound import posterior_crlb
-from geo import earth
-from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
-from hw_emulation.scenario import load_scenario
-from hw_emulation.truth import build_truth
+from slcp.agent.lane_map import LaneMap
+from slcp.agent.methods import FilterSettings, MethodFilter, MethodSpec, initial_state
+from slcp.agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
+from slcp.deploy.agent_configs import lane_map
+from slcp.deploy.bound import posterior_crlb
+from slcp.geo import earth
+from slcp.geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.hw_emulation.truth import build_truth
 
 from conftest import MEMS_NOISE
 
@@ -195,8 +195,8 @@ def test_a_one_second_camera_error_does_not_name_a_lane_for_the_lane_row() -> No
     """Five frames settle a class for the first-stopped detector; a lane row, which holds the
     vehicle in the lane it names, waits for ten (2 s at 5 Hz): a 1 s camera error at the start
     (rush-hour E2, seed 6) no longer names the wrong lane."""
-    from agent.decision_step import LANE_MARKING_FRAMES
-    from geo.lane_markings import MarkingWindow
+    from slcp.agent.decision_step import LANE_MARKING_FRAMES
+    from slcp.geo.lane_markings import MarkingWindow
 
     w = MarkingWindow()
     for k in range(5):  # 1 s of wrong reports (the right lane's classes)
@@ -215,8 +215,8 @@ def test_one_settled_side_does_not_name_a_lane_for_the_lane_row() -> None:
     against the frames, the lane row's classes never name the right lane; they name the left
     lane once both sides have settled again (with a vehicle that has not yet taken a lane: the
     lateral σ stays at 2.5 m)."""
-    from agent.decision_step import lane_row_markings
-    from geo.lane_markings import MarkingWindow
+    from slcp.agent.decision_step import lane_row_markings
+    from slcp.geo.lane_markings import MarkingWindow
 
     reports = [(BOUNDARY, DIVIDER)] * 7 + [(BOUNDARY, BOUNDARY)] * 2 + [(DIVIDER, BOUNDARY)] * 2 \
         + [(DIVIDER, UNSEEN)] + [(DIVIDER, DIVIDER)] * 11 + [(BOUNDARY, DIVIDER)] * 25

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from scipy.linalg import block_diag
 
-from agent.nav.kalman import Measurement, kalman_update, stack
-from agent.nav.measurements.common import point_llh, point_position_jacobian
-from agent.nav.measurements.gnss import gnss_position, gnss_velocity
-from agent.nav.measurements.lane_line import lane_line_measurement
-from agent.nav.measurements.stop_line import (
+from slcp.agent.nav.kalman import Measurement, kalman_update, stack
+from slcp.agent.nav.measurements.common import point_llh, point_position_jacobian
+from slcp.agent.nav.measurements.gnss import gnss_position, gnss_velocity
+from slcp.agent.nav.measurements.lane_line import lane_line_measurement
+from slcp.agent.nav.measurements.stop_line import (
     Line2D,
     StopGapModel,
     StopLineApproach,
@@ -21,10 +21,10 @@ from agent.nav.measurements.stop_line import (
     stop_line_measurement,
     stop_line_position,
 )
-from agent.nav.measurements.v2v_range import range_measurement, relative_position
-from agent.nav.measurements.vehicle import non_holonomic, zero_angular_rate, zero_velocity
-from agent.nav.state import N_STATES, apply_error
-from geo import earth
+from slcp.agent.nav.measurements.v2v_range import range_measurement, relative_position
+from slcp.agent.nav.measurements.vehicle import non_holonomic, zero_angular_rate, zero_velocity
+from slcp.agent.nav.state import N_STATES, apply_error
+from slcp.geo import earth
 
 from conftest import EPS, moving_state, numerical_jacobian
 
@@ -303,7 +303,7 @@ def test_the_joseph_form_holds_for_any_gain(rng: np.random.Generator) -> None:
     """``joseph`` is ``(I - K H) P (I - K H)ᵀ + K R Kᵀ`` for any gain, computed both ways: the
     explicit product, and the covariance of ``(I - KH) e - K v`` over samples; with the optimal
     gain it equals ``P - K S Kᵀ``; with consider states (rows of K zeroed) their block is kept."""
-    from agent.nav.kalman import joseph
+    from slcp.agent.nav.kalman import joseph
 
     n, m = 6, 2
     A = rng.normal(size=(n, n))
@@ -365,7 +365,7 @@ def test_stacking_keeps_each_block_and_the_name() -> None:
 
 
 def test_chi2_survival_at_and_below_zero_is_one() -> None:
-    from agent.nav.kalman import chi2_survival
+    from slcp.agent.nav.kalman import chi2_survival
 
     for dof in (1, 2, 3, 4):
         assert chi2_survival(0.0, dof) == 1.0 and chi2_survival(-1.0, dof) == 1.0

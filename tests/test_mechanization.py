@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from agent.nav.mechanization import mechanize, split_increment
-from agent.nav.rotation import euler_to_quat, quat_to_euler, wrap_angle
-from agent.nav.state import NavState
-from geo import earth
-from hw_emulation.kinematics import SinusoidProfile, generate
+from slcp.agent.nav.mechanization import mechanize, split_increment
+from slcp.agent.nav.rotation import euler_to_quat, quat_to_euler, wrap_angle
+from slcp.agent.nav.state import NavState
+from slcp.geo import earth
+from slcp.hw_emulation.kinematics import SinusoidProfile, generate
 
 from conftest import mechanization_drift
 
@@ -78,8 +78,8 @@ def test_split_interval_matches_unsplit(turning_truth) -> None:
 def test_run_of_intervals_equals_one_by_one(turning_truth) -> None:
     """``mechanize_run`` over many intervals and ``InsFilter.propagate_run`` (with scale-factor
     states and covariance steps inside the run) give what one call per interval gives."""
-    from agent.nav.ins_filter import InsFilter
-    from agent.nav.mechanization import mechanize_fast, mechanize_run
+    from slcp.agent.nav.ins_filter import InsFilter
+    from slcp.agent.nav.mechanization import mechanize_fast, mechanize_run
 
     from conftest import MEMS_NOISE
 

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from agent.methods import METHODS, FilterSettings, MethodFilter, MethodSpec, initial_state
-from agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
-from agent.nav.rotation import quat_to_euler
-from agent.neighbours import NeighbourState
-from geo import earth
+from slcp.agent.methods import METHODS, FilterSettings, MethodFilter, MethodSpec, initial_state
+from slcp.agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach, stop_line_position
+from slcp.agent.nav.rotation import quat_to_euler
+from slcp.agent.neighbours import NeighbourState
+from slcp.geo import earth
 
 from conftest import MEMS_NOISE
 
@@ -85,7 +85,7 @@ def test_a_range_too_near_for_the_linearisation_waits() -> None:
 
 
 def test_range_rate_gate_follows_motion_and_restarts() -> None:
-    from agent.range_gate import RangeRateGate
+    from slcp.agent.range_gate import RangeRateGate
 
     g = RangeRateGate()
     assert g.check("B", 0.0, 20.0, -5.0)
@@ -101,7 +101,7 @@ def test_range_rate_gate_follows_motion_and_restarts() -> None:
 def test_range_rate_gate_width_in_closed_form_and_forget() -> None:
     """The gate at elapsed time dt is ``max_jump + k σ_rate dt`` around the predicted range,
     both edges inclusive; the track keeps to the neighbour; ``forget`` starts it anew."""
-    from agent.range_gate import RangeRateGate
+    from slcp.agent.range_gate import RangeRateGate
 
     g = RangeRateGate(max_jump=0.5, sigma_rate=0.4, k=3.0, max_gap=2.0)
     width = 0.5 + 3.0 * 0.4 * 0.25  # 0.8 m after 0.25 s
@@ -121,8 +121,8 @@ def test_range_rate_gate_width_in_closed_form_and_forget() -> None:
 def test_a_forgotten_neighbour_leaves_no_state_in_the_misbehaviour_detector() -> None:
     """After ``forget`` (the neighbour left), a range is not checked against its old claim, and
     its next beacon starts a new motion history instead of being compared with the old one."""
-    from agent.misbehaviour import MisbehaviourDetector
-    from geo import earth
+    from slcp.agent.misbehaviour import MisbehaviourDetector
+    from slcp.geo import earth
 
     o = np.array([0.7, 2.0, 50.0])
     cov = np.diag([0.25, 0.25, 1.0])

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent.misbehaviour import MisbehaviourDetector
-from geo import earth
-from hw_emulation.attacks import ATTACKS, Attack
-from transport.messages import Beacon
+from slcp.agent.misbehaviour import MisbehaviourDetector
+from slcp.geo import earth
+from slcp.hw_emulation.attacks import ATTACKS, Attack
+from slcp.transport.messages import Beacon
 
 ORIGIN = np.array([0.7, 2.0, 50.0])
 
@@ -193,7 +193,7 @@ def test_each_attack_changes_the_beacon_as_veremi_defines_it(kind) -> None:
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("kind", ["constant_offset", "random_position", "overconfident"])
 def test_attacks_on_a_running_fleet_are_detected_within_a_second(kind) -> None:
-    from deploy.attack_eval import evaluate_attack
+    from slcp.deploy.attack_eval import evaluate_attack
 
     run = evaluate_attack("paper-1", kind, seed=2, after=2.0)
     print(kind, run["attacker"], run["start_s"], run["receivers"])

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from agent.neighbours import NeighbourTable
-from geo import earth
+from slcp.agent.neighbours import NeighbourTable
+from slcp.geo import earth
 
 LLH = np.array([math.radians(39.95), math.radians(116.32), 50.0])
 

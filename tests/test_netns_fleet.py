@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from transport.security import create_fleet
+from slcp.transport.security import create_fleet
 
 from conftest import short_scenario
 
@@ -88,7 +88,7 @@ class Procs:
 
     def start(self, name: str, ns: str, args: list[str], log: Path) -> subprocess.Popen:
         with open(log, "w") as fh:
-            p = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "deploy.cli", "-v", *args],
+            p = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "slcp.deploy.cli", "-v", *args],
                                  stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
         self.procs[name] = p
         return p

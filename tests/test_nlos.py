@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy import integrate, linalg, stats
 
-from agent.range_gate import NlosModel
-from hw_emulation.sensors.processes import two_state_markov
+from slcp.agent.range_gate import NlosModel
+from slcp.hw_emulation.sensors.processes import two_state_markov
 
 MODEL = NlosModel(enter=0.02, exit=0.2, bias_min=0.3, bias_max=3.0)  # the scenarios' UWB model
 
@@ -82,8 +82,8 @@ def test_a_link_that_starts_in_nlos_is_not_fused() -> None:
     left out, a clean one is fused; the paper's rule has no classifier."""
     from test_methods import ORIGIN, _stopped_filter
 
-    from agent.neighbours import NeighbourState
-    from geo import earth
+    from slcp.agent.neighbours import NeighbourState
+    from slcp.geo import earth
 
     rm, _ = earth.radii(ORIGIN[0])
     outcomes = {}
@@ -102,7 +102,7 @@ def test_the_far_tail_matches_scipy() -> None:
     """Where Φ underflows, the agent's own log-tail series (an agent process loads no scipy)."""
     from scipy import special
 
-    from agent.range_gate import _log_lower_tail
+    from slcp.agent.range_gate import _log_lower_tail
 
     for x in (-30.0, -37.5, -60.0, -1e3):
         assert _log_lower_tail(x) == pytest.approx(float(special.log_ndtr(x)), rel=1e-9)
@@ -111,7 +111,7 @@ def test_the_far_tail_matches_scipy() -> None:
 # --- the per-link tracker ------------------------------------------------------------------
 
 def _tracker():
-    from agent.range_gate import NlosLinkTracker
+    from slcp.agent.range_gate import NlosLinkTracker
 
     model = NlosModel(MODEL.enter, MODEL.exit, MODEL.bias_min, MODEL.bias_max, 0.007, 3.0, 30.0)
     return NlosLinkTracker(model, 0.07)
@@ -173,8 +173,8 @@ def test_the_link_tracker_is_calibrated_on_emulated_links() -> None:
     passing, the estimates' range rate off by 0.2 m/s and given with that σ): among ranges
     given probability p of NLOS, a share p is NLOS; most NLOS ranges are found from the series
     alone, few clean ones are taken for NLOS, and the gross outliers are flagged."""
-    from agent.range_gate import NlosLinkTracker
-    from hw_emulation.sensors.uwb import UwbModel, simulate_pair
+    from slcp.agent.range_gate import NlosLinkTracker
+    from slcp.hw_emulation.sensors.uwb import UwbModel, simulate_pair
 
     u = UwbModel()
     model = NlosModel(u.nlos_enter, u.nlos_exit, u.nlos_bias_min, u.nlos_bias_max,
@@ -218,8 +218,8 @@ def test_a_known_link_rejects_an_episode_the_estimates_cannot_see() -> None:
     without it they are kept."""
     from test_methods import ORIGIN, _stopped_filter
 
-    from agent.neighbours import NeighbourState
-    from geo import earth
+    from slcp.agent.neighbours import NeighbourState
+    from slcp.geo import earth
 
     rm, _ = earth.radii(ORIGIN[0])
     zero, dt = np.zeros(3), 0.01

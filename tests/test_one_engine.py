@@ -9,16 +9,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from agent.engine import VehicleEngine
-from agent.runtime import Agent
-from deploy.agent_configs import agent_config
-from deploy.inprocess import run_inprocess
-from hw_emulation.scenario import load_scenario
-from hw_emulation.truth import build_truth
-from transport import keys
-from transport.bus import InMemoryNetwork
-from transport.codec import decode, encode
-from transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRound
+from slcp.agent.engine import VehicleEngine
+from slcp.agent.runtime import Agent
+from slcp.deploy.agent_configs import agent_config
+from slcp.deploy.inprocess import run_inprocess
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.hw_emulation.truth import build_truth
+from slcp.transport import keys
+from slcp.transport.bus import InMemoryNetwork
+from slcp.transport.codec import decode, encode
+from slcp.transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRound
 
 TOPIC = {ImuBatch: keys.imu, GnssFix: keys.gnss, LaneMarkings: keys.lane, UwbRound: keys.uwb}
 

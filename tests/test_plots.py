@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from deploy.plots import plot_scenario, sigma_ellipse
-from hw_emulation.scenario import load_scenario
-from hw_emulation.truth import build_truth
+from slcp.deploy.plots import plot_scenario, sigma_ellipse
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.hw_emulation.truth import build_truth
 
 
 def test_a_sigma_ellipse_has_the_covariance_s_axes_and_orientation() -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deploy.pooling import main, pool_translation
+from slcp.deploy.pooling import main, pool_translation
 
 from conftest import short_scenario
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import io
 
-from deploy.progress import FleetProgress, ProgressView
+from slcp.deploy.progress import FleetProgress, ProgressView
 
 
 def _p(phase: str, t: float, alive: int = 3, wall: float = 10.0) -> FleetProgress:

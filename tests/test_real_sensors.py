@@ -20,14 +20,14 @@ import pynmea2
 import pytest
 from pyubx2 import GET, UBXMessage
 
-from deploy.processes import ConfigError, load_agent_config
-from deploy.sensors.imu import ImuAdapter, ImuFormatError, imu_increments, parse_imu_line, parse_units
-from deploy.sensors.nmea import KNOT, NmeaFixAssembler
-from deploy.sensors.ubx import UbxFixReader
+from slcp.deploy.processes import ConfigError, load_agent_config
+from slcp.deploy.sensors.imu import ImuAdapter, ImuFormatError, imu_increments, parse_imu_line, parse_units
+from slcp.deploy.sensors.nmea import KNOT, NmeaFixAssembler
+from slcp.deploy.sensors.ubx import UbxFixReader
 
 from conftest import REPO, SHARED_DRIVE, free_port, wait_for_port
 
-CLI = [sys.executable, "-m", "deploy.cli"]
+CLI = [sys.executable, "-m", "slcp.deploy.cli"]
 needs_drive = pytest.mark.skipif(not SHARED_DRIVE.is_dir(), reason=f"shared drive not found at {SHARED_DRIVE}")
 
 
@@ -169,7 +169,7 @@ def test_imu_adapter_batches_equal_the_whole_array_increments(rng) -> None:
     batches = ad.push_many(t, acc, gyr)
     last = ad.flush()
     batches += [last] if last is not None else []
-    from agent.nav.rotation import euler_to_dcm
+    from slcp.agent.nav.rotation import euler_to_dcm
 
     dth, dv, dt = imu_increments(t - 0.125, acc, gyr, euler_to_dcm(*mount).T)
     np.testing.assert_allclose(np.concatenate([b.dtheta for b in batches]), dth, atol=1e-15)
@@ -257,7 +257,7 @@ def test_a_site_less_agent_config_takes_the_vehicles_imu_and_gnss(tmp_path) -> N
 
 # ------------------------------------------------------------------ driver and live agents
 def _zenoh_listener(port: int):
-    from transport.zenoh_bus import ZenohBus, ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
     return ZenohBus(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",)))
 
@@ -278,8 +278,8 @@ def _stop(p: subprocess.Popen, timeout: float = 10.0) -> int:
 def test_the_driver_reads_nmea_from_a_serial_port() -> None:
     """A pseudo-terminal stands in for the receiver's USB serial port: pyserial opens it, the
     sentences written into it come out as fixes on the bus, bad ones are counted."""
-    from transport import keys
-    from transport.codec import decode
+    from slcp.transport import keys
+    from slcp.transport.codec import decode
 
     master, slave = os.openpty()
     port = free_port()
@@ -357,10 +357,10 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
     centimetre on the outage figures of the epochs the live run scored."""
     import dataclasses
 
-    from deploy.datasets.rtklib import load_drive
-    from deploy.drive_scoring import outage_metrics
-    from deploy.processes import load_agent_config
-    from deploy.replay import ReplayConfig, engine_config, run_replay
+    from slcp.deploy.datasets.rtklib import load_drive
+    from slcp.deploy.drive_scoring import outage_metrics
+    from slcp.deploy.processes import load_agent_config
+    from slcp.deploy.replay import ReplayConfig, engine_config, run_replay
 
     live_cfg, _ = load_agent_config(REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.toml", None)
     off_cfg = engine_config(ReplayConfig())
@@ -401,7 +401,7 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
 def _write_logs(tmp_path: Path, t_from: float, t_to: float, gap: tuple[float, float]) -> tuple[Path, Path, dict]:
     """The drive as a receiver's NMEA log (UTC; no fixes inside ``gap``) and an IMU text log
     (UTC, g and deg/s, sensor frame, as logged)."""
-    from deploy.datasets.rtklib import load_drive
+    from slcp.deploy.datasets.rtklib import load_drive
 
     d = load_drive(SHARED_DRIVE)
     g, imu = d.gnss, d.imu
@@ -435,8 +435,8 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     """80 s of the real drive written as an NMEA log (with a 12 s gap in the fixes) and an IMU
     text log in g and deg/s: ``slcp sensors`` converts and paces them at 8×, the agent runs on
     them, and its estimates follow the fixes (and coast through the gap)."""
-    from transport import keys
-    from transport.codec import decode
+    from slcp.transport import keys
+    from slcp.transport.codec import decode
 
     t_from = float(np.floor(_first_fix_time())) + 2.0
     nmea, csv, truth = _write_logs(tmp_path, t_from, t_from + 80.0, (t_from + 50.0, t_from + 62.0))
@@ -444,7 +444,7 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     agent = _agent(_drive_agent_config(), tmp_path, port)
 
     async def collect(start):
-        from transport.zenoh_bus import ZenohBus, ZenohConfig
+        from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
         # the driver starts once this session is subscribed and the agent is (its liveliness
         # token follows its subscriptions): at 8x, a session opened after the driver started
@@ -516,8 +516,8 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     assert counters["nmea_bad"] == 0 and counters["imu_bad_line"] == 0 and counters["imu_out_of_order"] == 0
     gap_all = (truth["t"] >= truth["gap"][0]) & (truth["t"] < truth["gap"][1])
     assert gap_all.sum() > 40 and counters["gnss_fixes"] == int((~gap_all).sum())  # 12 s of fixes left out
-    from deploy.drive_scoring import antenna_positions, errors_at_epochs
-    from deploy.replay import ReplayConfig
+    from slcp.deploy.drive_scoring import antenna_positions, errors_at_epochs
+    from slcp.deploy.replay import ReplayConfig
 
     inside, err = errors_at_epochs(truth["t"], truth["llh"], np.array([r.t for r in rows]),
                                    antenna_positions(rows, ReplayConfig().lever_arm_gnss))
@@ -525,8 +525,8 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     on_median, on_p95 = np.percentile(err[~in_gap], [50, 95])
     gap_rms = float(np.sqrt(np.mean(err[in_gap] ** 2)))
     # the offline filter with the same model and a GNSS outage at the same time
-    from deploy.datasets.rtklib import load_drive
-    from deploy.replay import OutageProtocol, ReplayConfig, run_replay
+    from slcp.deploy.datasets.rtklib import load_drive
+    from slcp.deploy.replay import OutageProtocol, ReplayConfig, run_replay
 
     d = load_drive(SHARED_DRIVE)
     outage = OutageProtocol(first=t_from + 50.0 - float(d.gnss.t[0]), period=1000.0, length=12.0, end_margin=0.0)
@@ -543,7 +543,7 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
 
 
 def _first_fix_time() -> float:
-    from deploy.datasets.rtklib import read_pos
+    from slcp.deploy.datasets.rtklib import read_pos
 
     return float(read_pos(next(SHARED_DRIVE.glob("*.pos"))).t[0])
 
@@ -551,10 +551,10 @@ def _first_fix_time() -> float:
 def test_the_driver_reads_a_ubx_log_file_paced_by_its_time_stamps(tmp_path) -> None:
     """A UBX log with junk and a corrupted frame, through the driver on the in-memory bus at 5×:
     every valid NAV-PVT is published in order, no faster than 5× its own time."""
-    from deploy.sensors.driver import SensorDriver, SourceSpec
-    from transport import keys
-    from transport.bus import InMemoryNetwork
-    from transport.codec import decode
+    from slcp.deploy.sensors.driver import SensorDriver, SourceSpec
+    from slcp.transport import keys
+    from slcp.transport.bus import InMemoryNetwork
+    from slcp.transport.codec import decode
 
     frames = [nav_pvt(second=5, nano=200_000_000 * k) for k in range(5)]
     bad = bytearray(frames[2])

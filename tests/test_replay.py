@@ -8,10 +8,10 @@ import struct
 import numpy as np
 import pytest
 
-from deploy.cli import main
-from deploy.datasets import DatasetError
-from deploy.datasets.rtklib import load_drive, read_imu_csv, read_pos, read_time_tag
-from deploy.replay import OutageProtocol, ReplayConfig, phase_protocols, run_replay
+from slcp.deploy.cli import main
+from slcp.deploy.datasets import DatasetError
+from slcp.deploy.datasets.rtklib import load_drive, read_imu_csv, read_pos, read_time_tag
+from slcp.deploy.replay import OutageProtocol, ReplayConfig, phase_protocols, run_replay
 
 from conftest import SHARED_DRIVE
 

@@ -9,11 +9,11 @@ import pytest
 from scipy.interpolate import make_smoothing_spline
 from scipy.spatial.transform import Rotation
 
-from hw_emulation import smoothing_cache
-from hw_emulation.gcv_spline import gcv_lambda
-from hw_emulation.geometry import Path as RoutePath
-from hw_emulation.geometry import bezier_turn
-from hw_emulation.kinematics import _dcm_bn
+from slcp.hw_emulation import smoothing_cache
+from slcp.hw_emulation.gcv_spline import gcv_lambda
+from slcp.hw_emulation.geometry import Path as RoutePath
+from slcp.hw_emulation.geometry import bezier_turn
+from slcp.hw_emulation.kinematics import _dcm_bn
 
 
 @pytest.fixture
@@ -123,7 +123,7 @@ def test_the_fast_gcv_penalty_is_scipys(case) -> None:
     gcv_lambda's, the same criterion with a faster inverse-band recursion. Same penalty to the
     minimiser's tolerance (the criterion is flat at its minimum: the two searches stop 1e-5
     apart), the same spline to a microradian."""
-    from hw_emulation.gcv_spline import _inverse_bands
+    from slcp.hw_emulation.gcv_spline import _inverse_bands
 
     if case == "noisy-curve":
         rng = np.random.default_rng(2)

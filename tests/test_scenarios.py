@@ -9,13 +9,13 @@ import tomllib
 import numpy as np
 import pytest
 
-from agent.first_stopped import FirstStoppedDetector
-from agent.nav.measurements.stop_line import StopGapModel
-from geo import earth
-from geo.lane_markings import BOUNDARY, DIVIDER
-from hw_emulation.events import event_times
-from hw_emulation.scenario import ScenarioError, load_scenario, parse_scenario, shipped_scenarios
-from hw_emulation.truth import build_truth
+from slcp.agent.first_stopped import FirstStoppedDetector
+from slcp.agent.nav.measurements.stop_line import StopGapModel
+from slcp.geo import earth
+from slcp.geo.lane_markings import BOUNDARY, DIVIDER
+from slcp.hw_emulation.events import event_times
+from slcp.hw_emulation.scenario import ScenarioError, load_scenario, parse_scenario, shipped_scenarios
+from slcp.hw_emulation.truth import build_truth
 
 from conftest import mechanization_drift
 
@@ -128,8 +128,8 @@ def test_a_run_seed_redraws_where_drivers_stop_and_nothing_else(paper1) -> None:
 
 
 def test_the_camera_sees_the_marking_classes_the_agents_map_implies(paper2) -> None:
-    from deploy.agent_configs import approach_lanes
-    from hw_emulation.emulate import emulate_vehicle_sensors, true_marking_classes
+    from slcp.deploy.agent_configs import approach_lanes
+    from slcp.hw_emulation.emulate import emulate_vehicle_sensors, true_marking_classes
 
     scn = paper2.scenario
     agent_view = FirstStoppedDetector(approach_lanes(scn), StopGapModel(1.5, 0.2, 1.75, 0.12, 2.5)).marks
@@ -144,7 +144,7 @@ def test_the_camera_sees_the_marking_classes_the_agents_map_implies(paper2) -> N
 
 def _base() -> dict:
     from importlib import resources
-    return tomllib.loads(resources.files("hw_emulation.scenarios").joinpath("paper-1.toml").read_text())
+    return tomllib.loads(resources.files("slcp.hw_emulation.scenarios").joinpath("paper-1.toml").read_text())
 
 
 @pytest.mark.parametrize("mutate, match", [
@@ -183,7 +183,7 @@ def test_bad_files(tmp_path) -> None:
 
 
 def test_cli_scenario_list_and_show(tmp_path, capsys) -> None:
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     assert main(["scenario", "list"]) == 0
     out = capsys.readouterr().out
@@ -201,7 +201,7 @@ def test_cli_scenario_list_and_show(tmp_path, capsys) -> None:
 def test_sp_on_emulated_sensors_matches_the_papers_sp_row(name, paper1, paper2) -> None:
     """Issue 3 acceptance 6: with the shipped parameters, SP's horizontal RMSE (mean over 20
     sensor seeds) is within ±35 % of the paper's SP row for every vehicle and window."""
-    from deploy.sp_check import sp_table
+    from slcp.deploy.sp_check import sp_table
 
     truth = paper1 if name == "paper-1" else paper2
     table = sp_table(truth, list(range(20)))

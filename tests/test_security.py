@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.runtime import Agent
-from deploy.agent_configs import agent_config
-from deploy.processes import ConfigError, load_agent_config
-from hw_emulation.scenario import load_scenario
-from transport.bus import InMemoryNetwork
-from transport.codec import decode, encode
-from transport.messages import Beacon
-from transport.security import AUTH_LEN, BeaconSigner, SecurityError, TrustStore, create_fleet
+from slcp.agent.runtime import Agent
+from slcp.deploy.agent_configs import agent_config
+from slcp.deploy.processes import ConfigError, load_agent_config
+from slcp.hw_emulation.scenario import load_scenario
+from slcp.transport.bus import InMemoryNetwork
+from slcp.transport.codec import decode, encode
+from slcp.transport.messages import Beacon
+from slcp.transport.security import AUTH_LEN, BeaconSigner, SecurityError, TrustStore, create_fleet
 
 
 @pytest.fixture(scope="module")

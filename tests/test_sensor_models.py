@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
-from hw_emulation.sensors.camera import LaneCameraModel, simulate_markings
-from hw_emulation.sensors.gnss import GnssModel, common_mode_error, simulate_gnss
-from hw_emulation.sensors.imu import ImuModel, corrupt_increments
-from hw_emulation.sensors.processes import ar1_filter, gauss_markov, gauss_markov_varying, two_state_markov
-from hw_emulation.sensors.radio import RadioModel, simulate_link
-from hw_emulation.sensors.uwb import UwbModel, simulate_pair
+from slcp.geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
+from slcp.hw_emulation.sensors.camera import LaneCameraModel, simulate_markings
+from slcp.hw_emulation.sensors.gnss import GnssModel, common_mode_error, simulate_gnss
+from slcp.hw_emulation.sensors.imu import ImuModel, corrupt_increments
+from slcp.hw_emulation.sensors.processes import ar1_filter, gauss_markov, gauss_markov_varying, two_state_markov
+from slcp.hw_emulation.sensors.radio import RadioModel, simulate_link
+from slcp.hw_emulation.sensors.uwb import UwbModel, simulate_pair
 
 
 def _tau_from_lag1(x: np.ndarray, dt: float) -> float:
@@ -189,7 +189,7 @@ def test_radio_without_jitter_and_at_its_range_limit(rng) -> None:
 def test_lane_camera_misreads_for_the_configured_share_of_the_time(error: float, rng) -> None:
     """The misread chain's stationary share is ``error`` (its entry probability is set from the
     exit one), with episodes of mean length ``error_tau``, at a small and a large error."""
-    from geo.lane_markings import DIVIDER
+    from slcp.geo.lane_markings import DIVIDER
 
     model = LaneCameraModel(error=error, error_tau=1.0, unseen=0.0)
     n = 200_000

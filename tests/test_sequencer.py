@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent.sequencer import Apply, Propagate, Sequencer
+from slcp.agent.sequencer import Apply, Propagate, Sequencer
 
 
 def _run(seq, intervals):

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent.nav.fusion import OMEGA_MAX, OMEGA_MIN, split_ci_update
-from agent.nav.kalman import Measurement, kalman_update
-from agent.nav.source_fusion import (
+from slcp.agent.nav.fusion import OMEGA_MAX, OMEGA_MIN, split_ci_update
+from slcp.agent.nav.kalman import Measurement, kalman_update
+from slcp.agent.nav.source_fusion import (
     ANY,
     COMMON_MODE,
     MAX_COMPONENTS,
@@ -200,7 +200,7 @@ def test_the_remembered_blocks_follow_every_change_of_the_components() -> None:
     a random sequence of every kind of change (propagation with common-mode noise, own-sensor
     transforms, additions, merges, resets, decorrelation, updates made and declined, reads of
     the whole components), the remembered blocks are those computed afresh."""
-    from agent.nav.kalman import Measurement
+    from slcp.agent.nav.kalman import Measurement
 
     rng = np.random.default_rng(11)
     n = 6
@@ -261,7 +261,7 @@ def test_the_remembered_blocks_follow_every_change_of_the_components() -> None:
 
 
 def test_groups_join_every_label_set_that_may_share_a_source() -> None:
-    from agent.nav.source_fusion import _group
+    from slcp.agent.nav.source_fusion import _group
 
     mine = [frozenset({"V0"}), frozenset({"V1", "V2"}), frozenset({"~common"}), frozenset({"V5"})]
     theirs = [frozenset({"V2"}), frozenset({"V1|V3"}), frozenset({"V0", "V3"}), frozenset({"~common"})]

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from deploy.study import aggregate, anees_band, paired_difference, study_markdown
+from slcp.deploy.study import aggregate, anees_band, paired_difference, study_markdown
 
 from conftest import short_scenario
 
@@ -92,7 +92,7 @@ def test_paired_verdict_agrees_with_scipys_paired_t_test() -> None:
 @pytest.mark.parametrize("argv", [["run", "--seeds", "0"], ["run", "--fusion", "bogus"], ["run", "--jobs", "x"],
                                   ["bound"], ["report"]])
 def test_bad_run_arguments_exit_2(argv, capsys) -> None:
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     with pytest.raises(SystemExit) as exc:
         main(argv)
@@ -100,7 +100,7 @@ def test_bad_run_arguments_exit_2(argv, capsys) -> None:
 
 
 def test_report_of_a_directory_that_is_not_a_run(tmp_path, capsys) -> None:
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     assert main(["report", str(tmp_path)]) == 2
     assert "not a run directory" in capsys.readouterr().err
@@ -111,7 +111,7 @@ def test_report_of_a_directory_that_is_not_a_run(tmp_path, capsys) -> None:
 
 
 def test_agent_config_rejects_an_unknown_fusion_rule(tmp_path) -> None:
-    from deploy.processes import ConfigError, load_agent_config
+    from slcp.deploy.processes import ConfigError, load_agent_config
 
     p = tmp_path / "a.toml"
     p.write_text('[agent]\nvehicle = "V1"\nscenario = "paper-1"\nfusion = "magic"\n')
@@ -142,7 +142,7 @@ def test_bench_prints_every_figure(capsys) -> None:
     """The benchmark runs and reports each step cost (figures are printed, not asserted)."""
     import json
 
-    from deploy.cli import main
+    from slcp.deploy.cli import main
 
     assert main(["bench", "--quick", "--json", "--drive", "/nonexistent"]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -227,9 +227,9 @@ def test_an_interrupted_study_worker_does_not_start_the_seed_queued_behind(tmp_p
 def test_the_stance_draws_are_the_truths_and_their_check_is_the_closed_form() -> None:
     """`stance_draws` gives the traffic model's draws without simulating it (two ways to the same
     numbers); `stance_check` is the mean z² of those draws against the χ² band of N draws."""
-    from deploy.study import stance_check
-    from hw_emulation.scenario import load_scenario
-    from hw_emulation.truth import build_truth, stance_draws
+    from slcp.deploy.study import stance_check
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.truth import build_truth, stance_draws
 
     scn = load_scenario("paper-2")
     seeds = [0, 9]
@@ -251,8 +251,8 @@ def test_the_stance_check_of_many_seeds_sees_the_scenarios_sigma() -> None:
     """Over 400 seeds the draws are N(mean, σ²): every vehicle's mean z² is inside its band. And
     paper-2's seeds 0-24 did draw V2's lateral offsets too spread (mean z² 1.77, band
     0.52-1.63), which the report says."""
-    from deploy.study import stance_check
-    from hw_emulation.scenario import load_scenario
+    from slcp.deploy.study import stance_check
+    from slcp.hw_emulation.scenario import load_scenario
 
     scn = load_scenario("paper-2")
     many = stance_check(scn, list(range(400)))
@@ -278,8 +278,8 @@ def test_a_study_survives_a_seed_that_cannot_start(tmp_path) -> None:
 
     import _study_seed
 
-    from deploy.study import rebuild_study, run_study
-    from hw_emulation.scenario import load_scenario
+    from slcp.deploy.study import rebuild_study, run_study
+    from slcp.hw_emulation.scenario import load_scenario
 
     out = tmp_path / "study"
     scn = str(short_scenario(tmp_path, "paper-1", 25.0))
@@ -305,8 +305,8 @@ def test_a_study_survives_a_seed_that_cannot_start(tmp_path) -> None:
 @pytest.mark.parametrize("strict, code", [(False, 0), (True, 1)])
 def test_a_study_with_a_failed_seed_exits_non_zero_only_when_strict(strict, code, tmp_path, monkeypatch,
                                                                       capsys) -> None:
-    import deploy.study as study_mod
-    from deploy.cli import main
+    import slcp.deploy.study as study_mod
+    from slcp.deploy.cli import main
 
     def fake(scenario, seeds, methods, out, *a, **k):
         out.mkdir(parents=True)

@@ -14,10 +14,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from transport import keys
-from transport.bus import InMemoryNetwork, Subscription, Waker, drain_in_arrival_order
-from transport.codec import SCHEMA_VERSION, CodecError, decode, encode
-from transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRange, UwbRound
+from slcp.transport import keys
+from slcp.transport.bus import InMemoryNetwork, Subscription, Waker, drain_in_arrival_order
+from slcp.transport.codec import SCHEMA_VERSION, CodecError, decode, encode
+from slcp.transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRange, UwbRound
 
 from conftest import free_port
 
@@ -134,7 +134,7 @@ def test_truncated_and_wrong_version_and_types() -> None:
 def test_an_imu_batch_has_one_row_per_sample_in_every_field() -> None:
     """The leading dimension is shared within a message: a field with one row more or less
     than the others, an empty batch, or more than ``MAX_SAMPLES`` rows is refused by name."""
-    from transport.codec import MAX_SAMPLES
+    from slcp.transport.codec import MAX_SAMPLES
 
     def batch(n: int) -> dict:
         t = np.arange(1, n + 1) * 0.01
@@ -299,7 +299,7 @@ def test_a_burst_from_another_thread_wakes_the_loop_once() -> None:
 @pytest.mark.fleet
 @pytest.mark.timeout(60)
 def test_two_zenoh_peers_on_loopback() -> None:
-    from transport.zenoh_bus import ZenohBus, ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
     async def main():
         port = free_port()
@@ -335,7 +335,7 @@ def test_two_zenoh_peers_on_loopback() -> None:
 
 _RUNTIME_PROBE = """
 import asyncio, json, os, sys
-from transport.zenoh_bus import ZenohBus, ZenohConfig
+from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
 async def main():
     ep = f"tcp/127.0.0.1:{sys.argv[1]}"
@@ -363,7 +363,7 @@ def test_the_light_runtime_runs_zenoh_on_one_thread_and_a_bad_one_is_a_clear_err
     import subprocess
     import sys
 
-    from transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
+    from slcp.transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
 
     def probe(runtime: str | None) -> subprocess.CompletedProcess:
         env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
@@ -386,7 +386,7 @@ def test_the_light_runtime_runs_zenoh_on_one_thread_and_a_bad_one_is_a_clear_err
 
 _BURST_SUBSCRIBER = """
 import asyncio, sys, time
-from transport.zenoh_bus import ZenohBus, ZenohConfig
+from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
 async def main():
     bus = ZenohBus(ZenohConfig(mode="client", connect=(sys.argv[1],)))
@@ -414,7 +414,7 @@ def test_a_burst_through_the_router_to_a_client_loses_nothing() -> None:
     import subprocess
     import sys
 
-    from transport.zenoh_bus import ZenohBus, ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
     n = 20_000
 
@@ -445,7 +445,7 @@ def test_a_burst_through_the_router_to_a_client_loses_nothing() -> None:
 
 
 def test_zenoh_peer_settings_and_a_bad_strategy() -> None:
-    from transport.zenoh_bus import ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohConfig
 
     got = json.loads(ZenohConfig().to_zenoh().get_json("scouting/gossip/autoconnect_strategy"))
     assert got == {"peer": {"to_router": "always", "to_peer": "greater-zid"}}
@@ -479,7 +479,7 @@ def test_zenoh_peers_recover_both_ways_after_a_freeze_about_a_lease_long(tmp_pat
     helper = Path(__file__).with_name("_probe_peer.py")
     strategy = os.environ.get("SLCP_TEST_AUTOCONNECT", "greater-zid")
     names = ["A", "C", "D", "E", "F", "B"]  # B, started last, is frozen
-    procs = [subprocess.Popen([sys.executable, "-m", "deploy.cli", "router", "--listen", ep],
+    procs = [subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "router", "--listen", ep],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
 
     def heard(n: str, last: int = 2) -> list[set[str]]:

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from transport import keys
-from transport.security import create_fleet
+from slcp.transport import keys
+from slcp.transport.security import create_fleet
 
 from conftest import free_port, wait_for_port
 
@@ -28,7 +28,7 @@ def router(tmp_path):
     create_fleet(fleet, ["V1", "V2"])
     port = free_port()
     ep = f"tls/127.0.0.1:{port}"
-    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "router", "--fleet", str(fleet), "--listen", ep],
+    p = subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "router", "--fleet", str(fleet), "--listen", ep],
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     try:
         wait_for_port(port)
@@ -44,8 +44,8 @@ def router(tmp_path):
 
 @pytest.mark.timeout(120)
 def test_a_vehicle_can_only_speak_for_itself(router) -> None:
-    from deploy.zenoh_security import client_config
-    from transport.zenoh_bus import ZenohBus
+    from slcp.deploy.zenoh_security import client_config
+    from slcp.transport.zenoh_bus import ZenohBus
 
     fleet, ep = router
 
@@ -81,7 +81,7 @@ def test_a_vehicle_can_only_speak_for_itself(router) -> None:
 
 def test_the_router_configuration_is_printable_and_complete(router, tmp_path) -> None:
     fleet, ep = router
-    out = subprocess.run([sys.executable, "-m", "deploy.cli", "router", "--fleet", str(fleet), "--listen", ep,
+    out = subprocess.run([sys.executable, "-m", "slcp.deploy.cli", "router", "--fleet", str(fleet), "--listen", ep,
                           "--print-config"], capture_output=True, text=True, check=True).stdout
     cfg = json.loads(out)
     assert cfg["mode"] == "router" and cfg["listen"]["endpoints"] == [ep]
@@ -90,6 +90,6 @@ def test_the_router_configuration_is_printable_and_complete(router, tmp_path) ->
     acl = cfg["access_control"]
     assert acl["default_permission"] == "deny"
     assert {s["id"] for s in acl["subjects"]} == {"vehicle-V1", "vehicle-V2", "infrastructure"}
-    bad = subprocess.run([sys.executable, "-m", "deploy.cli", "router", "--fleet", str(fleet), "--listen",
+    bad = subprocess.run([sys.executable, "-m", "slcp.deploy.cli", "router", "--fleet", str(fleet), "--listen",
                           "tcp/127.0.0.1:7447", "--print-config"], capture_output=True, text=True)
     assert bad.returncode == 2 and "tls/<host>:<port>" in bad.stderr

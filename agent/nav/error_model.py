@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from .state import ATT, BA, BG, N_STATES, VEL, NavState
 

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from .rotation import skew
 from .state import NavState

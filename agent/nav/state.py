@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from .rotation import quat_mul, quat_normalize, quat_to_dcm, rotvec_to_quat
 

@@ -126,7 +126,7 @@ def _cmd_agent(args: argparse.Namespace) -> int:
 def _cmd_emulate(args: argparse.Namespace) -> int:
     import asyncio
 
-    from transport.zenoh_bus import ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohConfig
 
     from ..processes import emulator_main
 
@@ -143,7 +143,7 @@ def _cmd_sensors(args: argparse.Namespace) -> int:
     import asyncio
     import math
 
-    from transport.zenoh_bus import ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohConfig
 
     from ..sensors.driver import SourceSpec, sensors_main
     from ..sensors.imu import ImuAdapter, parse_units
@@ -175,7 +175,7 @@ def _cmd_sensors(args: argparse.Namespace) -> int:
 def _cmd_infrastructure(args: argparse.Namespace) -> int:
     import asyncio
 
-    from transport.zenoh_bus import ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohConfig
 
     from ..processes import recorder_main, router_main
 
@@ -204,7 +204,7 @@ def _cmd_infrastructure(args: argparse.Namespace) -> int:
 
 
 def _cmd_keys(args: argparse.Namespace) -> int:
-    from transport.security import TrustStore, create_fleet
+    from slcp.transport.security import TrustStore, create_fleet
 
     if args.keys_command == "create":
         hosts = tuple(args.router_host) if args.router_host else ("127.0.0.1", "localhost")

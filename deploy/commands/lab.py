@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from agent.methods import DEFAULT_FUSION, FUSION_RULES
+from slcp.agent.methods import DEFAULT_FUSION, FUSION_RULES
 
 from .. import cli_types as T
 
@@ -71,7 +71,7 @@ def add_bench(sub) -> None:
 
 
 def _cmd_attack_eval(args: argparse.Namespace) -> int:
-    from hw_emulation.attacks import ATTACKS
+    from slcp.hw_emulation.attacks import ATTACKS
 
     from ..attack_eval import attack_study, evaluate_clean
 
@@ -113,10 +113,10 @@ def _cmd_attack_eval(args: argparse.Namespace) -> int:
 def _cmd_bound(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from agent.methods import METHODS
-    from hw_emulation.events import window_bounds
-    from hw_emulation.scenario import STANDING_WINDOW, load_scenario
-    from hw_emulation.truth import build_truth
+    from slcp.agent.methods import METHODS
+    from slcp.hw_emulation.events import window_bounds
+    from slcp.hw_emulation.scenario import STANDING_WINDOW, load_scenario
+    from slcp.hw_emulation.truth import build_truth
 
     from ..bound import posterior_crlb
 
@@ -162,7 +162,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     import os
     import platform
 
-    from agent.methods import MethodSpec
+    from slcp.agent.methods import MethodSpec
 
     from ..bench import micro_benchmarks, replay_factor
 

@@ -137,7 +137,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 def _replay_publish(args: argparse.Namespace, drive, cfg) -> int:
     import asyncio
 
-    from transport.zenoh_bus import ZenohConfig
+    from slcp.transport.zenoh_bus import ZenohConfig
 
     from ..replay_publish import plan_drive, replay_publish_main
 

@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from agent.methods import DEFAULT_FUSION, FUSION_RULES
+from slcp.agent.methods import DEFAULT_FUSION, FUSION_RULES
 
 from .. import cli_types as T
 from ..run_dirs import folder_stem, next_free, prepare_out
@@ -63,8 +63,8 @@ def add_report(sub) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from agent.methods import METHODS, MethodSpec
-    from hw_emulation.scenario import load_scenario
+    from slcp.agent.methods import METHODS, MethodSpec
+    from slcp.hw_emulation.scenario import load_scenario
 
     from ..launcher import run_fleet
     from ..supervisor import interrupt_on_termination
@@ -75,7 +75,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         MethodSpec.of(m)  # ValueError -> clear CLI error
     scn = load_scenario(args.scenario)
     if args.faults is not None:  # read before --force removes anything
-        from hw_emulation.faults import load_faults
+        from slcp.hw_emulation.faults import load_faults
 
         load_faults(args.faults, {v.id for v in scn.vehicles})
     if args.out is not None:
@@ -163,14 +163,14 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from ..run_report import rebuild_report
 
     if any(args.run_dir.glob("seed-*")):  # a study: re-aggregate its seeds
-        from hw_emulation.scenario import load_scenario
+        from slcp.hw_emulation.scenario import load_scenario
 
         from ..study import rebuild_study, study_markdown
 
         study = rebuild_study(args.run_dir)
         (args.run_dir / "report.md").write_text(study_markdown(load_scenario(study["scenario"]), study))
     else:
-        from hw_emulation.scenario import load_scenario
+        from slcp.hw_emulation.scenario import load_scenario
 
         from ..summary import terminal_summary
 

@@ -37,7 +37,7 @@ def add_scenario(sub) -> None:
 
 
 def _cmd_scenario(args: argparse.Namespace) -> int:
-    from hw_emulation.scenario import load_scenario, shipped_scenarios
+    from slcp.hw_emulation.scenario import load_scenario, shipped_scenarios
 
     if args.scenario_command == "list":
         for name in shipped_scenarios():
@@ -45,7 +45,7 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
             print(f"{name:12s} {len(scn.vehicles):3d} vehicles {scn.duration:6.0f} s  {scn.description}")
         return 0
     if args.scenario_command == "export":
-        from hw_emulation.scenario import shipped_scenario_text
+        from slcp.hw_emulation.scenario import shipped_scenario_text
 
         text = shipped_scenario_text(args.name)
         if args.out is None:
@@ -56,8 +56,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
         args.out.write_text(text)
         print(f"wrote {args.out} (scenario {args.name}; run it with: slcp run {args.out})")
         return 0
-    from hw_emulation.events import event_times, window_bounds
-    from hw_emulation.truth import build_truth
+    from slcp.hw_emulation.events import event_times, window_bounds
+    from slcp.hw_emulation.truth import build_truth
 
     scn = load_scenario(args.name)
     if args.scenario_command == "gates":
@@ -90,8 +90,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace, scn, truth) -> int:
     import numpy as np
 
-    from agent.methods import METHODS
-    from hw_emulation.events import window_bounds
+    from slcp.agent.methods import METHODS
+    from slcp.hw_emulation.events import window_bounds
 
     from ..gates_study import summarise
     from ..inprocess import run_inprocess

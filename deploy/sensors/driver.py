@@ -28,9 +28,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from transport import keys
-from transport.codec import encode
-from transport.messages import Diagnostics, GnssFix, ImuBatch
+from slcp.transport import keys
+from slcp.transport.codec import encode
+from slcp.transport.messages import Diagnostics, GnssFix, ImuBatch
 
 from .imu import ImuAdapter, ImuFormatError, parse_imu_line
 from .nmea import NmeaFixAssembler
@@ -267,7 +267,7 @@ class SensorDriver:
 async def sensors_main(zcfg, vehicle: str, gnss: SourceSpec | None, imu: SourceSpec | None,
                        adapter: ImuAdapter, units: tuple[float, float], uere: float, speed: float) -> dict:
     """Run a :class:`SensorDriver` over Zenoh until its log files end or SIGINT/SIGTERM."""
-    from transport.zenoh_bus import ZenohBus
+    from slcp.transport.zenoh_bus import ZenohBus
 
     from ..processes import _install_signals, report_reachability
 

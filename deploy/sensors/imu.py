@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.nav.rotation import euler_to_dcm
-from transport.messages import ImuBatch
+from slcp.agent.nav.rotation import euler_to_dcm
+from slcp.transport.messages import ImuBatch
 
 G0 = 9.80665  #: standard gravity, the unit "g" [m/s²]
 

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pynmea2
 
-from transport.messages import GnssFix
+from slcp.transport.messages import GnssFix
 
 KNOT = 1852.0 / 3600.0  #: [m/s]
 _USED = {"GGA", "RMC", "VTG", "GST"}

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pyubx2 import UBXReader
 
-from transport.messages import GnssFix
+from slcp.transport.messages import GnssFix
 
 SYNC = b"\xb5\x62"
 NAV_PVT = (0x01, 0x07)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
+from slcp.geo.lane_markings import BOUNDARY, DIVIDER, UNSEEN
 
 from . import params
 from .processes import two_state_markov

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from ..rotation import skew
 from ..state import ATT, N_STATES, POS, NavState

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from ..kalman import Measurement
 from ..rotation import skew

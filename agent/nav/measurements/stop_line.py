@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import pymap3d
 
-from geo import earth
+from slcp.geo import earth
 
 from ..kalman import Measurement
 from ..state import NavState

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from geo import earth
+from slcp.geo import earth
 
 from ..kalman import Measurement
 from ..state import N_STATES, POS, NavState
