@@ -14,6 +14,7 @@ unusable message is counted and dropped; nothing received can break the engine.
 from __future__ import annotations
 
 import bisect
+import heapq
 import logging
 import math
 from collections import deque
@@ -76,6 +77,8 @@ class VehicleEngine(EngineOutputs):
         self.decision_log: list[tuple[float, str, str]] = []
         #: GNSS fixes received before the filters start (the newest few)
         self._pending_fixes: deque[GnssFix] = deque(maxlen=32)
+        #: fixes waiting for the filter time of their GNSS time (time offset estimated)
+        self._held_fixes: list[tuple[float, int, GnssFix]] = []
         self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
         self.rest = StationarityMonitor()
         self.zupt_gate = ZuptGate()
@@ -171,10 +174,22 @@ class VehicleEngine(EngineOutputs):
             self._apply_now(self.seq.push(msg.t, kind, msg))
 
     def _push_fix(self, fix: GnssFix) -> None:
-        """Queue a fix at the filter time of its GNSS time: earlier by the IMU-GNSS time offset
-        the filters estimate (0 when they do not)."""
+        """Queue a fix. With the IMU-GNSS time offset estimated, a fix belongs at the filter time
+        of its GNSS time, which the offset estimate moves: it is held until the IMU reaches
+        that time by the estimate of then (:meth:`_release_fixes`), so that where it is applied
+        depends on the data, not on when it arrived."""
+        if self.cfg.settings.time_offset is None:
+            self._apply_now(self.seq.push(fix.t, "gnss", (fix, 0.0)))
+        else:
+            heapq.heappush(self._held_fixes, (fix.t, fix.seq, fix))
+
+    def _release_fixes(self, t: float) -> None:
+        """Move the held fixes due by the end ``t`` of the next IMU interval into the sequencer,
+        each at the filter time of its GNSS time by the current offset estimate."""
         offset = next(iter(self.filters.values())).time_offset
-        self._apply_now(self.seq.push(fix.t - offset, "gnss", (fix, offset)))
+        while self._held_fixes and self._held_fixes[0][0] - offset <= t:
+            fix = heapq.heappop(self._held_fixes)[2]
+            self._apply_now(self.seq.push(fix.t - offset, "gnss", (fix, offset)))
 
     def _on_range(self, msg: UwbRange) -> None:
         v = self.cfg.vehicle
@@ -305,6 +320,8 @@ class VehicleEngine(EngineOutputs):
 
     def _step(self, t: float, dtheta: list[float], dvel: list[float], dt: float) -> None:
         """One IMU interval ending at ``t``, split at the measurements queued inside it."""
+        if self._held_fixes:
+            self._release_fixes(t)
         seq = self.seq
         filters = self.filters.values()
         if not seq.pending_by(t):  # the common case: no measurement inside the interval
