@@ -58,7 +58,7 @@ def test_real_drive_accuracy(replay_result) -> None:
     assert m["n_outages"] == 11 and m["n_withheld_fixes"] == 660
     # issue #2 acceptance 3 asked <= 2.0 / 4.0 (the authors' filter: 3.07 / 6.34 / 12.82). The
     # vehicle engine has 2.01 m on this phase of the protocol; pooled over 6 phases it equals
-    # the replay's former filter loop (2.816 against 2.821 m), see docs/results-real-drive.md
+    # the replay's former filter loop (2.817 against 2.821 m), see docs/results-real-drive.md
     assert m["outage_h_rms_m"] <= 2.05
     assert m["outage_h_end_mean_m"] <= 4.0
     # acceptance asks <= 8.0 m; one outage (t0+85 s, straight road at 11 m/s) reaches ~9.7 m:
