@@ -223,9 +223,12 @@ def test_ctrl_c_stops_the_fleet_says_so_and_reports_what_was_recorded(tmp_path) 
     recording, and no process left behind."""
     out = tmp_path / "run"
     scn = short_scenario(tmp_path, "paper-1", 25.0)
-    # played at 1x: agent-paced, the 25 s can play in seconds and end between two looks below
+    # played at 1x: agent-paced, the 25 s can play in seconds and end between two looks below.
+    # SIGINT as a terminal leaves it: a suite started in the background of a non-interactive
+    # shell ignores SIGINT, and its children would inherit that
     p = subprocess.Popen([*CLI, "run", str(scn), "--seed", "3", "--speed", "1", "--out", str(out)],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         rec = out / "recorded" / "messages.jsonl"
         deadline = time.monotonic() + 60
