@@ -11,16 +11,13 @@ from slcp.geo import earth
 
 from .nav.ins_filter import InsFilter
 from .nav.kalman import Measurement, UpdateResult
+from .nav.measurements.common import NO_LEVER_ARM
 from .nav.measurements.v2v_range import quadratic_rows, range_measurement, relative_position
 from .nav.source_fusion import ANY, SourcePart
 from .nav.state import POS
 from .neighbours import NeighbourState
 from .range_geometry import STANDING_SPEED, rate_variance, too_near
 from .settings import FilterSettings, MethodSpec
-
-#: a range's own position (the IMU; the UWB antenna's lever arm is not modelled; read only)
-_NO_LEVER_ARM = np.zeros(3)
-_NO_LEVER_ARM.flags.writeable = False
 
 
 class RangeUpdates:
@@ -56,7 +53,7 @@ class RangeUpdates:
             # a delayed range: move the neighbour by my displacement since t, which keeps the
             # relative geometry of time t while the Jacobian acts on my current error
             nb_llh = earth.offset_llh(nb_llh, self.displacement_since(t_meas))
-        d = relative_position(self.filter.state, _NO_LEVER_ARM, nb_llh)
+        d = relative_position(self.filter.state, NO_LEVER_ARM, nb_llh)  # the UWB antenna at the IMU
         # the line of sight as the range model takes it: horizontal unless the 3-D model is
         # chosen (Python floats: a dozen numpy calls on 3-vectors cost more than the arithmetic)
         d0, d1, d2 = d.tolist()
