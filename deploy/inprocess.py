@@ -67,18 +67,21 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
         eng.range_observer = _tally(vid, kinds, range_outcomes)
     now = float(truth.vehicles[ids[0]].truth.t[0])
 
-    def deliver(vid: str, msg: Message) -> None:
-        if on_message is not None:
-            on_message(vid, msg)
-        eng = engines[vid]
-        eng.handle(msg)
-        for out in eng.take_outbox():
+    def route(vid: str) -> None:
+        """What engine ``vid`` sent: beacons into the radio, estimates to the score."""
+        for out in engines[vid].take_outbox():
             if on_output is not None:
                 on_output(vid, out)
             if isinstance(out, Beacon):
                 radio.send(out, out, now)
             elif isinstance(out, Estimate):
                 estimates[(vid, out.method)].append(out)
+
+    def deliver(vid: str, msg: Message) -> None:
+        if on_message is not None:
+            on_message(vid, msg)
+        engines[vid].handle(msg)
+        route(vid)
 
     for now, messages in playback.messages():
         for _, rx, beacon in radio.due(now):
@@ -87,11 +90,7 @@ def run_inprocess(truth: ScenarioTruth, seed: int, methods: tuple[str, ...] = ME
             deliver(msg.vehicle, msg)
     for vid, eng in engines.items():  # what the engines still hold back
         eng.finish()
-        for out in eng.take_outbox():
-            if on_output is not None:
-                on_output(vid, out)
-            if isinstance(out, Estimate):
-                estimates[(vid, out.method)].append(out)
+        route(vid)
     decisions = sorted((t, vid, m, why) for vid, eng in engines.items() for t, m, why in eng.decision_log)
     counters = {(vid, m): dict(f.counters) for vid, eng in engines.items() for m, f in eng.filters.items()}
     return _score(truth, estimates, counters, decisions, range_outcomes)

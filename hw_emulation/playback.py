@@ -7,6 +7,7 @@ from one seed and see the same faults, so they play the same world.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -191,6 +192,7 @@ class Radio:
             self._ne = [self._ne_grid[:, k] for k in range(len(self.ids))]
         self._ne_at: tuple[float, np.ndarray] | None = None
         self._pending: list[tuple[float, str, Any]] = []  # (deliver at, receiver, payload)
+        self._earliest = math.inf  #: at most the earliest delivery time pending [s]
         self._ge_bad: dict[tuple[str, str], bool] = {}
 
     def positions(self, now: float) -> np.ndarray:
@@ -255,14 +257,22 @@ class Radio:
         if spike:
             _count(self.fault_stats, "latency_spike")
         # the radio works in sensor time: the beacon reaches rx at its own time plus latency
-        self._pending.append((b.t + lat + spike, rx, payload))
+        at = b.t + lat + spike
+        self._pending.append((at, rx, payload))
+        self._earliest = min(self._earliest, at)
 
     def due(self, now: float) -> list[tuple[float, str, Any]]:
         """The deliveries due by ``now`` (deliver time, receiver, payload), in time order."""
-        if not self._pending or min(p[0] for p in self._pending) > now:
+        if not self._pending or self._earliest > now:  # the common case: nothing due, no scan
             return []
-        due = [p for p in self._pending if p[0] <= now]
-        self._pending = [p for p in self._pending if p[0] > now]
+        due, keep, earliest = [], [], math.inf
+        for p in self._pending:
+            if p[0] <= now:
+                due.append(p)
+            else:
+                keep.append(p)
+                earliest = min(earliest, p[0])
+        self._pending, self._earliest = keep, earliest
         due.sort(key=lambda p: p[0])
         self.stats.delivered += len(due)
         return due
