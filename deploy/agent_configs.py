@@ -11,10 +11,12 @@ from slcp.agent.lane_map import LaneMap
 from slcp.agent.methods import DEFAULT_FUSION, METHODS, FilterSettings
 from slcp.agent.nav.error_model import ImuNoise
 from slcp.agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
+from slcp.agent.own_sensors import IMU_MEMORY
 from slcp.agent.range_gate import NlosModel
 from slcp.hw_emulation.scenario import Scenario
 from slcp.hw_emulation.sensors import params
 from slcp.hw_emulation.sensors.imu import ImuModel
+from slcp.vehicles.profile import VehicleProfile
 
 
 def _triple(obj, name: str, positive_entries: bool = False) -> None:
@@ -92,6 +94,30 @@ class FilterOptions:
 def with_filter(cfg: AgentConfig, options: FilterOptions) -> AgentConfig:
     """``cfg`` with the ``[filter]`` section's options."""
     return dataclasses.replace(cfg, settings=dataclasses.replace(cfg.settings, **options.settings()))
+
+
+def with_profile(cfg: AgentConfig, profile: VehicleProfile) -> AgentConfig:
+    """``cfg`` with a vehicle profile's IMU model, installation and own-sensor options (what
+    the sensor driver does with the profile, the mount and the time-offset prior, is not the
+    engine's)."""
+    imu, g, c, t, i = profile.imu, profile.gnss, profile.constraints, profile.time, profile.initial
+    noise = ImuNoise(arw=imu.arw, vrw=imu.vrw, gyro_bias_sigma=imu.gyro_bias, gyro_bias_tau=imu.bias_correlation_s,
+                     accel_bias_sigma=imu.accel_bias, accel_bias_tau=imu.bias_correlation_s)
+    # ZARU weighs the mean rate of the engine's last IMU_MEMORY samples: white rate noise
+    # averages to ARW/√T, doubled for the vibration of a vehicle at rest with its engine on
+    zaru = math.radians(c.zaru_sigma_dps) or 2.0 * noise.arw / math.sqrt(IMU_MEMORY / imu.rate_hz)
+    s = dataclasses.replace(
+        cfg.settings, noise=noise, init_gyro_bias_sigma=imu.gyro_turn_on, init_accel_bias_sigma=imu.accel_turn_on,
+        gnss_lever_arm=g.lever_arm_m, gnss_quality_scale=g.quality_scale, gnss_min_sigma=g.min_sigma_m,
+        gnss_min_sigma_v=g.min_sigma_mps,
+        nhc_sigma=c.nhc_sigma_mps if c.nhc else None, nhc_vertical_sigma=c.nhc_vertical_sigma_mps,
+        nhc_lever_uncertainty=c.nhc_lever_uncertainty_m, nhc_coast_after=c.nhc_coast_after_s,
+        zupt_sigma=c.zupt_sigma_mps if c.zupt else None, zaru_sigma=zaru if c.zupt and c.zaru else None,
+        time_offset=(t.sigma_s, t.random_walk) if t.estimate else None,
+        # one covariance step per fix period costs least and changes little
+        cov_interval=1.0 / g.rate_hz,
+        init_att_sigma=tuple(math.radians(x) for x in i.att_sigma_deg), init_vel_sigma=i.vel_sigma_mps)
+    return dataclasses.replace(cfg, settings=s)
 
 
 def imu_noise_of(model: ImuModel) -> ImuNoise:

@@ -6,6 +6,9 @@ Agent configuration file (TOML)::
     [agent]
     vehicle = "V1"                              # may also be given with --vehicle
     scenario = "paper-1"                        # site map and sensor characteristics
+    profile = "my-car.toml"                     # optional vehicle profile (IMU, antenna, constraints;
+                                                # docs/vehicle-profiles.md), relative to this file;
+                                                # it replaces the [imu] and [filter] sections
     methods = ["SP", "SL-SP", "CP", "SL-CP"]
     fusion = "source-ci"                        # paper | source-ci | split-ci | ci (how CP methods fuse ranges)
     lane_constraint = true                      # SL methods also keep to the map's lanes (false: stop line only)
@@ -127,11 +130,16 @@ def _agent_section(a: dict, path: Path, vehicle: str | None) -> dict:
                                   or not 0.0 <= integrity < 1.0):
         raise ConfigError(f"{path}: agent.integrity_false_alarm: must be a probability in [0, 1) "
                           f"(0 switches the test off), got {integrity!r}")
-    unknown = set(a) - {"vehicle", "scenario", "methods", "fusion", "lane_constraint", "integrity_false_alarm"}
+    unknown = set(a) - {"vehicle", "scenario", "profile", "methods", "fusion", "lane_constraint",
+                        "integrity_false_alarm"}
     if unknown:
         raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
+    profile = a.get("profile")
+    if profile is not None and (not isinstance(profile, str) or not profile):
+        raise ConfigError(f"{path}: agent.profile: must be the path of a vehicle profile, got {profile!r}")
     return {"vehicle": vid, "methods": tuple(methods), "fusion": fusion, "lane_constraint": lane,
-            "integrity_false_alarm": integrity, "scenario": a.get("scenario")}
+            "integrity_false_alarm": integrity, "scenario": a.get("scenario"),
+            "profile": None if profile is None else Path(path).parent / profile}
 
 
 def _filter_config(a: dict, data: dict, path: Path):
@@ -139,15 +147,29 @@ def _filter_config(a: dict, data: dict, path: Path):
     ``[gnss]`` sections and the integrity setting."""
     from slcp.hw_emulation.scenario import load_scenario, model_from_table
     from slcp.hw_emulation.sensors.imu import ImuModel
+    from slcp.vehicles.profile import load_profile
 
-    from .agent_configs import FilterOptions, agent_config, siteless_agent_config, with_filter, with_gnss, with_imu
+    from .agent_configs import (
+        FilterOptions,
+        agent_config,
+        siteless_agent_config,
+        with_filter,
+        with_gnss,
+        with_imu,
+        with_profile,
+    )
 
     vid, methods, fusion = a["vehicle"], a["methods"], a["fusion"]
+    if a["profile"] is not None and ("imu" in data or "filter" in data):
+        raise ConfigError(f"{path}: [{'imu' if 'imu' in data else 'filter'}]: not with agent.profile "
+                          "(the profile describes the IMU and the installation)")
     try:
         if a["scenario"] is not None:
             cfg = agent_config(load_scenario(a["scenario"]), vid, methods, fusion, a["lane_constraint"])
         else:
             cfg = siteless_agent_config(vid, methods, fusion)
+        if a["profile"] is not None:
+            cfg = with_profile(cfg, load_profile(a["profile"]))
         if "imu" in data:
             cfg = with_imu(cfg, model_from_table(ImuModel, data["imu"], str(path), "imu"))
         if "gnss" in data:

@@ -24,9 +24,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slcp.agent.engine import AgentConfig, VehicleEngine
-from slcp.agent.nav.error_model import ImuNoise
-from slcp.agent.own_sensors import IMU_MEMORY
 from slcp.transport.messages import Estimate
+from slcp.vehicles.profile import VehicleProfile
 
 from .datasets.rtklib import RtklibDrive
 from .drive_scoring import score_estimates
@@ -59,55 +58,12 @@ class OutageProtocol:
 
 @dataclass(frozen=True)
 class ReplayConfig:
-    """The drive's installation and the engine's options for a replay (SI units, radians).
+    """A replay: the recording's vehicle (its profile: mount, time offset, heights, noise,
+    constraints) and the outage protocol. Without a profile the vehicle is a generic one
+    (:class:`vehicles.profile.VehicleProfile`'s defaults)."""
 
-    Defaults describe the rtklibexplorer drive: a TDK ICM-45686 class IMU (gyro noise
-    0.0038 °/s/√Hz, accelerometer 70 µg/√Hz; both inflated ×2 for vibration and unmodelled
-    scale-factor errors), the sensor-to-body rotation and antenna lever arm of its DATASET.md,
-    a −0.125 s IMU logging delay and the site's geoid undulation.
-    """
-
-    noise: ImuNoise = ImuNoise(
-        arw=2 * math.radians(0.0038), vrw=2 * 70e-6 * 9.80665,
-        gyro_bias_sigma=math.radians(0.05), gyro_bias_tau=600.0,
-        accel_bias_sigma=0.05, accel_bias_tau=600.0,
-    )
-    #: sensor-to-body rotation as roll, pitch, yaw [rad] (Groves' Euler_to_CTM convention)
-    mount_rpy: tuple[float, float, float] = tuple(
-        np.radians(np.array([180.0, 0.0, 180.0]) + np.array([0.0, -6.79, 5.35])).tolist())
-    lever_arm_gnss: tuple[float, float, float] = (0.0, -0.05, 0.0)
-    #: applied to the IMU time stamps (the sensor driver's offset) [s]
-    imu_time_offset: float = -0.125
-    #: estimate the remaining IMU-GNSS time offset online (an engine state)
-    estimate_time_offset: bool = True
-    time_offset_sigma: float = 0.05
-    time_offset_rw: float = 1e-3
-    #: geoid undulation added to the file's MSL heights [m] (EGM96 near 40.10 N 105.15 W)
-    geoid_undulation: float = -16.8
+    profile: VehicleProfile = VehicleProfile()
     outage: OutageProtocol = OutageProtocol()
-    zupt: bool = True
-    nhc: bool = True
-    #: with fixes, the NHC rows ride on their updates; without a fix for ``coast_after`` s
-    #: they are applied on their own
-    coast_after: float = 1.0
-    nhc_sigma: float = 0.1
-    #: NHC vertical-velocity sigma [m/s]; a mount-pitch error biases this row, so it is looser
-    nhc_vertical_sigma: float = 0.1
-    nhc_lever_uncertainty: float = 1.0
-    zupt_sigma: float = 0.02
-    #: the receiver's σ is widened ×``float_gain`` for float RTK and ×``single_gain`` for
-    #: anything but fixed RTK
-    float_gain: float = 2.0
-    single_gain: float = 5.0
-    init_att_sigma: tuple[float, float, float] = tuple(np.radians([2.0, 2.0, 60.0]).tolist())
-    init_vel_sigma: float = 0.1
-    init_gyro_bias_sigma: float = math.radians(0.1)
-    init_accel_bias_sigma: float = 0.1
-    #: the IMU's sample interval [s] (for the σ of the mean rate in ZARU)
-    imu_interval: float = 0.01
-    #: covariance propagation interval [s]: the fix period of this drive (4 Hz), so P is
-    #: propagated once per epoch (plus at constraint updates)
-    cov_interval: float = 0.25
 
 
 @dataclass
@@ -145,7 +101,8 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig(), vehicle: 
     if not est:
         raise ValueError("the engine never started: no GNSS fix within a second of the IMU data")
     wall = time.perf_counter() - wall0
-    figures, inside, err = score_estimates(plan.fix_t, plan.fix_llh, plan.withheld, est, cfg.lever_arm_gnss)
+    figures, inside, err = score_estimates(plan.fix_t, plan.fix_llh, plan.withheld, est,
+                                           cfg.profile.gnss.lever_arm_m)
     t0 = float(drive.gnss.t[0])
     outages = cfg.outage.windows(t0, float(drive.gnss.t[-1]))
     res = ReplayResult(plan.fix_t[inside], err, plan.withheld[inside], outages, _trajectory(est), t0)
@@ -154,7 +111,7 @@ def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig(), vehicle: 
                    "imu_span_s": imu_span, "wall_s": wall,
                    "realtime_factor": imu_span / wall if wall > 0 else float("inf")}
     f = engine.filters["SP"]
-    res.metrics["imu_time_offset_s"] = cfg.imu_time_offset + f.time_offset
+    res.metrics["imu_time_offset_s"] = cfg.profile.time.imu_offset_s + f.time_offset
     st = f.filter.stats
     res.metrics["filter_stats"] = {"imu_samples": st.imu_samples, "cov_steps": st.cov_steps,
                                    "updates": st.updates, "rejected": st.rejected}
@@ -204,22 +161,8 @@ def pooled_metrics(results: list[ReplayResult]) -> dict:
 
 
 def engine_config(cfg: ReplayConfig, vehicle: str = "V0") -> AgentConfig:
-    """The vehicle engine's configuration for a drive replayed with ``cfg``: a vehicle without a
-    site map running SP, with the drive's IMU noise and installation."""
-    from .agent_configs import siteless_agent_config
+    """The vehicle engine's configuration for a replay: a vehicle without a site map running
+    SP, with the profile's IMU model, installation and options."""
+    from .agent_configs import siteless_agent_config, with_profile
 
-    base = siteless_agent_config(vehicle, ("SP",))
-    # ZARU weighs the mean rate of the engine's last IMU_MEMORY samples: white rate noise
-    # averages to ARW/√T, doubled as the noise itself is for vibration
-    zaru = 2.0 * cfg.noise.arw / math.sqrt(IMU_MEMORY * cfg.imu_interval)
-    s = dataclasses.replace(
-        base.settings, noise=cfg.noise, init_att_sigma=cfg.init_att_sigma, init_vel_sigma=cfg.init_vel_sigma,
-        init_gyro_bias_sigma=cfg.init_gyro_bias_sigma, init_accel_bias_sigma=cfg.init_accel_bias_sigma,
-        gnss_lever_arm=cfg.lever_arm_gnss, gnss_quality_scale=(1.0, cfg.float_gain, cfg.single_gain),
-        gnss_min_sigma=0.005, gnss_min_sigma_v=0.02,
-        nhc_sigma=cfg.nhc_sigma if cfg.nhc else None, nhc_vertical_sigma=cfg.nhc_vertical_sigma,
-        nhc_lever_uncertainty=cfg.nhc_lever_uncertainty, nhc_coast_after=cfg.coast_after,
-        zupt_sigma=cfg.zupt_sigma if cfg.zupt else None, zaru_sigma=zaru if cfg.zupt else None,
-        time_offset=(cfg.time_offset_sigma, cfg.time_offset_rw) if cfg.estimate_time_offset else None,
-        cov_interval=cfg.cov_interval)
-    return dataclasses.replace(base, settings=s)
+    return with_profile(siteless_agent_config(vehicle, ("SP",)), cfg.profile)

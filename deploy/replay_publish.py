@@ -3,12 +3,13 @@
 ``slcp replay rtklib PATH --publish --vehicle V`` turns the drive into the messages a vehicle
 computer's sensor drivers would publish (:mod:`deploy.sensors`):
 
-* IMU: the samples through :class:`deploy.sensors.imu.ImuAdapter` with the drive's mounting
-  rotation and IMU time offset (:class:`deploy.replay.ReplayConfig`), 10 Hz batches;
-* GNSS: one :class:`GnssFix` per ``.pos`` epoch, height made ellipsoidal with the geoid
-  undulation, the file's σ (north, east, up -> down) and velocity σ (largest axis); fixes inside
-  the outage protocol's windows are withheld, as in ``slcp replay``. The 5 cm antenna lever arm
-  is left out.
+* IMU: the samples through :class:`deploy.sensors.imu.ImuAdapter` with the mounting rotation
+  and IMU time-offset prior of the vehicle profile (:class:`deploy.replay.ReplayConfig`), 10 Hz
+  batches;
+* GNSS: one :class:`GnssFix` per epoch at the antenna, height made ellipsoidal as the profile
+  says, the file's σ (north, east, down) and velocity σ (largest axis); fixes inside the outage
+  protocol's windows are withheld, as in ``slcp replay``. The agent's own profile carries the
+  antenna's lever arm.
 
 Messages are published in time order, paced on the wall clock at ``speed`` × real time
 (sensor time is GPST seconds, Unix-epoch convention). While publishing, the agent's estimates of
@@ -62,8 +63,10 @@ def plan_drive(drive: RtklibDrive, vehicle: str, cfg: ReplayConfig | None = None
     t_b = float(gnss.t[-1]) if duration is None else t_a + duration
     if not t_b > t_a:
         raise ValueError("nothing to publish: the window is empty")
-    adapter = ImuAdapter(vehicle, cfg.mount_rpy, cfg.imu_time_offset)
-    t_imu = imu.t + cfg.imu_time_offset
+    prof = cfg.profile
+    offset = prof.time.imu_offset_s
+    adapter = ImuAdapter(vehicle, prof.imu.mount_rpy, offset)
+    t_imu = imu.t + offset
     sel = np.flatnonzero((t_imu >= t_a - 1.0) & (t_imu <= t_b))  # one second of levelling before
     msgs: list[tuple[float, str, Message]] = []
     k_imu = keys.imu(vehicle)
@@ -77,7 +80,7 @@ def plan_drive(drive: RtklibDrive, vehicle: str, cfg: ReplayConfig | None = None
     if len(gi) == 0:
         raise ValueError("no GNSS epoch in the window")
     llh = gnss.llh[gi].copy()
-    llh[:, 2] += cfg.geoid_undulation
+    llh[:, 2] += prof.gnss.height_to_ellipsoidal
     withheld = np.array([any(a <= t < b for a, b in windows) for t in gnss.t[gi]], bool)
     k_gnss = keys.gnss(vehicle)
     for j, i in enumerate(gi):

@@ -33,6 +33,22 @@ if not (os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("SLCP_TEST_CACH
     os.environ["SLCP_TEST_CACHE_OWNER"] = str(os.getpid())
     atexit.register(shutil.rmtree, _SPLINE_CACHE, ignore_errors=True)
 SHARED_DRIVE = REPO.parent / "shared" / "data" / "rtklibexplorer_drive_0708"
+#: the vehicle profile of the shared drive's car
+DRIVE_PROFILE = REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.toml"
+
+
+def drive_config(outage=None, nhc: bool = True, estimate_time_offset: bool = True):
+    """The replay configuration of the shared drive: its car's profile (with the non-holonomic
+    constraint and the time-offset estimation as given) and ``outage`` (default: the protocol)."""
+    import dataclasses
+
+    from slcp.deploy.replay import OutageProtocol, ReplayConfig
+    from slcp.vehicles.profile import load_profile
+
+    p = load_profile(DRIVE_PROFILE)
+    p = dataclasses.replace(p, constraints=dataclasses.replace(p.constraints, nhc=nhc),
+                            time=dataclasses.replace(p.time, estimate=estimate_time_offset))
+    return ReplayConfig(profile=p, outage=outage or OutageProtocol())
 
 
 def pytest_xdist_auto_num_workers(config) -> int:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-PACKAGES = ("agent", "transport", "hw_emulation", "deploy", "geo")
+PACKAGES = ("agent", "transport", "hw_emulation", "deploy", "geo", "vehicles")
 MAX_MODULE_LINES = 500
 MAX_FUNCTION_LINES = 80
 

@@ -20,6 +20,8 @@ from slcp.transport.bus import InMemoryNetwork
 from slcp.transport.codec import decode, encode
 from slcp.transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, UwbRound
 
+from conftest import drive_config
+
 TOPIC = {ImuBatch: keys.imu, GnssFix: keys.gnss, LaneMarkings: keys.lane, UwbRound: keys.uwb}
 
 
@@ -102,13 +104,13 @@ def test_where_a_fix_is_applied_depends_on_the_data_not_on_when_it_arrived() -> 
     from pathlib import Path
 
     from slcp.deploy.datasets.rtklib import load_drive
-    from slcp.deploy.replay import ReplayConfig, engine_config
+    from slcp.deploy.replay import engine_config
     from slcp.deploy.replay_publish import plan_drive
 
     drive_dir = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "rtklibexplorer_drive_0708"
     if not drive_dir.is_dir():
         pytest.skip("shared drive not available")
-    cfg = ReplayConfig()
+    cfg = drive_config()
     plan = plan_drive(load_drive(drive_dir), "V0", cfg, 0.0, 60.0)
     in_order = [m for _, _, m in plan.messages]
     early = sorted(in_order, key=lambda m: (m.t - 0.2 if isinstance(m, GnssFix) else float(m.t[-1])))

@@ -25,7 +25,7 @@ from slcp.deploy.sensors.imu import ImuAdapter, ImuFormatError, imu_increments, 
 from slcp.deploy.sensors.nmea import KNOT, NmeaFixAssembler
 from slcp.deploy.sensors.ubx import UbxFixReader
 
-from conftest import REPO, SHARED_DRIVE, free_port, wait_for_port
+from conftest import DRIVE_PROFILE, REPO, SHARED_DRIVE, drive_config, free_port, wait_for_port
 
 CLI = [sys.executable, "-m", "slcp.deploy.cli"]
 needs_drive = pytest.mark.skipif(not SHARED_DRIVE.is_dir(), reason=f"shared drive not found at {SHARED_DRIVE}")
@@ -232,7 +232,7 @@ def test_imu_adapter_counts_bad_samples_and_lines() -> None:
 
 # ------------------------------------------------------------------------- agent config
 def test_a_site_less_agent_config_takes_the_vehicles_imu_and_gnss(tmp_path) -> None:
-    cfg, z = load_agent_config(REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.toml", None)
+    cfg, z = load_agent_config(REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.agent.toml", None)
     assert cfg.vehicle == "V0" and cfg.methods == ("SP",) and cfg.lanes == {}
     assert cfg.settings.noise.arw == pytest.approx(2 * math.radians(0.0038), rel=1e-3)
     assert cfg.settings.gnss_multipath_sigma is None  # the receiver's σ as white noise
@@ -342,8 +342,8 @@ def _agent(cfg_text: str, tmp_path: Path, port: int) -> subprocess.Popen:
 
 
 def _drive_agent_config() -> str:
-    text = (REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.toml").read_text()
-    return text[:text.index("[zenoh]")]
+    text = (REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.agent.toml").read_text()
+    return text[:text.index("[zenoh]")].replace('profile = "rtklibexplorer-drive.toml"', f'profile = "{DRIVE_PROFILE}"')
 
 
 @pytest.mark.fleet
@@ -360,10 +360,10 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
     from slcp.deploy.datasets.rtklib import load_drive
     from slcp.deploy.drive_scoring import outage_metrics
     from slcp.deploy.processes import load_agent_config
-    from slcp.deploy.replay import ReplayConfig, engine_config, run_replay
+    from slcp.deploy.replay import engine_config, run_replay
 
-    live_cfg, _ = load_agent_config(REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.toml", None)
-    off_cfg = engine_config(ReplayConfig())
+    live_cfg, _ = load_agent_config(REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.agent.toml", None)
+    off_cfg = engine_config(drive_config())
     def flat(settings):
         out = {}
         for f in dataclasses.fields(settings):
@@ -379,7 +379,8 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
     port = free_port()
     agent = _agent(_drive_agent_config(), tmp_path, port)
     try:
-        out = subprocess.run([*CLI, "replay", "rtklib", str(SHARED_DRIVE), "--publish", "--duration", "120",
+        out = subprocess.run([*CLI, "replay", "rtklib", str(SHARED_DRIVE), "--vehicle", str(DRIVE_PROFILE),
+                              "--publish", "--duration", "120",
                               "--speed", "10", "--connect", f"tcp/127.0.0.1:{port}", "--json"],
                              capture_output=True, text=True, timeout=150)
     finally:
@@ -389,7 +390,7 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
     sp = res["methods"]["SP"]
     assert res["gnss_withheld"] == 120 and res["max_late_s"] < 0.1
     assert sp["epochs"] >= 460 and sp["gnss_on_h_rms_m"] < 0.5 and sp["n_outages"] == 2
-    off = run_replay(load_drive(SHARED_DRIVE), ReplayConfig())
+    off = run_replay(load_drive(SHARED_DRIVE), drive_config())
     n = sp["epochs"]  # both score from the first epoch their estimates cover
     ref = outage_metrics(off.h_err[:n], off.withheld[:n])
     print(f"\nlive agent outage RMS {sp['outage_h_rms_m']:.3f} m, offline {ref['outage_h_rms_m']:.3f} m; "
@@ -517,20 +518,19 @@ def test_the_driver_plays_nmea_and_imu_logs_to_a_live_agent(tmp_path) -> None:
     gap_all = (truth["t"] >= truth["gap"][0]) & (truth["t"] < truth["gap"][1])
     assert gap_all.sum() > 40 and counters["gnss_fixes"] == int((~gap_all).sum())  # 12 s of fixes left out
     from slcp.deploy.drive_scoring import antenna_positions, errors_at_epochs
-    from slcp.deploy.replay import ReplayConfig
 
     inside, err = errors_at_epochs(truth["t"], truth["llh"], np.array([r.t for r in rows]),
-                                   antenna_positions(rows, ReplayConfig().lever_arm_gnss))
+                                   antenna_positions(rows, drive_config().profile.gnss.lever_arm_m))
     in_gap = (truth["t"][inside] >= truth["gap"][0]) & (truth["t"][inside] < truth["gap"][1])
     on_median, on_p95 = np.percentile(err[~in_gap], [50, 95])
     gap_rms = float(np.sqrt(np.mean(err[in_gap] ** 2)))
     # the offline filter with the same model and a GNSS outage at the same time
     from slcp.deploy.datasets.rtklib import load_drive
-    from slcp.deploy.replay import OutageProtocol, ReplayConfig, run_replay
+    from slcp.deploy.replay import OutageProtocol, run_replay
 
     d = load_drive(SHARED_DRIVE)
     outage = OutageProtocol(first=t_from + 50.0 - float(d.gnss.t[0]), period=1000.0, length=12.0, end_margin=0.0)
-    off = run_replay(d, ReplayConfig(nhc=False, estimate_time_offset=False, outage=outage))
+    off = run_replay(d, drive_config(outage, nhc=False, estimate_time_offset=False))
     off_rms = float(np.sqrt(np.mean(off.h_err[off.withheld] ** 2)))
     print(f"\nagent on NMEA + IMU logs: {len(rows)} estimates, GNSS on median {on_median:.3f} m, "
           f"95th percentile {on_p95:.2f} m; 12 s gap RMS {gap_rms:.2f} m (offline filter {off_rms:.2f} m)")

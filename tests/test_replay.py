@@ -11,9 +11,9 @@ import pytest
 from slcp.deploy.cli import main
 from slcp.deploy.datasets import DatasetError
 from slcp.deploy.datasets.rtklib import load_drive, read_imu_csv, read_pos, read_time_tag
-from slcp.deploy.replay import OutageProtocol, ReplayConfig, phase_protocols, run_replay
+from slcp.deploy.replay import OutageProtocol, phase_protocols, run_replay
 
-from conftest import SHARED_DRIVE
+from conftest import DRIVE_PROFILE, SHARED_DRIVE, drive_config
 
 needs_drive = pytest.mark.skipif(not SHARED_DRIVE.is_dir(), reason=f"shared drive not found at {SHARED_DRIVE}")
 
@@ -47,7 +47,7 @@ def test_outage_protocol_counts() -> None:
 def replay_result():
     if not SHARED_DRIVE.is_dir():
         pytest.skip("shared drive not available")
-    return run_replay(load_drive(SHARED_DRIVE), ReplayConfig())
+    return run_replay(load_drive(SHARED_DRIVE), drive_config())
 
 
 def test_real_drive_accuracy(replay_result) -> None:
@@ -73,7 +73,8 @@ def test_real_drive_accuracy(replay_result) -> None:
 def test_cli_replay_writes_outputs(tmp_path, capsys) -> None:
     if not SHARED_DRIVE.is_dir():
         pytest.skip("shared drive not available")
-    rc = main(["replay", "rtklib", str(SHARED_DRIVE), "--outage", "10:35", "--out", str(tmp_path), "--json"])
+    rc = main(["replay", "rtklib", str(SHARED_DRIVE), "--vehicle", "rtklibexplorer-drive", "--outage", "10:35",
+               "--out", str(tmp_path), "--json"])
     assert rc == 0
     m = json.loads(capsys.readouterr().out)
     for key in ("outage_h_rms_m", "outage_h_end_mean_m", "outage_h_end_max_m", "outage_h_max_m",
@@ -118,7 +119,8 @@ def test_outage_phases_pool_their_runs(replay_result, tmp_path, capsys) -> None:
     assert all(p.period == 45.0 and p.length == 15.0 for p in protocols)
     with pytest.raises(ValueError):
         phase_protocols(OutageProtocol(), 0)
-    rc = main(["replay", "rtklib", str(SHARED_DRIVE), "--phases", "2", "--out", str(tmp_path), "--json"])
+    rc = main(["replay", "rtklib", str(SHARED_DRIVE), "--vehicle", str(DRIVE_PROFILE), "--phases", "2",
+               "--out", str(tmp_path), "--json"])
     assert rc == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     pooled, base = out["phases_pooled"], replay_result.metrics

@@ -73,9 +73,14 @@ def add_sensors(sub) -> None:
     )
     se.add_argument("--imu-units", default="m/s2,rad/s", metavar="ACCEL,GYRO",
                     help="units of the IMU lines: m/s2|g|mg and rad/s|deg/s|mrad/s (default m/s2,rad/s)")
-    se.add_argument("--imu-mount", default="0,0,0", metavar="ROLL,PITCH,YAW",
-                    help="sensor-to-body rotation [deg] (default 0,0,0: the IMU axes are forward, right, down)")
-    se.add_argument("--imu-time-offset", type=T.finite_float, default=0.0, help="added to the IMU time stamps [s]")
+    se.add_argument("--profile", default=None, metavar="PROFILE",
+                    help="the vehicle's profile (a TOML file or a shipped profile's name): its IMU mount and "
+                         "time-offset prior")
+    se.add_argument("--imu-mount", default=None, metavar="ROLL,PITCH,YAW",
+                    help="sensor-to-body rotation [deg] (default: the profile's, else 0,0,0: the IMU axes are "
+                         "forward, right, down)")
+    se.add_argument("--imu-time-offset", type=T.finite_float, default=None,
+                    help="added to the IMU time stamps [s] (default: the profile's prior, else 0)")
     se.add_argument(
         "--uere", type=T.positive_float, default=2.5, help="NMEA without GST: horizontal sigma = HDOP x UERE [m]"
     )
@@ -144,16 +149,22 @@ def _cmd_sensors(args: argparse.Namespace) -> int:
     import math
 
     from slcp.transport.zenoh_bus import ZenohConfig
+    from slcp.vehicles.profile import VehicleProfile
 
     from ..sensors.driver import SourceSpec, sensors_main
     from ..sensors.imu import ImuAdapter, parse_units
+    from ..vehicle_files import load_vehicle
 
-    try:
-        mount = tuple(math.radians(float(x)) for x in args.imu_mount.split(","))
-    except ValueError:
-        mount = ()
-    if len(mount) != 3 or not all(math.isfinite(x) for x in mount):
-        raise ValueError(f"--imu-mount {args.imu_mount!r}: expected ROLL,PITCH,YAW in degrees")
+    profile = load_vehicle(args.profile) if args.profile else VehicleProfile()
+    mount: tuple[float, ...] = profile.imu.mount_rpy
+    if args.imu_mount is not None:
+        try:
+            mount = tuple(math.radians(float(x)) for x in args.imu_mount.split(","))
+        except ValueError:
+            mount = ()
+        if len(mount) != 3 or not all(math.isfinite(x) for x in mount):
+            raise ValueError(f"--imu-mount {args.imu_mount!r}: expected ROLL,PITCH,YAW in degrees")
+    offset = profile.time.imu_offset_s if args.imu_time_offset is None else args.imu_time_offset
     units = parse_units(args.imu_units)
     if not (args.speed > 0 and args.uere > 0):
         raise ValueError("--speed and --uere must be > 0")
@@ -161,7 +172,7 @@ def _cmd_sensors(args: argparse.Namespace) -> int:
     imu = SourceSpec.parse("imu", args.imu) if args.imu else None
     if gnss is None and imu is None:
         raise ValueError("nothing to read: give --gnss and/or --imu")
-    adapter = ImuAdapter(args.vehicle, mount, args.imu_time_offset)
+    adapter = ImuAdapter(args.vehicle, mount, offset)
     z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
     if args.fleet:
         from ..zenoh_security import client_config

@@ -17,6 +17,9 @@ def add_replay(sub) -> None:
     rp = sub.add_parser("replay", help="replay a recorded drive through the SP (GNSS/INS) filter")
     rp.add_argument("format", choices=["rtklib"], help="dataset format")
     rp.add_argument("path", type=Path, help="dataset folder (imu_*.csv + .tag, *.pos)")
+    rp.add_argument("--vehicle", default=None, metavar="PROFILE",
+                    help="the recording vehicle's profile: a TOML file (IMU mount and noise, antenna, heights, time "
+                         "offset; docs/vehicle-profiles.md) or a shipped profile's name; default: a generic vehicle")
     g = rp.add_mutually_exclusive_group()
     g.add_argument("--outage", type=_outage_arg, default=(15.0, 30.0), metavar="LEN:ON",
                    help="outage length and GNSS-on time between outages [s] (default 15:30)")
@@ -32,14 +35,15 @@ def add_replay(sub) -> None:
     rp.add_argument("--no-zupt", action="store_true", help="disable zero-velocity/zero-rate updates")
     rp.add_argument("--no-time-offset-estimation", action="store_true",
                     help="keep the IMU time offset fixed at --imu-time-offset")
-    rp.add_argument("--imu-time-offset", type=T.finite_float, default=-0.125, help="initial IMU time offset [s]")
+    rp.add_argument("--imu-time-offset", type=T.finite_float, default=None,
+                    help="prior of the IMU time offset [s] (default: the profile's)")
     rp.add_argument("--out", type=Path, default=Path("runs/replay"), help="output directory")
     rp.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
     pg = rp.add_argument_group("publishing onto the sensor topics (a live agent runs on the drive)")
     pg.add_argument("--publish", action="store_true",
                     help="publish the drive's IMU and GNSS (outages withheld) on VEHICLE's sensor topics over Zenoh, "
                          "score the estimates the agent publishes back")
-    pg.add_argument("--vehicle", default="V0", help="vehicle id of the topics (default V0)")
+    pg.add_argument("--vehicle-id", default="V0", help="vehicle id of the topics (default V0)")
     pg.add_argument(
         "--speed", type=T.positive_float, default=1.0, help="real-time factor of the publication (default 1)"
     )
@@ -66,6 +70,27 @@ def _outage_arg(text: str) -> tuple[float, float]:
     return length, gap
 
 
+def _profile(args: argparse.Namespace):
+    """The vehicle profile of ``--vehicle`` (or a generic one) with the command line's switches."""
+    from slcp.vehicles.profile import VehicleProfile
+
+    from ..vehicle_files import load_vehicle
+
+    if args.vehicle is None:
+        logging.getLogger(__name__).warning(
+            "no --vehicle profile: a generic vehicle (IMU axes on the body's, no time offset, ellipsoidal "
+            "heights, antenna at the IMU); give the recording vehicle's profile for its figures")
+        prof = VehicleProfile()
+    else:
+        prof = load_vehicle(args.vehicle)
+    c = dataclasses.replace(prof.constraints, nhc=prof.constraints.nhc and not args.no_nhc,
+                            zupt=prof.constraints.zupt and not args.no_zupt)
+    t = dataclasses.replace(prof.time, estimate=prof.time.estimate and not args.no_time_offset_estimation)
+    if args.imu_time_offset is not None:
+        t = dataclasses.replace(t, imu_offset_s=args.imu_time_offset)
+    return dataclasses.replace(prof, constraints=c, time=t)
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from ..datasets.rtklib import load_drive
     from ..replay import TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, phase_protocols, pooled_metrics, run_replay
@@ -73,11 +98,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     drive = load_drive(args.path)
     length, gap = (0.0, 1.0) if args.no_outage else args.outage
     cfg = ReplayConfig(
+        profile=_profile(args),
         outage=OutageProtocol(first=args.first_outage, period=length + gap, length=length,
                               end_margin=args.end_margin),
-        nhc=not args.no_nhc, zupt=not args.no_zupt,
-        imu_time_offset=args.imu_time_offset,
-        estimate_time_offset=not args.no_time_offset_estimation,
     )
     if args.phases > 1 and (args.no_outage or args.publish):
         raise ValueError("--phases needs outages and the offline replay (not --no-outage or --publish)")
@@ -143,15 +166,16 @@ def _replay_publish(args: argparse.Namespace, drive, cfg) -> int:
 
     if not args.speed > 0:
         raise ValueError(f"--speed must be > 0, got {args.speed}")
-    plan = plan_drive(drive, args.vehicle, cfg, args.start, args.duration)
+    plan = plan_drive(drive, args.vehicle_id, cfg, args.start, args.duration)
     z = ZenohConfig(connect=tuple(args.connect), listen=tuple(args.listen))
-    res = asyncio.run(replay_publish_main(plan, z, args.speed, args.wait_agent, lever_arm=cfg.lever_arm_gnss))
+    res = asyncio.run(replay_publish_main(plan, z, args.speed, args.wait_agent,
+                                          lever_arm=cfg.profile.gnss.lever_arm_m))
     if args.json:
         print(json.dumps(res))
         return 0
     print(
         f"published {res['published']} messages ({res['imu_batches']} IMU batches of {res['imu_samples']} samples, "
-        f"{res['gnss_fixes']} fixes, {res['gnss_withheld']} withheld) on {args.vehicle}'s topics: "
+        f"{res['gnss_fixes']} fixes, {res['gnss_withheld']} withheld) on {args.vehicle_id}'s topics: "
         f"{res['sensor_s']:.1f} s of sensor time in {res['wall_s']:.1f} s wall, "
         f"at most {res['max_late_s'] * 1e3:.0f} ms late"
     )

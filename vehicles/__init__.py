@@ -1,0 +1,1 @@
+"""The vehicle layer: profiles of vehicle types (installation and sensor models, :mod:`.profile`)."""
