@@ -22,7 +22,7 @@ import numpy as np
 from .geometry import offset_polyline, polyline_length
 from .sensors.camera import LaneCameraModel
 from .sensors.gnss import GnssModel
-from .sensors.imu import ImuModel
+from .sensors.imu import ImuModel, imu_model_of
 from .sensors.radio import RadioModel
 from .sensors.uwb import UwbModel
 
@@ -331,6 +331,21 @@ def _parse_signals(ctx: _Ctx, data: dict, lanes: dict[str, Lane]) -> Signals:
 
 
 
+def _profile_imu(ctx: _Ctx, v: dict, path: str, imu_base: ImuModel) -> ImuModel:
+    """The emulated IMU of a vehicle with a ``profile`` (a vehicle profile file, relative to the
+    scenario's folder): the profile's datasheet noise and biases; else ``imu_base``."""
+    if "profile" not in v:
+        return imu_base
+    from slcp.vehicles.profile import ProfileError, load_profile
+
+    name = ctx.string(v, "profile", path)
+    try:
+        spec = load_profile(Path(ctx.source).parent / name).imu
+    except ProfileError as exc:
+        raise ctx.fail(f"{path}.profile", str(exc)) from None
+    return imu_model_of(spec)
+
+
 def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: ImuModel,
                     gnss_base: GnssModel) -> list[VehicleSpec]:
     vehicles = []
@@ -341,7 +356,7 @@ def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: Imu
     for i, v in enumerate(raw_v):
         p = f"vehicles[{i}]"
         _check_keys(ctx, v, {"id", "route", "depart", "depart_pos", "desired_speed", "initial_speed", "idm",
-                             "length", "l0", "stop_gap", "lateral", "imu", "gnss"}, p)
+                             "length", "l0", "stop_gap", "lateral", "imu", "gnss", "profile"}, p)
         vid = ctx.string(v, "id", p)
         if vid in ids:
             raise ctx.fail(f"{p}.id", f"duplicate vehicle id {vid!r}")
@@ -376,7 +391,7 @@ def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: Imu
                       ctx.number(sgap, "sigma", f"{p}.stop_gap", 0.3, non_negative=True)),
             lateral=(ctx.number(lat_d, "mean", f"{p}.lateral", first.width / 2),
                      ctx.number(lat_d, "sigma", f"{p}.lateral", 0.15, non_negative=True)),
-            imu=ctx.model(ImuModel, ctx.table(v, "imu", p), f"{p}.imu", imu_base),
+            imu=ctx.model(ImuModel, ctx.table(v, "imu", p), f"{p}.imu", _profile_imu(ctx, v, p, imu_base)),
             gnss=ctx.model(GnssModel, ctx.table(v, "gnss", p), f"{p}.gnss", gnss_base),
         ))
 

@@ -95,13 +95,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from ..datasets.rtklib import load_drive
     from ..replay import TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, phase_protocols, pooled_metrics, run_replay
 
-    drive = load_drive(args.path)
     length, gap = (0.0, 1.0) if args.no_outage else args.outage
     cfg = ReplayConfig(
         profile=_profile(args),
         outage=OutageProtocol(first=args.first_outage, period=length + gap, length=length,
                               end_margin=args.end_margin),
     )
+    drive = load_drive(args.path)
     if args.phases > 1 and (args.no_outage or args.publish):
         raise ValueError("--phases needs outages and the offline replay (not --no-outage or --publish)")
     if args.publish:

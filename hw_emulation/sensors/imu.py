@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slcp.vehicles.profile import ImuSpec
+
 from . import params
 from .processes import gauss_markov
 
@@ -57,6 +59,15 @@ class ImuModel:
         params.non_negative(self, "arw", "vrw", "gyro_turn_on", "accel_turn_on", "gyro_in_run",
                             "accel_in_run", "gyro_scale", "accel_scale", "misalignment")
         params.positive(self, "bias_tau")
+
+
+def imu_model_of(spec: ImuSpec) -> ImuModel:
+    """The emulated IMU of a vehicle profile's ``[imu]``: its datasheet noise (without the
+    profile's inflation for the vehicle, which is the filter's), biases and scale factors."""
+    return ImuModel(arw=math.radians(spec.gyro_noise_dps_rthz), vrw=spec.accel_noise_ug_rthz * 1e-6 * G0,
+                    gyro_turn_on=spec.gyro_turn_on, accel_turn_on=spec.accel_turn_on,
+                    gyro_in_run=spec.gyro_bias, accel_in_run=spec.accel_bias, bias_tau=spec.bias_correlation_s,
+                    gyro_scale=spec.scale_factor_ppm * 1e-6, accel_scale=spec.scale_factor_ppm * 1e-6)
 
 
 @dataclass(frozen=True)
