@@ -43,6 +43,7 @@ from .methods import MethodFilter, MethodSpec, initial_state
 from .misbehaviour import MisbehaviourDetector
 from .nav.motion import StationarityMonitor, ZuptGate, speed_sigma
 from .neighbours import NeighbourTable
+from .position_course import PositionCourse, has_velocity
 from .sequencer import Apply, Propagate, Sequencer
 
 log = logging.getLogger(__name__)
@@ -82,6 +83,7 @@ class VehicleEngine(EngineOutputs):
         self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
         self.rest = StationarityMonitor()
         self.zupt_gate = ZuptGate()
+        self._course = PositionCourse()  # velocities of position-only fixes
         self._imu_buffer: list[ImuBatch] = []
         self.checks = InputChecks(cfg.vehicle, cfg.max_time_jump, cfg.jump_confirm, self._count)
         self._next: dict[str, float | None] = {"beacon": None, "estimate": None, "decision": None, "diag": None}
@@ -165,6 +167,9 @@ class VehicleEngine(EngineOutputs):
         if self.checks.ahead(msg.t, kind) or self.checks.duplicate(kind, (msg.seq, msg.t)):
             return
         self.counters[kind] += 1
+        if isinstance(msg, GnssFix) and msg.sigma_v <= 0.0:
+            msg = self._course.derive(msg)
+            self._count("gnss_position_only")
         if not self.filters:
             if isinstance(msg, GnssFix):  # the filters start from these
                 self._pending_fixes.append(msg)
@@ -363,7 +368,8 @@ class VehicleEngine(EngineOutputs):
         processed depends on message timing; this choice does not); later fixes are applied as
         measurements. False (nothing started) without a fix within ``INIT_FIX_WINDOW``."""
         t0 = float(batch.t[0] - batch.dt[0])
-        near = [g for g in self._pending_fixes if abs(g.t - t0) <= self.INIT_FIX_WINDOW]
+        # a position-only fix without an earlier one has no velocity yet: the next will
+        near = [g for g in self._pending_fixes if abs(g.t - t0) <= self.INIT_FIX_WINDOW and math.isfinite(g.sigma_v)]
         if not near:
             return False
         fix = min(near, key=lambda g: (abs(g.t - t0), g.t))
@@ -397,7 +403,8 @@ class VehicleEngine(EngineOutputs):
             fix, offset = msg
             self.zupt_gate.gnss(step.t)
             for f in self.filters.values():
-                f.gnss(fix.llh, fix.v_ned, fix.sigma_ned, fix.sigma_v, fix.quality, applied_offset=offset)
+                f.gnss(fix.llh, fix.v_ned, fix.sigma_ned, fix.sigma_v, fix.quality, applied_offset=offset,
+                       velocity=has_velocity(fix))
         elif step.kind == "lane":
             for tr in self.trackers.values():
                 tr.observe_markings(step.t, msg.left, msg.right)

@@ -266,17 +266,21 @@ class MethodFilter(RangeUpdates, SiteUpdates):
         return np.array([d[k - 1] - (p0[k] + a * (p1[k] - p0[k])) for k in (1, 2, 3)])
 
     def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float,
-             quality: int = 1, moving: bool | None = None, applied_offset: float = 0.0) -> None:
+             quality: int = 1, moving: bool | None = None, applied_offset: float = 0.0,
+             velocity: bool = True) -> None:
         """A GNSS fix (:meth:`OwnSensors.gnss`); ``moving`` (default: the fix's speed is over
         0.5 m/s) says whether the vehicle moves, for the multipath time constant and the
         non-holonomic rows; ``applied_offset`` is the time offset by which the fix was moved
-        to filter time. While the heading is unknown, the fix may first have to wait for the
-        course (:meth:`_await_heading`)."""
+        to filter time; without ``velocity`` the velocity is one derived from positions
+        (:mod:`agent.position_course`), used for these decisions and the course, not as a
+        measurement. While the heading is unknown, the fix may first have to wait for the course
+        (:meth:`_await_heading`)."""
         if not self.heading_known and self._await_heading(v_ned, sigma_v):
             return
         if moving is None:
             moving = math.hypot(v_ned[0], v_ned[1]) >= 0.5
-        self.own.gnss(llh, v_ned, sigma_ned, sigma_v, quality, moving, self.heading_known, applied_offset)
+        self.own.gnss(llh, v_ned, sigma_ned, sigma_v, quality, moving, self.heading_known, applied_offset,
+                      velocity)
 
     def coast(self, moving: bool) -> None:
         """Between fixes (:meth:`OwnSensors.coast`)."""

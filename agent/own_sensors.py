@@ -79,11 +79,12 @@ class OwnSensors:
 
     def gnss(self, llh: np.ndarray, v_ned: np.ndarray, sigma_ned: np.ndarray, sigma_v: float,
              quality: int = 1, moving: bool = True, heading_known: bool = True,
-             applied_offset: float = 0.0) -> UpdateResult:
+             applied_offset: float = 0.0, velocity: bool = True) -> UpdateResult:
         """A GNSS fix: the position through the χ² gate (re-anchored after
         ``gnss_reset_after`` s of rejections), then the velocity, and with the non-holonomic
         constraint on, its rows while moving. The fix is applied at the filter time of its
-        GNSS time by the time offset ``applied_offset`` [s]."""
+        GNSS time by the time offset ``applied_offset`` [s]. Without ``velocity`` (a receiver
+        that reports positions only) there is no velocity row."""
         self._applied = applied_offset
         s, f = self.settings, self.filter
         k = self.sigma_scale(quality)
@@ -100,9 +101,10 @@ class OwnSensors:
                 res = f.update(m)
                 self._rejected_since = None
                 self.counters["gnss_reanchored"] += 1
-        sv = max(sigma_v * k, s.gnss_min_sigma_v)
-        mv = gnss_velocity(f.state, v_ned, np.eye(3) * sv**2, self.w_b, self.lever)
-        f.update(self._delayed(mv, "velocity"))
+        if velocity:
+            sv = max(sigma_v * k, s.gnss_min_sigma_v)
+            mv = gnss_velocity(f.state, v_ned, np.eye(3) * sv**2, self.w_b, self.lever)
+            f.update(self._delayed(mv, "velocity"))
         if s.nhc_sigma is not None and moving and heading_known:
             f.update(self.nhc())
         self.last_fix_t = f.t

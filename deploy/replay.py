@@ -27,7 +27,7 @@ from slcp.agent.engine import AgentConfig, VehicleEngine
 from slcp.transport.messages import Estimate
 from slcp.vehicles.profile import VehicleProfile
 
-from .datasets.rtklib import RtklibDrive
+from .datasets.recording import Recording
 from .drive_scoring import score_estimates
 
 log = logging.getLogger(__name__)
@@ -85,7 +85,7 @@ TRAJECTORY_COLUMNS = (
 )
 
 
-def run_replay(drive: RtklibDrive, cfg: ReplayConfig = ReplayConfig(), vehicle: str = "V0") -> ReplayResult:
+def run_replay(drive: Recording, cfg: ReplayConfig = ReplayConfig(), vehicle: str = "V0") -> ReplayResult:
     """The drive's messages through the vehicle engine (SP), scored at the GNSS epochs."""
     from .replay_publish import plan_drive
 

@@ -30,7 +30,7 @@ from slcp.transport import keys
 from slcp.transport.codec import CodecError, decode, encode
 from slcp.transport.messages import Estimate, GnssFix, Message
 
-from .datasets.rtklib import RtklibDrive
+from .datasets.recording import Recording
 from .drive_scoring import score_estimates
 from .replay import ReplayConfig
 from .sensors.imu import ImuAdapter
@@ -50,7 +50,7 @@ class PublishPlan:
     counts: dict[str, int] = field(default_factory=dict)
 
 
-def plan_drive(drive: RtklibDrive, vehicle: str, cfg: ReplayConfig | None = None, start: float = 0.0,
+def plan_drive(drive: Recording, vehicle: str, cfg: ReplayConfig | None = None, start: float = 0.0,
                duration: float | None = None) -> PublishPlan:
     """The messages of ``drive`` from ``start`` seconds after its first GNSS epoch, for
     ``duration`` seconds (None: to the end). Outage windows follow ``cfg.outage`` on the whole
@@ -83,12 +83,16 @@ def plan_drive(drive: RtklibDrive, vehicle: str, cfg: ReplayConfig | None = None
     llh[:, 2] += prof.gnss.height_to_ellipsoidal
     withheld = np.array([any(a <= t < b for a, b in windows) for t in gnss.t[gi]], bool)
     k_gnss = keys.gnss(vehicle)
+    has_v = gnss.has_velocity
     for j, i in enumerate(gi):
         if withheld[j]:
             continue
         sig = np.maximum(gnss.sd_neu[i], 0.01)
-        fix = GnssFix(vehicle, j, float(gnss.t[i]), llh[j], gnss.v_ned[i].copy(), sig,
-                      float(max(np.max(gnss.sd_v[i]), 0.01)), int(gnss.quality[i]))
+        if has_v[i]:
+            v, sv = gnss.v_ned[i].copy(), float(max(np.max(gnss.sd_v[i]), 0.01))
+        else:  # a position-only epoch: σ_v = 0 on the wire
+            v, sv = np.zeros(3), 0.0
+        fix = GnssFix(vehicle, j, float(gnss.t[i]), llh[j], v, sig, sv, int(gnss.quality[i]))
         msgs.append((fix.t, k_gnss, fix))
     msgs.sort(key=lambda m: m[0])
     counts = {"imu_batches": int(sum(m[1] == k_imu for m in msgs)), "imu_samples": int(len(sel)),

@@ -155,16 +155,17 @@ def _mount_after(rot: np.ndarray, mount_rpy: tuple[float, float, float]) -> tupl
 def test_a_turned_imu_declared_in_the_profile_scores_as_the_original() -> None:
     """#38 acceptance 2: the drive's IMU axes turned by yaw 90°, roll 180°, pitch 5°, with a
     profile that declares the turn, scores within 1 cm of the original (first 200 s, 3 outages)."""
-    from slcp.deploy.datasets.rtklib import ImuLog, RtklibDrive, load_drive
+    from slcp.deploy.datasets.recording import ImuLog, Recording
+    from slcp.deploy.datasets.rtklib import load_drive
     from slcp.deploy.replay import ReplayConfig, run_replay
 
     d = load_drive(SHARED_DRIVE)
     t_end = d.gnss.t[0] + 200.0
     k, g = d.imu.t <= t_end, d.gnss.t <= t_end
     gnss = type(d.gnss)(**{f.name: getattr(d.gnss, f.name)[g] for f in dataclasses.fields(d.gnss)})
-    short = RtklibDrive(ImuLog(d.imu.t[k], d.imu.accel[k], d.imu.gyro[k]), gnss)
+    short = Recording(ImuLog(d.imu.t[k], d.imu.accel[k], d.imu.gyro[k]), gnss)
     rot = euler_to_dcm(math.pi, math.radians(5.0), math.pi / 2)
-    turned = RtklibDrive(ImuLog(short.imu.t, short.imu.accel @ rot.T, short.imu.gyro @ rot.T), gnss)
+    turned = Recording(ImuLog(short.imu.t, short.imu.accel @ rot.T, short.imu.gyro @ rot.T), gnss)
     p = load_profile(DRIVE_PROFILE)
     p_turned = dataclasses.replace(p, imu=dataclasses.replace(
         p.imu, mount_rpy_deg=tuple(math.degrees(x) for x in _mount_after(rot, p.imu.mount_rpy))))

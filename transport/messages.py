@@ -51,7 +51,9 @@ class ImuBatch(Message):
 
 @dataclass(frozen=True, eq=False)
 class GnssFix(Message):
-    """A GNSS fix: ``llh`` (lat, lon rad; h m ellipsoidal), ``v_ned`` [m/s], reported ``sigma_ned`` [m]."""
+    """A GNSS fix: ``llh`` (lat, lon rad; h m ellipsoidal), ``v_ned`` [m/s], reported ``sigma_ned`` [m]
+    and ``sigma_v`` [m/s]. A receiver that reports positions only sends ``sigma_v = 0`` (and
+    ``v_ned`` zeros): the fix carries no velocity."""
 
     vehicle: str
     seq: int

@@ -15,8 +15,11 @@ from .. import cli_types as T
 def add_replay(sub) -> None:
     """The ``replay`` command's parser."""
     rp = sub.add_parser("replay", help="replay a recorded drive through the SP (GNSS/INS) filter")
-    rp.add_argument("format", choices=["rtklib"], help="dataset format")
-    rp.add_argument("path", type=Path, help="dataset folder (imu_*.csv + .tag, *.pos)")
+    from ..datasets.formats import FORMATS
+
+    rp.add_argument("format", choices=list(FORMATS),
+                    help="recording format: " + "; ".join(f"{k}: {v[1]}" for k, v in FORMATS.items()))
+    rp.add_argument("path", type=Path, help="the recording (docs/recording-formats.md)")
     rp.add_argument("--vehicle", default=None, metavar="PROFILE",
                     help="the recording vehicle's profile: a TOML file (IMU mount and noise, antenna, heights, time "
                          "offset; docs/vehicle-profiles.md) or a shipped profile's name; default: a generic vehicle")
@@ -92,7 +95,7 @@ def _profile(args: argparse.Namespace):
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from ..datasets.rtklib import load_drive
+    from ..datasets.formats import load_recording
     from ..replay import TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, phase_protocols, pooled_metrics, run_replay
 
     length, gap = (0.0, 1.0) if args.no_outage else args.outage
@@ -101,7 +104,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         outage=OutageProtocol(first=args.first_outage, period=length + gap, length=length,
                               end_margin=args.end_margin),
     )
-    drive = load_drive(args.path)
+    drive = load_recording(args.format, args.path)
     if args.phases > 1 and (args.no_outage or args.publish):
         raise ValueError("--phases needs outages and the offline replay (not --no-outage or --publish)")
     if args.publish:
@@ -134,8 +137,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({**m, **({"phases_pooled": pooled} if pooled is not None else {})}))
     else:
-        print(f"SP replay of {args.path} ({m['imu_span_s']:.1f} s of IMU, {m['n_outages']} outages, "
-              f"{m['n_withheld_fixes']} withheld fixes)")
+        print(f"SP replay of {args.path} ({args.format}, vehicle {cfg.profile.name}; {m['imu_span_s']:.1f} s of IMU, "
+              f"{m['n_outages']} outages, {m['n_withheld_fixes']} withheld fixes)")
         print(f"  outage horizontal RMS      {m['outage_h_rms_m']:.2f} m")
         print(f"  end-of-outage mean / max   {m['outage_h_end_mean_m']:.2f} / {m['outage_h_end_max_m']:.2f} m")
         print(f"  outage max                 {m['outage_h_max_m']:.2f} m")

@@ -18,55 +18,16 @@ from __future__ import annotations
 import calendar
 import math
 import struct
-from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
 from . import DatasetError
+from .recording import GnssLog, ImuLog, Recording, gnss_log, imu_log
 
 G0 = 9.80665  #: standard gravity used by the IMU's "g" unit [m/s²]
 TAG_HEADER_LEN = 60
-
-
-@dataclass(frozen=True)
-class ImuLog:
-    """IMU samples: time [s GPST], specific force [m/s²] and angular rate [rad/s] (sensor frame)."""
-
-    t: np.ndarray
-    accel: np.ndarray
-    gyro: np.ndarray
-
-
-@dataclass(frozen=True)
-class GnssLog:
-    """GNSS solution epochs.
-
-    Attributes
-    ----------
-    t : ndarray, shape (n,)
-        Epoch time [s GPST].
-    llh : ndarray, shape (n, 3)
-        Latitude, longitude [rad] and height [m] *as in the file* (MSL for u-blox hMSL).
-    quality : ndarray, shape (n,)
-        RTKLIB Q flag (1 fix, 2 float, 5 single).
-    n_sat : ndarray, shape (n,)
-    sd_neu : ndarray, shape (n, 3)
-        Position standard deviations north, east, up [m].
-    v_ned : ndarray, shape (n, 3)
-        Velocity north, east, down [m/s] (the file's up component negated).
-    sd_v : ndarray, shape (n, 3)
-        Velocity standard deviations [m/s].
-    """
-
-    t: np.ndarray
-    llh: np.ndarray
-    quality: np.ndarray
-    n_sat: np.ndarray
-    sd_neu: np.ndarray
-    v_ned: np.ndarray
-    sd_v: np.ndarray
 
 
 def read_time_tag(path: str | Path) -> tuple[float, float]:
@@ -90,18 +51,24 @@ def read_time_tag(path: str | Path) -> tuple[float, float]:
 
 
 def read_imu_csv(path: str | Path, tag_path: str | Path | None = None) -> ImuLog:
-    """Read a raw IMU CSV and map its device ticks to GPST with the ``.tag`` file."""
+    """Read a raw IMU CSV and map its device ticks to GPST with the ``.tag`` file. The first and
+    last lines are dropped unread (a logger started or stopped mid-line); any other malformed
+    line is an error naming it."""
     path = Path(path)
     start, end = read_time_tag(tag_path if tag_path is not None else Path(str(path) + ".tag"))
     try:
-        raw = np.loadtxt(path, delimiter=",", dtype=float, ndmin=2)
+        lines = path.read_bytes().decode("ascii", errors="replace").splitlines()
     except OSError as exc:
-        raise DatasetError(f"{path}: cannot read IMU file ({exc})") from exc
+        raise DatasetError(f"{path}: cannot read IMU file ({exc.strerror})") from exc
+    body = lines[1:-1]
+    try:
+        raw = np.loadtxt(body, delimiter=",", dtype=float, ndmin=2)
     except ValueError as exc:
-        raise DatasetError(f"{path}: malformed IMU CSV ({exc})") from exc
+        raise DatasetError(f"{path}: malformed IMU CSV ({exc}; the first line is line 2)") from exc
+    if raw.size == 0:
+        raise DatasetError(f"{path}: only {len(body)} IMU samples")
     if raw.shape[1] != 7:
         raise DatasetError(f"{path}: expected 7 columns (acc xyz g, gyro xyz deg/s, tick ms), got {raw.shape[1]}")
-    raw = raw[1:-1]  # first and last line may be partial
     if len(raw) < 100:
         raise DatasetError(f"{path}: only {len(raw)} IMU samples")
     if not np.all(np.isfinite(raw)):
@@ -110,7 +77,7 @@ def read_imu_csv(path: str | Path, tag_path: str | Path | None = None) -> ImuLog
     if np.any(np.diff(ticks) <= 0):
         raise DatasetError(f"{path}: device ticks are not strictly increasing")
     t = start + ticks * (end - start) / ticks[-1]
-    return ImuLog(t=t, accel=raw[:, 0:3] * G0, gyro=np.radians(raw[:, 3:6]))
+    return imu_log(t, raw[:, 0:3] * G0, np.radians(raw[:, 3:6]), str(path))
 
 
 def _gpst_seconds(date: str, clock: str) -> float:
@@ -119,7 +86,9 @@ def _gpst_seconds(date: str, clock: str) -> float:
 
 
 def read_pos(path: str | Path) -> GnssLog:
-    """Read an RTKLIB ``.pos`` solution with velocities (lat/lon/height format)."""
+    """Read an RTKLIB ``.pos`` solution in latitude/longitude/height format: 15 fields, or 21
+    with velocities (north, east, up and their σ); a file of either kind, epochs of both kinds
+    may mix."""
     path = Path(path)
     try:
         lines = path.read_text().splitlines()
@@ -132,37 +101,29 @@ def read_pos(path: str | Path) -> GnssLog:
         if not line.strip() or line.startswith("%"):
             continue
         tok = line.split()
-        if len(tok) < 21:
-            raise DatasetError(f"{path}:{lineno}: expected >= 21 fields (with velocities), got {len(tok)}")
+        if len(tok) < 15:
+            raise DatasetError(f"{path}:{lineno}: expected 15 fields (21 with velocities), got {len(tok)}")
         try:
-            rows.append([_gpst_seconds(tok[0], tok[1])] + [float(x) for x in tok[2:21]])
+            nums = [float(x) for x in tok[2:21]]
+            rows.append([_gpst_seconds(tok[0], tok[1]), *nums, *[math.nan] * (19 - len(nums))])
         except ValueError as exc:
             raise DatasetError(f"{path}:{lineno}: {exc}") from exc
     if len(rows) < 2:
         raise DatasetError(f"{path}: no solution epochs")
     a = np.array(rows)
-    if np.any(np.diff(a[:, 0]) <= 0):
-        raise DatasetError(f"{path}: epochs are not in increasing time order")
-    llh = np.column_stack([np.radians(a[:, 1]), np.radians(a[:, 2]), a[:, 3]])
     v_ned = np.column_stack([a[:, 14], a[:, 15], -a[:, 16]])
-    return GnssLog(t=a[:, 0], llh=llh, quality=a[:, 4].astype(int), n_sat=a[:, 5].astype(int),
-                   sd_neu=a[:, 6:9], v_ned=v_ned, sd_v=a[:, 17:20])
+    return gnss_log(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 6:9], v_ned, a[:, 17:20], a[:, 4], a[:, 5], str(path))
 
 
-@dataclass(frozen=True)
-class RtklibDrive:
-    imu: ImuLog
-    gnss: GnssLog
-
-
-def load_drive(folder: str | Path) -> RtklibDrive:
-    """Load a drive folder holding one ``imu_*.csv`` (+ ``.tag``) and one ``*.pos``."""
+def load_drive(folder: str | Path) -> Recording:
+    """Load a drive folder holding one ``imu_*.csv`` with its ``.tag`` and one ``*.pos`` (other
+    ``imu_*.csv`` files, such as a converted copy without time tags, are not the raw log)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise DatasetError(f"{folder}: not a directory")
-    imus = sorted(folder.glob("imu_*.csv"))
+    imus = [p for p in sorted(folder.glob("imu_*.csv")) if Path(f"{p}.tag").is_file()]
     poss = sorted(folder.glob("*.pos"))
     if len(imus) != 1 or len(poss) != 1:
-        raise DatasetError(
-            f"{folder}: expected exactly one imu_*.csv and one *.pos, found {len(imus)} and {len(poss)}")
-    return RtklibDrive(read_imu_csv(imus[0]), read_pos(poss[0]))
+        raise DatasetError(f"{folder}: expected exactly one imu_*.csv with its .tag and one *.pos, "
+                           f"found {len(imus)} and {len(poss)}")
+    return Recording(read_imu_csv(imus[0]), read_pos(poss[0]))
