@@ -17,8 +17,8 @@ HEADER = """# Configuration and file-format reference
 The fields of the TOML tables that slcp reads, generated from the dataclasses they fill
 (`python -m slcp.deploy.config_reference > docs/reference-config.md`). Values are in SI units and
 radians unless a field says otherwise. [Scenario format](scenario-format.md), [Command
-line](cli.md) (agent configuration) and [Security, faults and misbehaviour](security.md) (fault
-schedules) explain them with examples.
+line](cli.md) (agent configuration), [Vehicle profiles](vehicle-profiles.md) and [Security,
+faults and misbehaviour](security.md) (fault schedules) explain them with examples.
 """
 
 
@@ -30,10 +30,16 @@ def _tables():
     from slcp.hw_emulation.sensors.radio import RadioModel
     from slcp.hw_emulation.sensors.uwb import UwbModel
     from slcp.transport.zenoh_bus import ZenohConfig
+    from slcp.vehicles.profile import ConstraintSpec, GnssSpec, ImuSpec, InitialSpec, TimeSpec
 
     from .agent_configs import FilterOptions
 
     return [
+        ("Vehicle profile", "[imu] (datasheet units)", ImuSpec),
+        ("Vehicle profile", "[time]", TimeSpec),
+        ("Vehicle profile", "[gnss]", GnssSpec),
+        ("Vehicle profile", "[constraints]", ConstraintSpec),
+        ("Vehicle profile", "[initial]", InitialSpec),
         ("Scenario file", "[sensors.imu]; a vehicle's imu = {...}; an agent configuration's [imu]", ImuModel),
         ("Scenario file", "[sensors.gnss]; a vehicle's gnss = {...}", GnssModel),
         ("Scenario file", "[sensors.camera]", LaneCameraModel),
