@@ -85,12 +85,14 @@ TRAJECTORY_COLUMNS = (
 )
 
 
-def run_replay(drive: Recording, cfg: ReplayConfig = ReplayConfig(), vehicle: str = "V0") -> ReplayResult:
-    """The drive's messages through the vehicle engine (SP), scored at the GNSS epochs."""
+def run_replay(drive: Recording, cfg: ReplayConfig = ReplayConfig(), vehicle: str = "V0", start: float = 0.0,
+               duration: float | None = None) -> ReplayResult:
+    """The drive's messages through the vehicle engine (SP), scored at the GNSS epochs; from
+    ``start`` seconds after the first GNSS epoch for ``duration`` seconds (None: to the end)."""
     from .replay_publish import plan_drive
 
     wall0 = time.perf_counter()
-    plan = plan_drive(drive, vehicle, cfg)
+    plan = plan_drive(drive, vehicle, cfg, start, duration)
     engine = VehicleEngine(engine_config(cfg, vehicle))
     est: list[Estimate] = []
     for _, _, msg in plan.messages:
@@ -106,7 +108,7 @@ def run_replay(drive: Recording, cfg: ReplayConfig = ReplayConfig(), vehicle: st
     t0 = float(drive.gnss.t[0])
     outages = cfg.outage.windows(t0, float(drive.gnss.t[-1]))
     res = ReplayResult(plan.fix_t[inside], err, plan.withheld[inside], outages, _trajectory(est), t0)
-    imu_span = float(drive.imu.t[-1] - drive.imu.t[0])
+    imu_span = float(plan.messages[-1][0] - plan.messages[0][0])  # the replayed span
     res.metrics = {**{k: (float("nan") if v is None else v) for k, v in figures.items()},
                    "imu_span_s": imu_span, "wall_s": wall,
                    "realtime_factor": imu_span / wall if wall > 0 else float("inf")}

@@ -262,6 +262,14 @@ class InsFilter:
         else:
             q = self._gqg
         phi, qd = discretize_density(F, q, dt, self.discretization)
+        if self.yaw_free:
+            # with the heading unknown, the horizontal specific force goes in an unknown
+            # direction: the velocity error grows by up to twice its increment (180° off).
+            # As process noise, the velocity updates correct the velocity, not the tilt
+            f_n = c_bn @ f_b
+            q_h = (2.0 * math.hypot(f_n[0], f_n[1]) * dt) ** 2
+            qd[3, 3] += q_h
+            qd[4, 4] += q_h
         P = phi @ self.P @ phi.T + qd
         self.P = 0.5 * (P + P.T)
         if self.P_ind is not None:  # process noise is independent information loss...

@@ -1,0 +1,106 @@
+"""Alignment from the data (#38 acceptance 1): nothing the user sets decides the heading. The
+roll and pitch come from the accelerometer, the heading from the GNSS course once the vehicle
+moves, with yaw free until then; a replay started anywhere on the drive, standing or moving,
+finds the heading of a run that saw the whole drive."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slcp.agent.nav.rotation import euler_to_quat, quat_to_euler
+
+from conftest import SHARED_DRIVE, drive_config
+
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not SHARED_DRIVE.is_dir(), reason="shared drive not available")]
+
+
+@pytest.fixture(scope="module")
+def drive():
+    from slcp.deploy.datasets.rtklib import load_drive
+
+    return load_drive(SHARED_DRIVE)
+
+
+def test_eight_initial_headings_give_the_same_outage_figures(drive, monkeypatch) -> None:
+    """The drive starts standing, with its heading unknown: whatever heading the filter starts
+    from (eight guesses over 360°), the outage figures of the authors' protocol agree within 2 %
+    (RMS and maximum). The end-of-outage mean is held to 5 %: the first outage starts 0.2 s
+    after the car drives off, a second after the course gave the heading, and its end error
+    (1.7–2.3 m) still depends on what the filter learnt while the heading was unknown."""
+    from slcp.agent import engine
+    from slcp.deploy.replay import run_replay
+
+    start_state = engine.initial_state
+    figures = []
+    for guess in np.radians(np.arange(0.0, 360.0, 45.0)):
+        def turned(llh, v_ned, f_b, guess=guess):
+            st = start_state(llh, v_ned, f_b)
+            r, p, y = quat_to_euler(st.q)
+            st.q = euler_to_quat(r, p, y + guess)
+            return st
+
+        monkeypatch.setattr(engine, "initial_state", turned)
+        m = run_replay(drive, drive_config()).metrics
+        assert m["n_outages"] == 11
+        figures.append([m["outage_h_rms_m"], m["outage_h_end_mean_m"], m["outage_h_max_m"]])
+    f = np.array(figures)
+    print("\nRMS / end mean / max over 8 initial headings: min", np.round(f.min(axis=0), 3),
+          "max", np.round(f.max(axis=0), 3))
+    spread = f.max(axis=0) / f.min(axis=0) - 1.0
+    assert spread[0] <= 0.02 and spread[2] <= 0.02 and spread[1] <= 0.05
+
+
+def test_a_replay_started_anywhere_finds_the_heading(drive) -> None:
+    """Ten starts spread over the drive (most while moving, some standing): 30 s after motion
+    starts, the heading is within 2° of that of a run over the whole drive."""
+    from slcp.deploy.replay import OutageProtocol, run_replay
+
+    cfg = drive_config(OutageProtocol(length=0.0))
+    full = run_replay(drive, cfg).trajectory
+    t0 = float(drive.gnss.t[0])
+    speed = np.hypot(drive.gnss.v_ned[:, 0], drive.gnss.v_ned[:, 1])
+    errors, moving_starts = [], 0
+    for s in np.linspace(0.0, 460.0, 10):
+        i = int(np.searchsorted(drive.gnss.t, t0 + s))
+        moving_starts += int(speed[i] > 1.0)
+        t_motion = float(drive.gnss.t[i + np.flatnonzero(speed[i:] > 1.0)[0]])
+        part = run_replay(drive, cfg, start=float(s), duration=t_motion - (t0 + s) + 35.0).trajectory
+        t_check = t_motion + 30.0
+        yaw = np.interp(t_check, part[:, 0], np.unwrap(np.radians(part[:, 9])))
+        ref = np.interp(t_check, full[:, 0], np.unwrap(np.radians(full[:, 9])))
+        errors.append(math.degrees((yaw - ref + math.pi) % (2 * math.pi) - math.pi))
+    print("\nheading 30 s after motion, against the whole-drive run [deg]:", np.round(errors, 3))
+    assert moving_starts >= 5 and moving_starts < 10
+    assert np.all(np.abs(errors) < 2.0)
+
+
+def test_an_unknown_heading_widens_the_velocity_by_the_horizontal_specific_force() -> None:
+    """Closed form: with the heading unknown, a covariance step of ``dt`` adds (2 |f_h| dt)² to
+    each horizontal velocity variance (the specific force may point anywhere), and nothing else;
+    with the heading known, nothing is added."""
+    from slcp.agent.nav.error_model import ImuNoise
+    from slcp.agent.nav.ins_filter import InsFilter
+    from slcp.agent.nav.state import NavState
+    from slcp.geo import earth
+
+    st = NavState(math.radians(40.0), math.radians(-105.0), 1600.0, np.zeros(3), euler_to_quat(0.0, 0.0, 0.3))
+    noise = ImuNoise(1e-4, 1e-3, 1e-5, 600.0, 1e-3, 600.0)
+    g = earth.gravity(st.lat, st.h)
+    f_b = np.array([0.8, -0.6, -g])  # 1 m/s² horizontal in the level body frame
+    dt, n = 0.01, 25
+    filters = []
+    for free in (False, True):
+        f = InsFilter(st.copy(), np.eye(15) * 1e-4, noise, cov_interval=dt * n)
+        f.yaw_free = free
+        for _ in range(n):
+            f.propagate(np.zeros(3), f_b * dt, dt)
+        f.flush_covariance()
+        filters.append(f.P)
+    extra = filters[1] - filters[0]
+    expected = (2.0 * 1.0 * dt * n) ** 2
+    assert extra[3, 3] == pytest.approx(expected, rel=1e-3) and extra[4, 4] == pytest.approx(expected, rel=1e-3)
+    extra[3, 3] = extra[4, 4] = 0.0
+    assert np.abs(extra).max() < 1e-12
