@@ -281,6 +281,16 @@ class MethodFilter(RangeUpdates, SiteUpdates):
             moving = math.hypot(v_ned[0], v_ned[1]) >= 0.5
         self.own.gnss(llh, v_ned, sigma_ned, sigma_v, quality, moving, self.heading_known, applied_offset,
                       velocity)
+        self._bound_time_offset()
+
+    def _bound_time_offset(self) -> None:
+        """Hold the time-offset estimate within ``time_offset_bound`` of the prior."""
+        if self._dtau is None:
+            return
+        x, b = self.filter.extra, self.settings.time_offset_bound
+        if abs(x[self._dtau]) > b:
+            x[self._dtau] = math.copysign(b, x[self._dtau])
+            self.counters["time_offset_bounded"] = self.counters.get("time_offset_bounded", 0) + 1
 
     def coast(self, moving: bool) -> None:
         """Between fixes (:meth:`OwnSensors.coast`)."""
@@ -319,8 +329,11 @@ class MethodFilter(RangeUpdates, SiteUpdates):
     @property
     def time_offset(self) -> float:
         """The estimated IMU-GNSS time offset [s]: filter time + offset = GNSS time (0 when not
-        estimated)."""
-        return float(self.filter.extra[self._dtau]) if self._dtau is not None else 0.0
+        estimated), within ``time_offset_bound``."""
+        if self._dtau is None:
+            return 0.0
+        b = self.settings.time_offset_bound
+        return min(b, max(-b, float(self.filter.extra[self._dtau])))
 
     @property
     def position_cov(self) -> np.ndarray:

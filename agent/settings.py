@@ -167,3 +167,6 @@ class FilterSettings:
     #: the IMU-GNSS time offset as a state: its initial σ [s] and random walk [s/√s] (None: not
     #: estimated; the offset known is applied to the IMU time stamps by the sensor driver)
     time_offset: tuple[float, float] | None = None
+    #: the estimated offset stays within this distance of the sensor driver's prior [s]: a
+    #: wrong model (a mount, a lever arm) must not make it run away by seconds
+    time_offset_bound: float = 1.0

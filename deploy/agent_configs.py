@@ -113,7 +113,7 @@ def with_profile(cfg: AgentConfig, profile: VehicleProfile) -> AgentConfig:
         nhc_sigma=c.nhc_sigma_mps if c.nhc else None, nhc_vertical_sigma=c.nhc_vertical_sigma_mps,
         nhc_lever_uncertainty=c.nhc_lever_uncertainty_m, nhc_coast_after=c.nhc_coast_after_s,
         zupt_sigma=c.zupt_sigma_mps if c.zupt else None, zaru_sigma=zaru if c.zupt and c.zaru else None,
-        time_offset=(t.sigma_s, t.random_walk) if t.estimate else None,
+        time_offset=(t.sigma_s, t.random_walk) if t.estimate else None, time_offset_bound=t.bound_s,
         # one covariance step per fix period costs least and changes little
         cov_interval=1.0 / g.rate_hz,
         init_att_sigma=tuple(math.radians(x) for x in i.att_sigma_deg), init_vel_sigma=i.vel_sigma_mps)

@@ -14,7 +14,9 @@ from slcp.agent.nav.rotation import euler_to_quat, quat_to_euler
 
 from conftest import SHARED_DRIVE, drive_config
 
-pytestmark = [pytest.mark.slow, pytest.mark.skipif(not SHARED_DRIVE.is_dir(), reason="shared drive not available")]
+def on_the_drive(test):
+    """A test on the shared drive: slow, and skipped without it."""
+    return pytest.mark.slow(pytest.mark.skipif(not SHARED_DRIVE.is_dir(), reason="shared drive not available")(test))
 
 
 @pytest.fixture(scope="module")
@@ -24,6 +26,7 @@ def drive():
     return load_drive(SHARED_DRIVE)
 
 
+@on_the_drive
 def test_eight_initial_headings_give_the_same_outage_figures(drive, monkeypatch) -> None:
     """The drive starts standing, with its heading unknown: whatever heading the filter starts
     from (eight guesses over 360°), the outage figures of the authors' protocol agree within 2 %
@@ -53,6 +56,7 @@ def test_eight_initial_headings_give_the_same_outage_figures(drive, monkeypatch)
     assert spread[0] <= 0.02 and spread[2] <= 0.02 and spread[1] <= 0.05
 
 
+@on_the_drive
 def test_a_replay_started_anywhere_finds_the_heading(drive) -> None:
     """Ten starts spread over the drive (most while moving, some standing): 30 s after motion
     starts, the heading is within 2° of that of a run over the whole drive."""
@@ -104,3 +108,42 @@ def test_an_unknown_heading_widens_the_velocity_by_the_horizontal_specific_force
     assert extra[3, 3] == pytest.approx(expected, rel=1e-3) and extra[4, 4] == pytest.approx(expected, rel=1e-3)
     extra[3, 3] = extra[4, 4] = 0.0
     assert np.abs(extra).max() < 1e-12
+
+
+def test_the_time_offset_estimate_stays_within_its_bound() -> None:
+    """A model that cannot explain the fixes must not move the time offset by seconds: the
+    estimate is held within ``time_offset_bound`` of the driver's prior, and the offset the
+    engine applies is too."""
+    from slcp.agent.methods import FilterSettings, MethodFilter, MethodSpec, initial_state
+
+    from conftest import MEMS_NOISE
+
+    s = FilterSettings(MEMS_NOISE, time_offset=(0.05, 1e-3), time_offset_bound=0.4, gnss_multipath_sigma=None)
+    llh = np.array([math.radians(40.0), math.radians(-105.0), 1600.0])
+    v = np.array([10.0, 0.0, 0.0])
+    f = MethodFilter(MethodSpec.of("SP"), initial_state(llh, v, np.array([0.0, 0.0, -9.8])), np.array([0.5] * 3),
+                     s, 0.0)
+    f.filter.extra[f._dtau] = -3.0
+    assert f.time_offset == -0.4
+    f.gnss(llh, v, np.array([0.5] * 3), 0.1)
+    assert f.filter.extra[f._dtau] == pytest.approx(-0.4) and f.counters["time_offset_bounded"] == 1
+
+
+@on_the_drive
+def test_time_offset_priors_converge_together(drive) -> None:
+    """#38 acceptance 4: priors of 0, −0.125 and −0.3 s end within 20 ms of each other, and the
+    outage figures within 5 %."""
+    import dataclasses
+
+    from slcp.deploy.replay import run_replay
+
+    base = drive_config()
+    rows = []
+    for prior in (0.0, -0.125, -0.3):
+        p = dataclasses.replace(base.profile, time=dataclasses.replace(base.profile.time, imu_offset_s=prior))
+        m = run_replay(drive, dataclasses.replace(base, profile=p)).metrics
+        rows.append([m["imu_time_offset_s"], m["outage_h_rms_m"], m["outage_h_end_mean_m"], m["outage_h_max_m"]])
+    a = np.array(rows)
+    print("\nprior 0 / -0.125 / -0.3 s: offset, RMS, end mean, max\n", np.round(a, 3))
+    assert np.ptp(a[:, 0]) < 0.020
+    assert np.all(a[:, 1:].max(axis=0) <= 1.05 * a[:, 1:].min(axis=0))

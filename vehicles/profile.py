@@ -163,12 +163,14 @@ class TimeSpec:
     sigma_s: float = 0.05
     #: random walk of the offset [s/√s]
     random_walk: float = 1e-3
+    #: the estimate stays within this distance of the prior [s]
+    bound_s: float = 1.0
 
     def __post_init__(self) -> None:
         _flags(self, "estimate")
         _check(_finite(self.imu_offset_s), "imu_offset_s", f"must be a finite number, got {self.imu_offset_s!r}")
         object.__setattr__(self, "imu_offset_s", float(self.imu_offset_s))
-        _numbers(self, "sigma_s", "random_walk", positive=True)
+        _numbers(self, "sigma_s", "random_walk", "bound_s", positive=True)
 
 
 HEIGHTS = ("ellipsoidal", "msl")
