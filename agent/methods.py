@@ -38,6 +38,11 @@ __all__ = ["DEFAULT_FUSION", "FUSION_RULES", "HEADING_WAIT", "METHODS", "STOP_LI
 
 #: longest wait [s] of the GNSS updates of a vehicle that drives off with its heading unknown
 HEADING_WAIT = 1.0
+#: the GNSS course gives the heading once its σ is below this [rad]: the heading is then set
+#: with twice that σ, within the linear range of the filter, which refines it. A code receiver's
+#: velocity (σ 0.5 m/s) gives a course good to 10° above 2.9 m/s; at 5° it needed 5.7 m/s, and
+#: a car creeping through town kept its heading unknown, and isolated, for many seconds
+COURSE_SIGMA_MAX = math.radians(10.0)
 
 
 def initial_state(llh: np.ndarray, v_ned: np.ndarray, f_b_mean: np.ndarray) -> NavState:
@@ -298,15 +303,16 @@ class MethodFilter(RangeUpdates, SiteUpdates):
 
     def _await_heading(self, v_ned: np.ndarray, sigma_v: float) -> bool:
         """Heading unknown: take it (and the velocity) from the GNSS course as soon as the course
-        is good to 5° (0.6 m/s); until then the INS turns the first metres of travel the wrong
-        way and the filter explains it with tilt and gyro biases. A vehicle that backs off is taken as
+        is good to :data:`COURSE_SIGMA_MAX` (above 0.3 m/s for a σ of 0.05 m/s); until then the
+        INS turns the first metres of travel the wrong way (its velocity variance grows by the
+        specific force, :meth:`InsFilter.flush_covariance`). A vehicle that backs off is taken as
         driving ahead. Returns whether this fix must wait: moving, the course not yet good,
         the fixes' innovations would go to tilt and gyro biases (0.4 s of them put the gyro
         bias 7 σ off); they wait at most HEADING_WAIT s (a car creeping off for seconds drifted
         2.8 m without them)."""
         speed = math.hypot(v_ned[0], v_ned[1])
         sv = max(sigma_v, 0.05)  # a receiver's σ of millimetres per second is not its course's
-        if speed > 0.0 and sv / speed < math.radians(5.0):
+        if speed > 0.0 and sv / speed < COURSE_SIGMA_MAX:
             course_sigma = math.atan2(sv, speed)
             self.filter.reset_yaw(math.atan2(v_ned[1], v_ned[0]), max(2.0 * course_sigma, math.radians(3.0)))
             self.filter.reset_velocity(v_ned, sigma_v)

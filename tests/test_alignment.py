@@ -14,6 +14,7 @@ from slcp.agent.nav.rotation import euler_to_quat, quat_to_euler
 
 from conftest import SHARED_DRIVE, drive_config
 
+
 def on_the_drive(test):
     """A test on the shared drive: slow, and skipped without it."""
     return pytest.mark.slow(pytest.mark.skipif(not SHARED_DRIVE.is_dir(), reason="shared drive not available")(test))
@@ -29,10 +30,9 @@ def drive():
 @on_the_drive
 def test_eight_initial_headings_give_the_same_outage_figures(drive, monkeypatch) -> None:
     """The drive starts standing, with its heading unknown: whatever heading the filter starts
-    from (eight guesses over 360°), the outage figures of the authors' protocol agree within 2 %
-    (RMS and maximum). The end-of-outage mean is held to 5 %: the first outage starts 0.2 s
-    after the car drives off, a second after the course gave the heading, and its end error
-    (1.7–2.3 m) still depends on what the filter learnt while the heading was unknown."""
+    from (eight guesses over 360°), the outage figures of the authors' protocol agree within 2 %,
+    although its first outage starts 0.2 s after the car drives off, about a second after the
+    course gave the heading."""
     from slcp.agent import engine
     from slcp.deploy.replay import run_replay
 
@@ -53,7 +53,7 @@ def test_eight_initial_headings_give_the_same_outage_figures(drive, monkeypatch)
     print("\nRMS / end mean / max over 8 initial headings: min", np.round(f.min(axis=0), 3),
           "max", np.round(f.max(axis=0), 3))
     spread = f.max(axis=0) / f.min(axis=0) - 1.0
-    assert spread[0] <= 0.02 and spread[2] <= 0.02 and spread[1] <= 0.05
+    assert np.all(spread <= 0.02)
 
 
 @on_the_drive
