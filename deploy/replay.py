@@ -66,6 +66,16 @@ class ReplayConfig:
     outage: OutageProtocol = OutageProtocol()
 
 
+#: the share of RTK-fixed epochs from which a recording's fixes are its reference: below it, the
+#: outage figures would score the filter against a receiver no better than itself
+REFERENCE_SHARE = 0.5
+
+
+def reference_share(gnss) -> float:
+    """The share of ``gnss``'s epochs that are RTK-fixed (quality 1)."""
+    return float(np.mean(np.asarray(gnss.quality) == 1)) if len(gnss.quality) else 0.0
+
+
 @dataclass
 class ReplayResult:
     """Per-epoch evaluation and the engine's trajectory; ``t0`` is the first GNSS epoch [s]."""

@@ -186,3 +186,27 @@ def test_the_drive_in_every_format_scores_as_the_native_read(tmp_path) -> None:
     for name, m in rows.items():
         print(f"\n{name:14s} " + " / ".join(f"{m[k]:.3f}" for k in keys) + " m")
     assert rows["position-only"]["outage_h_rms_m"] < 1.5 * ref["outage_h_rms_m"]
+
+
+def test_a_recording_without_reference_writes_its_trajectory_and_says_so(tmp_path, capsys) -> None:
+    """Code-solution fixes are no reference for the filter they feed: the replay writes the
+    trajectory and no accuracy figures."""
+    import json
+
+    from slcp.deploy.cli import main
+
+    rng = np.random.default_rng(3)
+    n = 3000  # 30 s standing at 100 Hz
+    t = 500.0 + np.arange(n) * 0.01
+    imu = imu_log(t, rng.normal(0, 0.01, (n, 3)) + [0, 0, -G0], rng.normal(0, 1e-3, (n, 3)))
+    tg = 500.0 + np.arange(0.0, 30.0, 1.0)
+    g = gnss_log(tg, np.full(len(tg), 40.0), np.full(len(tg), -105.0), np.full(len(tg), 1600.0),
+                 np.full((len(tg), 3), 2.0), quality=np.full(len(tg), 5))
+    csv_columns.write(Recording(imu, g), tmp_path / "rec")
+    assert main(["replay", "csv", str(tmp_path / "rec"), "--out", str(tmp_path / "out"), "--no-outage"]) == 0
+    out = capsys.readouterr().out
+    assert "no reference, only 0 % of the fixes are RTK-fixed" in out and "outage horizontal RMS" not in out
+    rows = (tmp_path / "out" / "trajectory.csv").read_text().splitlines()
+    assert len(rows) > 200 and rows[0].startswith("time_gpst_s,")
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["reference"] is False and m["reference_share"] == 0.0

@@ -96,7 +96,15 @@ def _profile(args: argparse.Namespace):
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from ..datasets.formats import load_recording
-    from ..replay import TRAJECTORY_COLUMNS, OutageProtocol, ReplayConfig, phase_protocols, pooled_metrics, run_replay
+    from ..replay import (
+        REFERENCE_SHARE,
+        TRAJECTORY_COLUMNS,
+        OutageProtocol,
+        ReplayConfig,
+        phase_protocols,
+        pooled_metrics,
+        reference_share,
+    )
 
     length, gap = (0.0, 1.0) if args.no_outage else args.outage
     cfg = ReplayConfig(
@@ -109,6 +117,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         raise ValueError("--phases needs outages and the offline replay (not --no-outage or --publish)")
     if args.publish:
         return _replay_publish(args, drive, cfg)
+    from ..replay import run_replay
+
     res = run_replay(drive, cfg)
     pooled = None
     if args.phases > 1:  # phase 0 is the run above
@@ -123,10 +133,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         for row in res.trajectory:
             w.writerow([f"{row[0]:.3f}", f"{row[1]:.9f}", f"{row[2]:.9f}"] + [f"{x:.4f}" for x in row[3:]])
     metrics = dict(res.metrics)
+    share = reference_share(drive.gnss)
+    metrics.update(reference=share >= REFERENCE_SHARE, reference_share=share)
     if pooled is not None:
         metrics["phases_pooled"] = pooled
     metrics["config"] = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if not metrics["reference"]:
+        return _no_reference(args, metrics, out)
     try:
         from ..plots import plot_replay_error
 
@@ -157,6 +171,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
                 f"{pooled['outage_h_max_m']:.2f}"
             )
         print(f"  wrote {out}/trajectory.csv, metrics.json, error.png (the first phase)")
+    return 0
+
+
+def _no_reference(args: argparse.Namespace, metrics: dict, out: Path) -> int:
+    """A recording whose fixes are no reference: its trajectory, and no accuracy figures."""
+    share = metrics["reference_share"]
+    keep = ("reference", "reference_share", "imu_span_s", "wall_s", "realtime_factor", "imu_time_offset_s")
+    if args.json:
+        print(json.dumps({k: metrics[k] for k in keep}))
+        return 0
+    print(f"SP replay of {args.path} ({args.format}): no reference, only {100 * share:.0f} % of the fixes are "
+          "RTK-fixed, so outage figures would measure the receiver's own error")
+    print(f"  wrote {out}/trajectory.csv and metrics.json (no figures)")
     return 0
 
 
