@@ -171,6 +171,9 @@ def test_a_turned_imu_declared_in_the_profile_scores_as_the_original() -> None:
         p.imu, mount_rpy_deg=tuple(math.degrees(x) for x in _mount_after(rot, p.imu.mount_rpy))))
     a = run_replay(short, ReplayConfig(profile=p)).metrics
     b = run_replay(turned, ReplayConfig(profile=p_turned)).metrics
+    print("\noriginal / turned IMU declared in the profile, RMS end mean max GNSS-on [m]:",
+          *[" ".join(f"{m[k]:.4f}" for k in ("outage_h_rms_m", "outage_h_end_mean_m", "outage_h_max_m",
+                                              "gnss_on_h_rms_m")) for m in (a, b)], sep="\n  ")
     assert a["n_outages"] == b["n_outages"] == 3
     for key in ("outage_h_rms_m", "outage_h_end_mean_m", "outage_h_max_m", "gnss_on_h_rms_m"):
         assert b[key] == pytest.approx(a[key], abs=0.01), key
