@@ -34,6 +34,7 @@ Agent configuration file (TOML)::
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import dataclasses
 import gc
@@ -45,7 +46,12 @@ from pathlib import Path
 
 from slcp.transport.zenoh_bus import AUTOCONNECT_STRATEGIES, ZenohConfig
 
+from .cli_types import endpoint, listen_endpoint
+
 log = logging.getLogger(__name__)
+
+#: the longest liveliness lease a configuration may ask for [ms]
+MAX_LEASE_MS = 3_600_000
 
 
 class ConfigError(ValueError):
@@ -64,16 +70,28 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
         v = d.get(k, [])
         if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
             raise ConfigError(f"{source}: zenoh.{k}: must be a list of endpoint strings")
+        for x in v:
+            try:
+                (listen_endpoint if k == "listen" else endpoint)(x)
+            except argparse.ArgumentTypeError as exc:
+                raise ConfigError(f"{source}: zenoh.{k}: {exc}") from None
     lease = d.get("lease_ms", 2000)
-    if isinstance(lease, bool) or not isinstance(lease, int) or lease < 100:
-        raise ConfigError(f"{source}: zenoh.lease_ms: must be an integer >= 100")
+    if isinstance(lease, bool) or not isinstance(lease, int) or not 100 <= lease <= MAX_LEASE_MS:
+        raise ConfigError(f"{source}: zenoh.lease_ms: must be an integer from 100 to {MAX_LEASE_MS} (an hour), "
+                          f"got {lease!r}")
+    for k in ("multicast_scouting",):
+        if not isinstance(d.get(k, False), bool):
+            raise ConfigError(f"{source}: zenoh.{k}: must be true or false, got {d[k]!r}")
+    cf = d.get("config_file", "")
+    if not isinstance(cf, str):
+        raise ConfigError(f"{source}: zenoh.config_file: must be the path of a Zenoh JSON5 file, got {cf!r}")
     strategy = d.get("autoconnect_strategy", "greater-zid")
     if strategy not in AUTOCONNECT_STRATEGIES:
         raise ConfigError(f"{source}: zenoh.autoconnect_strategy: must be one of "
                           f"{', '.join(AUTOCONNECT_STRATEGIES)}, got {strategy!r}")
     return ZenohConfig(mode=mode, connect=tuple(d.get("connect", [])), listen=tuple(d.get("listen", [])),
-                       lease_ms=lease, autoconnect_strategy=strategy, config_file=d.get("config_file") or None,
-                       multicast_scouting=bool(d.get("multicast_scouting", False)))
+                       lease_ms=lease, autoconnect_strategy=strategy, config_file=cf or None,
+                       multicast_scouting=d.get("multicast_scouting", False))
 
 
 def load_agent_config(path: Path, vehicle: str | None):
@@ -134,6 +152,9 @@ def _agent_section(a: dict, path: Path, vehicle: str | None) -> dict:
                         "integrity_false_alarm"}
     if unknown:
         raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
+    scenario = a.get("scenario")
+    if scenario is not None and (not isinstance(scenario, str) or not scenario):
+        raise ConfigError(f"{path}: agent.scenario: must be a scenario name or file, got {scenario!r}")
     profile = a.get("profile")
     if profile is not None and (not isinstance(profile, str) or not profile):
         raise ConfigError(f"{path}: agent.profile: must be the path of a vehicle profile, got {profile!r}")

@@ -159,6 +159,27 @@ def test_a_file_of_garbage_bytes_is_an_error_that_names_it(what, tmp_path, capsy
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize("body, field", [
+    ('[zenoh]\nmulticast_scouting = "false"\n', "zenoh.multicast_scouting: must be true or false"),
+    ("[zenoh]\nlease_ms = 1e14\n", "zenoh.lease_ms: must be an integer from 100 to 3600000"),
+    ("[zenoh]\nlease_ms = 100000000000000\n", "zenoh.lease_ms: must be an integer from 100 to 3600000"),
+    ("[zenoh]\nconfig_file = 5\n", "zenoh.config_file: must be the path of a Zenoh JSON5 file"),
+    ('[zenoh]\nconnect = ["tcp/nohost"]\n', "zenoh.connect: expected HOST:PORT"),
+    ('[zenoh]\nlisten = ["carrier-pigeon/1.2.3.4:5"]\n', "zenoh.listen: unknown protocol"),
+    ("[agent]\nscenario = 5\n", "agent.scenario: must be a scenario name or file"),
+])
+def test_every_agent_config_value_is_type_checked(body, field, tmp_path, capsys) -> None:
+    """#39 finding 10: a wrong value is one line naming the file and the field, not a traceback
+    (nor a string "false" read as true)."""
+    cfg = tmp_path / "agent.toml"
+    head = '[agent]\nvehicle = "V0"\n' if not body.startswith("[agent]") else '[agent]\nvehicle = "V0"\n' + body[8:]
+    cfg.write_text(head if body.startswith("[agent]") else head + body)
+    assert main(["agent", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"slcp: error: {cfg}: {field}"), err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+
+
 def test_run_folders_are_named_after_the_scenario_never_hidden_never_reused(tmp_path) -> None:
     assert folder_stem("paper-1") == "paper-1"
     assert folder_stem("../mine/my 4cars") == "mine_my_4cars"
