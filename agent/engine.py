@@ -59,6 +59,8 @@ class VehicleEngine(EngineOutputs):
 
     #: the GNSS fix that starts the filters is at most this far from the IMU start [s]
     INIT_FIX_WINDOW = 1.0
+    #: neighbours gone that the diagnostics list (the latest); a long-lived fleet sees thousands
+    MAX_LOST = 64
 
     def __init__(self, cfg: AgentConfig) -> None:
         for m in cfg.methods:
@@ -468,6 +470,9 @@ class VehicleEngine(EngineOutputs):
             self.departures.append((self.lost[other][0], other, how))
             self._count(f"neighbour_lost_{how}")
             log.info("%s: neighbour %s gone (%s) at t=%.2f", self.cfg.vehicle, other, how, self.lost[other][0])
+            while len(self.lost) > self.MAX_LOST:  # the oldest first (insertion order)
+                del self.lost[next(iter(self.lost))]
+                self._count("neighbour_lost_forgotten")
 
     def _decide(self, t: float) -> None:
         for m, tab in self.tables.items():  # neighbours not heard for the table's timeout are gone

@@ -60,3 +60,21 @@ def test_stale_duplicate_and_timeout() -> None:
     assert tab.update("V2", 0, 10.1, LLH, np.zeros(3), np.eye(3), "SP", now=10.1)
     assert tab.expire(12.0) == [] and tab.expire(12.2) == ["V2"]
     assert tab.at("V2", 12.2) is None and tab.vehicles() == []
+
+
+def test_thousands_of_lost_neighbours_keep_the_diagnostics_decodable() -> None:
+    """#39 finding 4: each departure was remembered for ever and sent whole in every diagnostics
+    message, which the codec refuses past 256 entries. The engine keeps the latest MAX_LOST and
+    counts the rest."""
+    from slcp.agent.engine import VehicleEngine
+    from slcp.deploy.agent_configs import siteless_agent_config
+    from slcp.transport.codec import decode, encode
+
+    eng = VehicleEngine(siteless_agent_config("V0", ("SP",)))
+    for k in range(3000):
+        eng.neighbour_alive(f"N{k}", True)
+        eng.neighbour_alive(f"N{k}", False)
+    assert len(eng.lost) == VehicleEngine.MAX_LOST and "N2999" in eng.lost and "N0" not in eng.lost
+    assert eng.counters["neighbour_lost_forgotten"] == 3000 - VehicleEngine.MAX_LOST
+    diag = decode(encode(eng.diagnostics(0.0)))
+    assert len(diag.status["lost"]) == VehicleEngine.MAX_LOST
