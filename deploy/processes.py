@@ -266,7 +266,9 @@ def security_config(d: dict, path: Path, vehicle: str) -> dict:
     except SecurityError as exc:
         raise ConfigError(f"{path}: security: {exc}") from None
     if vehicle not in trust.vehicles():
-        raise ConfigError(f"{path}: security: no vehicle certificate for {vehicle} in {trust_dir}")
+        own = trust_dir / f"{vehicle}.crt"
+        why = f" ({own}: {trust.refused[own]})" if own in trust.refused else ""
+        raise ConfigError(f"{path}: security: no valid vehicle certificate for {vehicle} in {trust_dir}{why}")
     return {"signer": signer, "trust": trust, "trust_dir": trust_dir}
 
 

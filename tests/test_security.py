@@ -100,12 +100,15 @@ def test_a_certificate_not_issued_by_the_fleet_ca_is_refused(fleet, tmp_path) ->
     mixed = tmp_path / "mixed"
     shutil.copytree(fleet, mixed)
     shutil.copy(other / "V9.crt", mixed / "V9.crt")
-    with pytest.raises(SecurityError, match="V9.*not signed by the fleet CA"):
-        TrustStore.from_dir(mixed)
+    # refused alone: the rest of the fleet stays trusted, and the file is named
+    store = TrustStore.from_dir(mixed)
+    assert "V9" not in store.vehicles() and "V1" in store.vehicles()
+    assert "V9" in store.refused[mixed / "V9.crt"] and "not signed by the fleet CA" in store.refused[mixed / "V9.crt"]
     (tmp_path / "empty").mkdir()
     with pytest.raises(SecurityError, match="ca.crt: cannot read"):
         TrustStore.from_dir(tmp_path / "empty")
     (tmp_path / "bad.key").write_text("not a key")
+    (tmp_path / "bad.key").chmod(0o600)
     with pytest.raises(SecurityError, match="not an unencrypted PEM private key"):
         BeaconSigner.from_file("V1", tmp_path / "bad.key")
 
@@ -219,7 +222,7 @@ def test_security_section_errors_name_the_field(fleet, tmp_path) -> None:
         with pytest.raises(ConfigError, match=msg):
             load_agent_config(cfg(text), None)
     create_fleet(tmp_path / "small", ["V0"])
-    with pytest.raises(ConfigError, match="no vehicle certificate for V1"):
+    with pytest.raises(ConfigError, match="no valid vehicle certificate for V1"):
         load_agent_config(cfg(f'[security]\ntrust_dir = "{tmp_path / "small"}"\nkey = "{fleet / "V1.key"}"\n'), None)
 
 
@@ -286,6 +289,7 @@ def test_each_bad_key_or_certificate_is_refused_with_its_reason(fleet, tmp_path)
     rsa_pem = tmp_path / "rsa.key"
     rsa_pem.write_bytes(rsa.generate_private_key(65537, 2048).private_bytes(
         serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()))
+    rsa_pem.chmod(0o600)
     with pytest.raises(SecurityError, match="rsa.key: not an elliptic-curve key"):
         BeaconSigner.from_file("V1", rsa_pem)
     ca_key = serialization.load_pem_private_key((fleet / "ca.key").read_bytes(), None)
@@ -315,8 +319,51 @@ def test_each_bad_key_or_certificate_is_refused_with_its_reason(fleet, tmp_path)
     d = tmp_path / "d"
     d.mkdir()
     shutil.copy(fleet / "ca.crt", d / "ca.crt")
-    with pytest.raises(SecurityError, match="d: no vehicle certificates"):
+    with pytest.raises(SecurityError, match="d: no valid vehicle certificates"):
         TrustStore.from_dir(d)
     (d / "V1.crt").write_text("garbage")
     with pytest.raises(SecurityError, match="V1.crt: not a PEM certificate"):
         TrustStore.from_dir(d)
+
+
+def test_keys_never_replace_a_fleet_ca_without_its_own_flag(tmp_path, capsys) -> None:
+    """#39 finding 7: `keys create DIR V1 --force` replaced the CA and left the other vehicles'
+    certificates unverifiable. Now --force re-issues V1 with the existing CA, --new-ca alone
+    replaces it (and re-issues every identity of the directory), and key files are 0600 even
+    when they existed with another mode."""
+    from slcp.deploy.cli import main
+
+    d = tmp_path / "fleet"
+    assert main(["keys", "create", str(d), "V0", "V1", "V2"]) == 0
+    ca = (d / "ca.crt").read_bytes()
+    v0, v1 = (d / "V0.crt").read_bytes(), (d / "V1.crt").read_bytes()
+    (d / "V1.key").chmod(0o644)
+    assert main(["keys", "create", str(d), "V1", "--force"]) == 0
+    assert (d / "ca.crt").read_bytes() == ca and (d / "V0.crt").read_bytes() == v0
+    assert (d / "V1.crt").read_bytes() != v1 and (d / "V1.key").stat().st_mode & 0o777 == 0o600
+    assert TrustStore.from_dir(d).vehicles() == ["V0", "V1", "V2"] and not TrustStore.from_dir(d).refused
+    assert main(["keys", "create", str(d), "V1", "--new-ca"]) == 0
+    assert (d / "ca.crt").read_bytes() != ca and (d / "V0.crt").read_bytes() != v0
+    store = TrustStore.from_dir(d)
+    assert store.vehicles() == ["V0", "V1", "V2"] and not store.refused  # all re-issued
+    capsys.readouterr()
+
+
+def test_a_world_readable_key_is_refused_and_a_bad_peer_certificate_disables_that_peer_alone(fleet, tmp_path):
+    from slcp.deploy.processes import ConfigError, load_agent_config
+
+    d = tmp_path / "fleet"
+    shutil.copytree(fleet, d)
+    (d / "V1.key").chmod(0o644)
+    with pytest.raises(SecurityError, match=r"V1.key: private key readable by others \(mode 644\); chmod 600"):
+        BeaconSigner.from_file("V1", d / "V1.key")
+    (d / "V1.key").chmod(0o600)
+    (d / "V2.crt").write_text((d / "V2.crt").read_text()[:200])  # truncated
+    cfg = tmp_path / "agent.toml"
+    cfg.write_text(f'[agent]\nvehicle = "V1"\n[security]\ntrust_dir = "{d}"\n')
+    agent, _ = load_agent_config(cfg, None)  # V1 starts; V2 alone is not trusted
+    assert "V2" not in agent.trust.vehicles() and "V1" in agent.trust.vehicles()
+    assert "not a PEM certificate" in agent.trust.refused[d / "V2.crt"]
+    cfg.write_text(f'[agent]\nvehicle = "V2"\n[security]\ntrust_dir = "{d}"\n')
+    with pytest.raises(ConfigError, match=r"no valid vehicle certificate for V2 .*V2.crt: not a PEM certificate"):
+        load_agent_config(cfg, None)

@@ -116,6 +116,8 @@ class TrustStore:
 
     def __init__(self, ca_cert: x509.Certificate, certificates: Iterable[x509.Certificate]) -> None:
         self.ca = ca_cert
+        #: certificate files :meth:`from_dir` refused, with the reason
+        self.refused: dict[Path, str] = {}
         self._keys: dict[bytes, tuple[str, ec.EllipticCurvePublicKey]] = {}
         self.roles: dict[str, str] = {}  #: every valid identity (CN) -> role
         now = _dt.datetime.now(_dt.UTC)
@@ -136,13 +138,31 @@ class TrustStore:
 
     @classmethod
     def from_dir(cls, directory: Path | str) -> TrustStore:
-        """Load ``ca.crt`` and every other ``*.crt`` of ``directory``."""
+        """Load ``ca.crt`` and every other ``*.crt`` of ``directory``. A certificate that cannot
+        be read or is not valid (another CA, expired, a wrong key or name) is refused alone, its
+        file and reason kept in :attr:`refused` and logged: one bad peer certificate must not
+        stop a fleet."""
         d = Path(directory)
         ca = _load_cert(d / "ca.crt")
-        certs = [_load_cert(p) for p in sorted(d.glob("*.crt")) if p.name != "ca.crt"]
-        if not certs:
-            raise SecurityError(f"{d}: no vehicle certificates (*.crt)")
-        return cls(ca, certs)
+        good: list[x509.Certificate] = []
+        refused: dict[Path, str] = {}
+        for p in sorted(d.glob("*.crt")):
+            if p.name == "ca.crt":
+                continue
+            try:
+                cert = _load_cert(p)
+                cls(ca, [cert])  # checked alone
+            except SecurityError as exc:
+                refused[p] = str(exc).removeprefix(f"{p}: ")
+                log.warning("%s: certificate refused: %s", p, refused[p])
+                continue
+            good.append(cert)
+        if not good:
+            why = "; ".join(f"{p.name}: {r}" for p, r in refused.items())
+            raise SecurityError(f"{d}: no valid vehicle certificates (*.crt)" + (f" ({why})" if why else ""))
+        store = cls(ca, good)
+        store.refused = refused
+        return store
 
     def vehicles(self) -> list[str]:
         return sorted(v for v, _ in self._keys.values())
@@ -180,15 +200,17 @@ class TrustStore:
 # ----------------------------------------------------------------------------- key creation
 def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple[str, ...] = ("127.0.0.1", "localhost"),
                  days: int = 365, overwrite: bool = False, infrastructure: tuple[str, ...] = ("emulator", "recorder"),
-                 ) -> list[Path]:
+                 new_ca: bool = False) -> list[Path]:
     """Create a fleet CA, a key and certificate per vehicle, the router's and one per
     infrastructure process (``infrastructure``: the emulator, the recorder); returns the files.
 
     The certificate's organisational unit (OU) is its role: ``vehicle`` or ``infrastructure``
     (the router is infrastructure). Only vehicle certificates sign beacons; the router's access
-    control gives infrastructure the whole ``slcp/v1/**`` space. Existing files are kept unless
-    ``overwrite`` (re-running adds missing identities with the existing CA). Private keys are
-    written with mode 0600.
+    control gives infrastructure the whole ``slcp/v1/**`` space. Existing files are kept:
+    re-running adds missing identities with the existing CA, ``overwrite`` re-issues the listed
+    vehicles' keys and certificates with it, and only ``new_ca`` replaces the CA (and then every
+    identity, since the old certificates no longer verify). Private keys are written with mode
+    0600, existing ones included.
     """
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
@@ -199,7 +221,10 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
     for v in infrastructure:
         check_name(v)
     written: list[Path] = []
-    if overwrite or not (d / "ca.crt").exists():
+    if new_ca:  # every vehicle of the directory, whose certificate the new CA must re-issue
+        known = {p.stem for p in d.glob("*.crt")} - {"ca", "router", *infrastructure}
+        vehicles = [*vehicles, *sorted(known - set(vehicles))]
+    if new_ca or not (d / "ca.crt").exists():
         ca_key = ec.generate_private_key(_CURVE)
         ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "slcp fleet CA")])
         ca_cert = (
@@ -216,7 +241,7 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
     identities = ([(v, VEHICLE, ()) for v in vehicles] + [("router", INFRASTRUCTURE, router_hosts)]
                   + [(v, INFRASTRUCTURE, ()) for v in infrastructure])
     for name, role, sans in identities:
-        if not overwrite and (d / f"{name}.crt").exists():
+        if (d / f"{name}.crt").exists() and not new_ca and not (overwrite and name in vehicles):
             continue
         key = ec.generate_private_key(_CURVE)
         subject = x509.Name([x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, role),
@@ -250,6 +275,7 @@ def _builder(subject: x509.Name, issuer: x509.Name, public_key: ec.EllipticCurve
 def _write_pair(d: Path, name: str, key: ec.EllipticCurvePrivateKey, cert: x509.Certificate) -> list[Path]:
     kp, cp = d / f"{name}.key", d / f"{name}.crt"
     fd = os.open(kp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    os.fchmod(fd, 0o600)  # an existing file keeps its mode through open()
     with os.fdopen(fd, "wb") as f:
         f.write(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                   serialization.NoEncryption()))
@@ -267,6 +293,12 @@ def _load_cert(path: Path) -> x509.Certificate:
 
 
 def _load_private_key(path: Path) -> ec.EllipticCurvePrivateKey:
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        raise SecurityError(f"{path}: cannot read ({exc.strerror})") from None
+    if mode & 0o077:
+        raise SecurityError(f"{path}: private key readable by others (mode {mode & 0o777:o}); chmod 600 it")
     try:
         key = serialization.load_pem_private_key(path.read_bytes(), password=None)
     except OSError as exc:

@@ -113,7 +113,10 @@ def add_keys(sub) -> None:
     kc.add_argument("--router-host", action="append", default=None,
                     help="host name or address in the router certificate (repeatable; default 127.0.0.1, localhost)")
     kc.add_argument("--days", type=T.positive_int, default=365, help="certificate validity [days] (default 365)")
-    kc.add_argument("--force", action="store_true", help="replace existing CA, keys and certificates")
+    kc.add_argument("--force", action="store_true",
+                    help="re-issue the listed vehicles' keys and certificates with the existing CA")
+    kc.add_argument("--new-ca", action="store_true",
+                    help="replace the fleet CA, and with it every key and certificate of the directory's fleet")
     kc.add_argument("--infra", action="append", default=None,
                     help="infrastructure identity (repeatable; default: emulator, recorder)")
     kl = ksub.add_parser("list", help="check a fleet directory and list its certificates and key ids")
@@ -220,7 +223,8 @@ def _cmd_keys(args: argparse.Namespace) -> int:
     if args.keys_command == "create":
         hosts = tuple(args.router_host) if args.router_host else ("127.0.0.1", "localhost")
         infra = tuple(args.infra) if args.infra else ("emulator", "recorder")
-        written = create_fleet(args.dir, args.vehicles, hosts, args.days, overwrite=args.force, infrastructure=infra)
+        written = create_fleet(args.dir, args.vehicles, hosts, args.days, overwrite=args.force, infrastructure=infra,
+                               new_ca=args.new_ca)
         for p in written:
             print(f"wrote {p}")
         if not written:
