@@ -184,7 +184,7 @@ class _Supervisor:
                           self._log("emulator", "a"))
         self.emu_started = time.monotonic()
         self.restarts.append({"process": "emulator", "exit_code": rc, "at_s": now - self.wall0, "_t": now,
-                              "rejoined_after_s": None, "resumed_at_t_s": t_resume})
+                              "_after_t": t_resume, "rejoined_after_s": None, "resumed_at_t_s": t_resume})
 
     def _apply_faults(self) -> None:
         """Process faults, at the fleet's sensor time; frozen processes thawed when due."""
@@ -213,16 +213,23 @@ class _Supervisor:
             log.warning("%s exited with %s; restarting it", n, rc)
             _spawn(self.procs, n, self._agent_args(vid), self._log(n, "a"), self.agent_env)
             self.restarts.append({"process": n, "exit_code": rc, "at_s": now - self.wall0, "_t": now,
-                                  "rejoined_after_s": None})
+                                  "_after_t": self._fleet_t(), "rejoined_after_s": None})
 
     def _note_rejoins(self) -> None:
-        """An agent is back with its first estimate; the emulator with anyone's."""
+        """An agent is back with its first estimate of a sensor time after its restart; the
+        emulator with anyone's after its resume point. (Estimates the old process sent before it
+        died may still arrive after the restart: they are not a rejoin.)"""
         rec = self.rec
         for r in self.restarts:
+            if r["rejoined_after_s"] is not None:
+                continue
             v = r["process"].removeprefix("agent-")
-            seen = (max(rec.last_wall.values(), default=-math.inf) if r["process"] == "emulator"
-                    else rec.last_wall.get(v, -math.inf))
-            if r["rejoined_after_s"] is None and seen > r["_t"]:
+            if r["process"] == "emulator":
+                fresh = [u for u, t in rec.latest_t.items() if t > r["_after_t"]]
+            else:
+                fresh = [v] if rec.latest_t.get(v, -math.inf) > r["_after_t"] else []
+            seen = max((rec.last_wall[u] for u in fresh if u in rec.last_wall), default=-math.inf)
+            if seen > r["_t"]:
                 r["rejoined_after_s"] = seen - r["_t"]
                 log.warning("%s rejoined %.2f s after its restart", r["process"], r["rejoined_after_s"])
 

@@ -235,3 +235,26 @@ def test_a_launcher_killed_with_sigkill_leaves_no_process_behind(tmp_path) -> No
             assert "the launcher" in (out / "logs" / log).read_text()
     finally:
         subprocess.run(["pkill", "-KILL", "-f", str(out)], check=False)
+
+
+def test_a_rejoin_is_the_first_estimate_after_the_restart_not_an_old_one_in_flight() -> None:
+    """#39 finding 9: an estimate the killed agent sent before it died, received just after its
+    restart, was reported as a rejoin 4.7 ms after a 2.1 s gap. A rejoin is an estimate of a
+    sensor time after the restart's."""
+    from types import SimpleNamespace
+
+    from slcp.deploy.supervisor import _Supervisor
+
+    rec = SimpleNamespace(latest_t={"V0": 10.0, "V1": 10.0}, last_wall={"V0": 100.0, "V1": 100.0})
+    r_agent = {"process": "agent-V0", "_t": 100.0, "_after_t": 10.0, "rejoined_after_s": None}
+    r_emu = {"process": "emulator", "_t": 100.0, "_after_t": 10.0, "rejoined_after_s": None}
+    sup = SimpleNamespace(rec=rec, restarts=[r_agent, r_emu])
+    rec.latest_t["V0"], rec.last_wall["V0"] = 10.0, 100.005  # the old process's last estimate, late
+    _Supervisor._note_rejoins(sup)
+    assert r_agent["rejoined_after_s"] is None and r_emu["rejoined_after_s"] is None
+    rec.latest_t["V1"], rec.last_wall["V1"] = 10.4, 101.0  # the emulator's data flows again
+    _Supervisor._note_rejoins(sup)
+    assert r_agent["rejoined_after_s"] is None and r_emu["rejoined_after_s"] == pytest.approx(1.0)
+    rec.latest_t["V0"], rec.last_wall["V0"] = 12.2, 102.1  # the new V0's first estimate
+    _Supervisor._note_rejoins(sup)
+    assert r_agent["rejoined_after_s"] == pytest.approx(2.1)
