@@ -140,6 +140,12 @@ class SensorPlayback:
         return False
 
 
+#: the furthest ahead of the radio's clock a beacon's stamp may be [s]: senders run on the
+#: emulator's sensor time, so a beacon from further ahead is forged or broken, and would wait in
+#: the radio for ever
+MAX_AHEAD = 1.0
+
+
 @dataclass
 class RadioStats:
     sent: int = 0
@@ -148,6 +154,8 @@ class RadioStats:
     out_of_range: int = 0
     stale: int = 0
     codec_errors: int = 0
+    #: beacons stamped further ahead of the radio's clock than :data:`MAX_AHEAD`: dropped
+    future_dated: int = 0
 
 
 @dataclass
@@ -215,6 +223,9 @@ class Radio:
         """A beacon sent when the radio's clock reads ``now`` [s sensor time]."""
         if b.vehicle not in self._index:
             self.stats.codec_errors += 1
+            return
+        if not b.t <= now + MAX_AHEAD:
+            self.stats.future_dated += 1
             return
         self.stats.sent += 1
         for attack in self.attacks:

@@ -245,6 +245,25 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
         assert sorted(rx for _, rx, _ in radio.due(now + 1.0)) == got and radio.stats.delivered >= len(got)
 
 
+def test_the_radio_drops_future_dated_beacons_instead_of_keeping_them() -> None:
+    """#39 finding 3: 20,000 beacons dated t = 1e9 stayed in the radio for ever and were scanned
+    at every event. A beacon stamped more than MAX_AHEAD past the radio's clock is counted and
+    dropped; nothing stays pending."""
+    from slcp.hw_emulation.playback import MAX_AHEAD, Radio
+    from slcp.transport.messages import Beacon
+
+    truth = build_truth(load_scenario("paper-1"))
+    radio = Radio(truth, seed=0)
+    llh = truth.vehicles[radio.ids[0]].truth.llh[0]
+    for k in range(20_000):
+        b = Beacon(radio.ids[0], k, "SL-CP", 1e9, llh, np.zeros(3), np.eye(3))
+        radio.send(b, b, 5.0)
+    assert radio.stats.future_dated == 20_000 and radio.stats.sent == 0 and not radio._pending
+    ok = Beacon(radio.ids[0], 1, "SL-CP", 5.0 + MAX_AHEAD / 2, llh, np.zeros(3), np.eye(3))
+    radio.send(ok, ok, 5.0)
+    assert radio.stats.sent == 1
+
+
 @pytest.mark.timeout(300)
 def test_agent_paced_play_with_longer_imu_batches_does_not_wait_for_itself() -> None:
     """With 0.2 s IMU messages (imu_batch 20) an agent reports up to 0.2 s + its hold behind the
