@@ -330,6 +330,11 @@ class VehicleEngine(EngineOutputs):
         if self._held_fixes:
             self._release_fixes(t)
         seq = self.seq
+        gap = seq.gap_before(t, dt)
+        if gap > 0.0:  # no IMU data for a while (a frozen process, a sensor outage)
+            for f in self.filters.values():
+                f.coast_gap(gap)
+            seq.skip_gap(gap)
         filters = self.filters.values()
         if not seq.pending_by(t):  # the common case: no measurement inside the interval
             span = seq.imu_plain(t, dt)

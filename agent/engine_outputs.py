@@ -19,6 +19,14 @@ from .neighbours import NeighbourTable
 from .sequencer import Sequencer
 
 
+def _next_tick(due: float, period: float, t: float) -> float:
+    """The first tick of the ``period`` grid through ``due`` after ``t``: after a gap in the
+    data, the timers skip the ticks they missed instead of catching up one per IMU sample."""
+    nxt = due + period
+    if nxt <= t:
+        nxt = due + period * (math.floor((t - due) / period) + 1)
+    return nxt
+
 class EngineOutputs:
     """The engine's timers and the messages they send to its ``outbox``."""
 
@@ -55,16 +63,16 @@ class EngineOutputs:
     def _run_timers(self, t: float) -> None:
         due = self._next
         if due["decision"] is not None and t >= due["decision"]:
-            due["decision"] += 1.0 / self.cfg.decision_rate
+            due["decision"] = _next_tick(due["decision"], 1.0 / self.cfg.decision_rate, t)
             self._decide(t)
         if due["beacon"] is not None and t >= due["beacon"]:
-            due["beacon"] += 1.0 / self.cfg.beacon_rate
+            due["beacon"] = _next_tick(due["beacon"], 1.0 / self.cfg.beacon_rate, t)
             self._send_beacons(t)
         if due["estimate"] is not None and t >= due["estimate"]:
-            due["estimate"] += 1.0 / self.cfg.estimate_rate
+            due["estimate"] = _next_tick(due["estimate"], 1.0 / self.cfg.estimate_rate, t)
             self._send_estimates(t)
         if due["diag"] is not None and t >= due["diag"]:
-            due["diag"] += 1.0
+            due["diag"] = _next_tick(due["diag"], 1.0, t)
             self.outbox.append(self.diagnostics(t))
 
     def _send_beacons(self, t: float) -> None:

@@ -38,6 +38,8 @@ __all__ = ["DEFAULT_FUSION", "FUSION_RULES", "HEADING_WAIT", "METHODS", "STOP_LI
 
 #: longest wait [s] of the GNSS updates of a vehicle that drives off with its heading unknown
 HEADING_WAIT = 1.0
+#: a heading more uncertain than this [rad] (after a gap in the IMU data) is taken as unknown
+HEADING_LOST = math.radians(30.0)
 #: the GNSS course gives the heading once its σ is below this [rad]: the heading is then set
 #: with twice that σ, within the linear range of the filter, which refines it. A code receiver's
 #: velocity (σ 0.5 m/s) gives a course good to 10° above 2.9 m/s; at 5° it needed 5.7 m/s, and
@@ -296,6 +298,17 @@ class MethodFilter(RangeUpdates, SiteUpdates):
         if abs(x[self._dtau]) > b:
             x[self._dtau] = math.copysign(b, x[self._dtau])
             self.counters["time_offset_bounded"] = self.counters.get("time_offset_bounded", 0) + 1
+
+    def coast_gap(self, gap: float) -> None:
+        """No IMU data for ``gap`` s: the state moves on and its covariance covers what the
+        vehicle may have done (:meth:`InsFilter.coast`); a heading that uncertain is unknown
+        again, until the GNSS course gives it."""
+        s = self.settings
+        self.filter.coast(gap, s.gap_accel_sigma, s.gap_rate_sigma)
+        if self.heading_known and self.yaw_sigma > HEADING_LOST:
+            self.heading_known = False
+            self.filter.yaw_free = True
+            self.counters["heading_lost"] = self.counters.get("heading_lost", 0) + 1
 
     def coast(self, moving: bool) -> None:
         """Between fixes (:meth:`OwnSensors.coast`)."""

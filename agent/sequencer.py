@@ -86,6 +86,20 @@ class Sequencer:
                 t0 = self.t  # absorb jitter: intervals are contiguous
         return t0
 
+    def gap_before(self, t_end: float, dt: float, max_gap: float = 0.1) -> float:
+        """The time without IMU data before the interval ending at ``t_end`` lasting ``dt`` [s]
+        (0 when it follows on); :meth:`skip_gap` moves the clock over it."""
+        if self.t is None:
+            return 0.0
+        gap = (t_end - dt) - self.t
+        return gap if gap > max_gap else 0.0
+
+    def skip_gap(self, gap: float) -> None:
+        """The clock moved over a gap of ``gap`` s that the filters coasted through."""
+        if self.t is not None:
+            self.t += gap
+            self.counters["imu_gaps"] += 1
+
     def pending_by(self, t: float) -> bool:
         """Whether a queued measurement is due at or before sensor time ``t`` [s]."""
         return bool(self._heap) and self._heap[0][0] <= t

@@ -164,6 +164,11 @@ class FilterSettings:
     #: the covariance is propagated over this interval of IMU samples [s] (and before every
     #: update); a step of the GNSS fix period costs least and changes little
     cov_interval: float = 0.1
+    #: what a road vehicle may do while its IMU data are missing (a frozen process, a sensor
+    #: outage): σ of an unknown constant acceleration, horizontal and vertical [m/s²], and of
+    #: its turn rate, roll/pitch and yaw [rad/s]
+    gap_accel_sigma: tuple[float, float] = (3.0, 0.5)
+    gap_rate_sigma: tuple[float, float] = (0.05, 0.3)
     #: the IMU-GNSS time offset as a state: its initial σ [s] and random walk [s/√s] (None: not
     #: estimated; the offset known is applied to the IMU time stamps by the sensor driver)
     time_offset: tuple[float, float] | None = None

@@ -15,6 +15,8 @@ from typing import cast
 
 import numpy as np
 
+from slcp.geo.earth import offset_llh
+
 from .error_model import ImuNoise, discretize_density, process_noise_density, system_matrix
 from .fusion import split_ci_update
 from .kalman import Measurement, UpdateResult, joseph, kalman_update, stack
@@ -457,6 +459,49 @@ class InsFilter:
         idx = np.arange(POS.start, POS.stop)
         delta[idx, idx] = variance
         self.inflate(delta)
+
+    def coast(self, gap: float, sigma_accel: tuple[float, float], sigma_rate: tuple[float, float]) -> None:
+        """No IMU data for ``gap`` s (a frozen process, a sensor outage): the state moves on at
+        its velocity, and the covariance grows by what the vehicle may have done meanwhile, an
+        unknown constant acceleration of σ ``sigma_accel`` (horizontal, vertical) [m/s²] and
+        turn rate of σ ``sigma_rate`` (roll and pitch, yaw) [rad/s]; the biases drift as
+        their processes do."""
+        if not gap > 0.0:
+            return
+        self.flush_covariance()
+        st = self.state
+        lat, lon, h = offset_llh(st.llh, st.v * gap)
+        self.state = NavState(float(lat), float(lon), float(h), st.v.copy(), st.q.copy(), st.bg.copy(), st.ba.copy())
+        n = self.n
+        phi = np.eye(n)
+        phi[POS, VEL] = np.eye(3) * gap  # dr' = dr + G dv
+        qd = np.zeros((n, n))
+        for k, sa in ((0, sigma_accel[0]), (1, sigma_accel[0]), (2, sigma_accel[1])):
+            a, b = VEL.start + k, POS.start + k
+            qd[a, a] = (sa * gap) ** 2
+            qd[b, b] = (sa * gap * gap / 2.0) ** 2
+            qd[a, b] = qd[b, a] = sa * sa * gap**3 / 2.0
+        for k, sr in ((0, sigma_rate[0]), (1, sigma_rate[0]), (2, sigma_rate[1])):
+            qd[ATT.start + k, ATT.start + k] = (sr * gap) ** 2
+        for k in range(9, N_STATES):  # the bias processes' drive over the gap
+            qd[k, k] = self._gqg[k] * gap
+        if n > N_STATES:  # augmented states: their Gauss-Markov processes, exactly
+            tau, psd = self._aug_tau, self._aug_psd
+            decay = np.exp(-gap / tau)
+            idx = np.arange(N_STATES, n)
+            phi[idx, idx] = decay
+            with np.errstate(invalid="ignore"):
+                qd[idx, idx] = np.where(np.isinf(tau), psd * gap, psd * tau / 2.0 * (1.0 - decay**2))
+            self.scale = self.scale * decay[: self.n_scale]
+            self.extra = self.extra * decay[self.n_scale:]
+        P = phi @ self.P @ phi.T + qd
+        self.P = 0.5 * (P + P.T)
+        if self.P_ind is not None:
+            Pi = phi @ self.P_ind @ phi.T + qd
+            self.P_ind = 0.5 * (Pi + Pi.T)
+        if self.sources is not None:
+            self.sources.propagate(phi, qd)
+        self.t += gap
 
     def inflate(self, delta: np.ndarray) -> None:
         """Add ``delta`` (n, n), symmetric positive semi-definite, to P: uncertainty of the
