@@ -230,15 +230,23 @@ class VehicleEngine(EngineOutputs):
             self.counters["not_for_me"] += 1
             return
         self.counters["beacons_rx"] += 1
-        refused = self._refuse_beacon(msg)
+        # the cheap checks before the signature's: a flood of stale, future-dated or replayed
+        # beacons costs no ECDSA verification (only a verified beacon enters the table, so a
+        # forged one cannot make a genuine one look old)
+        tab = self.tables[msg.method]
+        refused = self._stale_or_future(msg)
         if refused:
             self._count(f"beacon_{refused}")
             return
-        tab = self.tables[msg.method]
         newest = tab.newest_time(msg.vehicle)
         if newest is not None and msg.t <= newest:  # a duplicate or replay: not newer than the last
             tab.counters["duplicate_or_old"] += 1
             return
+        if self.cfg.trust is not None:
+            outcome = self.cfg.trust.verify(msg)
+            if outcome != "ok":
+                self._count(f"beacon_{outcome}")
+                return
         self.lost.pop(msg.vehicle, None)
         for g in self._ghosts.values():
             g.pop(msg.vehicle, None)
@@ -283,12 +291,8 @@ class VehicleEngine(EngineOutputs):
         for tr in self.trackers.values():
             tr.forget(other)
 
-    def _refuse_beacon(self, msg: Beacon) -> str | None:
-        """Why a beacon is refused (signature, then freshness against the filter time), or None."""
-        if self.cfg.trust is not None:
-            outcome = self.cfg.trust.verify(msg)
-            if outcome != "ok":
-                return outcome
+    def _stale_or_future(self, msg: Beacon) -> str | None:
+        """``stale`` or ``future`` for a beacon outside the time window of the filter time, or None."""
         now = self.seq.t
         if now is not None:
             if now - msg.t > self.cfg.max_beacon_age:

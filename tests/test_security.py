@@ -367,3 +367,43 @@ def test_a_world_readable_key_is_refused_and_a_bad_peer_certificate_disables_tha
     cfg.write_text(f'[agent]\nvehicle = "V2"\n[security]\ntrust_dir = "{d}"\n')
     with pytest.raises(ConfigError, match=r"no valid vehicle certificate for V2 .*V2.crt: not a PEM certificate"):
         load_agent_config(cfg, None)
+
+
+def test_stale_future_and_replayed_beacons_cost_no_signature_verification() -> None:
+    """#39 finding 6: every refused beacon cost a full ECDSA verification. The time window and
+    the replay check come first: a flood of stale, future-dated or replayed beacons verifies
+    nothing, and a genuine one is still verified and taken."""
+    import dataclasses as dc
+
+    from slcp.agent.engine import VehicleEngine
+    from slcp.deploy.agent_configs import agent_config
+    from slcp.deploy.inprocess import run_inprocess
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.truth import build_truth
+    class CountingTrust:
+        calls = 0
+
+        def verify(self, beacon) -> str:
+            CountingTrust.calls += 1
+            return "ok"
+
+    scn = dc.replace(load_scenario("paper-1"), duration=6.0)
+    inputs: list = []
+    run_inprocess(build_truth(scn), seed=0, methods=("CP",),
+                  on_message=lambda v, m: inputs.append(m) if v == "V1" else None)
+    eng = VehicleEngine(dc.replace(agent_config(scn, "V1", ("CP",)), trust=CountingTrust()))
+    for m in inputs:
+        if not isinstance(m, Beacon):
+            eng.handle(m)
+    now = eng.seq.t
+    assert now is not None and now > 3.0
+    genuine = Beacon("V0", 1, "CP", now - 0.05, np.array([0.7, -1.8, 100.0]), np.zeros(3), np.eye(3))
+    eng.handle(genuine)
+    assert CountingTrust.calls == 1 and eng.tables["CP"].newest_time("V0") == genuine.t
+    for k in range(300):
+        eng.handle(dc.replace(genuine, seq=2 + k, t=now - 100.0))  # stale
+        eng.handle(dc.replace(genuine, seq=400 + k, t=now + 100.0))  # future-dated
+        eng.handle(dc.replace(genuine, seq=800 + k))  # replayed
+    assert CountingTrust.calls == 1
+    assert eng.counters["beacon_stale"] == 300 and eng.counters["beacon_future"] == 300
+    assert eng.tables["CP"].counters["duplicate_or_old"] == 300
