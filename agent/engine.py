@@ -35,6 +35,7 @@ from slcp.transport.messages import (
 
 from .decision_step import first_stopped_step
 from .engine_config import AgentConfig, RangeObserver
+from .engine_neighbours import EngineNeighbours
 from .engine_outputs import EngineOutputs
 from .first_stopped import FirstStoppedDetector, StopTracker
 from .input_checks import InputChecks
@@ -48,7 +49,7 @@ from .sequencer import Apply, Propagate, Sequencer
 
 log = logging.getLogger(__name__)
 
-class VehicleEngine(EngineOutputs):
+class VehicleEngine(EngineOutputs, EngineNeighbours):
     """One vehicle's methods, sequencing, first-stopped decisions and neighbour checks.
 
     ``handle`` takes any message; what the engine sends goes to ``outbox`` (beacons unsigned:
@@ -59,8 +60,6 @@ class VehicleEngine(EngineOutputs):
 
     #: the GNSS fix that starts the filters is at most this far from the IMU start [s]
     INIT_FIX_WINDOW = 1.0
-    #: neighbours gone that the diagnostics list (the latest); a long-lived fleet sees thousands
-    MAX_LOST = 64
 
     def __init__(self, cfg: AgentConfig) -> None:
         for m in cfg.methods:
@@ -124,15 +123,6 @@ class VehicleEngine(EngineOutputs):
         except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
             self._count(f"rejected_{type(msg).__name__}")
             log.debug("%s: rejected %s: %s", self.cfg.vehicle, type(msg).__name__, exc)
-
-    def neighbour_alive(self, other: str, alive: bool) -> None:
-        """A neighbour's liveliness token appeared (``alive``) or vanished."""
-        if other == self.cfg.vehicle:
-            return
-        if alive:
-            self.lost.pop(other, None)
-            return
-        self._lose(other, "liveliness")
 
     def finish(self) -> None:
         """End of input: process the IMU data held back, then the ranges still waiting."""
@@ -264,33 +254,6 @@ class VehicleEngine(EngineOutputs):
                                                         msg.first_stopped)
 
     # ----------------------------------------------------------------- neighbours
-    def _untrusted(self, msg: Beacon) -> bool:
-        """Misbehaviour check of a verified beacon; True (counted ``beacon_excluded``) while its
-        sender is flagged, in which case the sender is also dropped from the tables."""
-        mb = self.misbehaviour
-        if mb is None:
-            return False
-        was = msg.vehicle in mb.flagged
-        mb.beacon(msg.vehicle, msg.method, msg.t, msg.llh, msg.v_ned, msg.cov_pos)
-        if not mb.excluded(msg.vehicle, msg.t):
-            return False
-        if not was:
-            self._exclude(msg.vehicle)
-        self._count("beacon_excluded")
-        return True
-
-    def _exclude(self, other: str) -> None:
-        t, reason = self.misbehaviour.flagged[other]
-        log.warning("%s: neighbour %s flagged at t=%.2f (%s); excluded", self.cfg.vehicle, other, t, reason)
-        self._drop(other)
-
-    def _drop(self, other: str) -> None:
-        """Forget neighbour ``other`` in every method's table and first-stopped tracker."""
-        for tab in self.tables.values():
-            tab.remove(other)
-        for tr in self.trackers.values():
-            tr.forget(other)
-
     def _stale_or_future(self, msg: Beacon) -> str | None:
         """``stale`` or ``future`` for a beacon outside the time window of the filter time, or None."""
         now = self.seq.t
@@ -463,25 +426,6 @@ class VehicleEngine(EngineOutputs):
             else:
                 keep.append(item)
         self._deferred = keep
-
-    def _lose(self, other: str, how: str) -> None:
-        """Stop using neighbour ``other`` (gone: its liveliness token vanished, or silent for the
-        table timeout); remembered in ``lost`` as (sensor time, how) for the diagnostics, and its
-        last beacon per method as a ghost for the first-stopped decisions (``ghost_memory``)."""
-        t = self.seq.t if self.seq.t is not None else math.nan
-        for m, tab in self.tables.items():
-            e = tab.entries.get(other)
-            if e is not None:
-                self._ghosts.setdefault(m, {})[other] = (e.llh, e.cov, t)
-        self._drop(other)
-        if other not in self.lost:
-            self.lost[other] = (self.seq.t if self.seq.t is not None else math.nan, how)
-            self.departures.append((self.lost[other][0], other, how))
-            self._count(f"neighbour_lost_{how}")
-            log.info("%s: neighbour %s gone (%s) at t=%.2f", self.cfg.vehicle, other, how, self.lost[other][0])
-            while len(self.lost) > self.MAX_LOST:  # the oldest first (insertion order)
-                del self.lost[next(iter(self.lost))]
-                self._count("neighbour_lost_forgotten")
 
     def _decide(self, t: float) -> None:
         for m, tab in self.tables.items():  # neighbours not heard for the table's timeout are gone

@@ -22,7 +22,8 @@ from collections import deque
 
 import numpy as np
 
-from .nav.ins_filter import InsFilter, level_from_accel
+from .nav.error_model import level_from_accel
+from .nav.ins_filter import InsFilter
 from .nav.kalman import UpdateResult, chi2_gate
 from .nav.measurements.stop_line import StopGapModel
 from .nav.rotation import euler_to_quat

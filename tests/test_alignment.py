@@ -28,6 +28,7 @@ def drive():
 
 
 @on_the_drive
+@pytest.mark.timeout(900)
 def test_eight_initial_headings_give_the_same_outage_figures(drive, monkeypatch) -> None:
     """The drive starts standing, with its heading unknown: whatever heading the filter starts
     from (eight guesses over 360°), the outage figures of the authors' protocol agree within 2 %,

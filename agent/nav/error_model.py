@@ -218,3 +218,49 @@ def discretize(
     phi, qd : ndarray, shape (n, n)
     """
     return discretize_density(F, (G * qc) @ G.T, dt, method)
+
+
+def unknown_heading_noise(f_n: np.ndarray, dt: float) -> np.ndarray:
+    """The velocity noise [m²/s²] (3, 3) of a step of ``dt`` s with the heading unknown: the
+    horizontal specific force ``f_n`` goes in an unknown direction, so the velocity error grows
+    by up to twice its increment (180° off). As process noise, the velocity updates of a
+    creeping start then correct the velocity, not the tilt."""
+    q = np.zeros((3, 3))
+    q[0, 0] = q[1, 1] = (2.0 * math.hypot(f_n[0], f_n[1]) * dt) ** 2
+    return q
+
+
+def gap_transition(n: int, gap: float, sigma_accel: tuple[float, float], sigma_rate: tuple[float, float],
+                   gqg: np.ndarray, aug_tau: np.ndarray, aug_psd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Φ and Q_d (n, n) over ``gap`` s without IMU data: the position error grows by the
+    velocity error; the vehicle may have had an unknown constant acceleration of σ
+    ``sigma_accel`` (horizontal, vertical) [m/s²] and turn rate of σ ``sigma_rate`` (roll and
+    pitch, yaw) [rad/s]; the biases (density ``gqg``) and the augmented Gauss-Markov states
+    (``aug_tau``, ``aug_psd``) follow their processes exactly."""
+    phi = np.eye(n)
+    phi[6:9, 3:6] = np.eye(3) * gap  # dr' = dr + G dv
+    qd = np.zeros((n, n))
+    for k, sa in enumerate((sigma_accel[0], sigma_accel[0], sigma_accel[1])):
+        a, b = 3 + k, 6 + k
+        qd[a, a] = (sa * gap) ** 2
+        qd[b, b] = (sa * gap * gap / 2.0) ** 2
+        qd[a, b] = qd[b, a] = sa * sa * gap**3 / 2.0
+    for k, sr in enumerate((sigma_rate[0], sigma_rate[0], sigma_rate[1])):
+        qd[k, k] = (sr * gap) ** 2
+    for k in range(9, 15):
+        qd[k, k] = gqg[k] * gap
+    if n > 15:
+        decay = np.exp(-gap / aug_tau)
+        idx = np.arange(15, n)
+        phi[idx, idx] = decay
+        with np.errstate(invalid="ignore"):
+            qd[idx, idx] = np.where(np.isinf(aug_tau), aug_psd * gap, aug_psd * aug_tau / 2.0 * (1.0 - decay**2))
+    return phi, qd
+
+
+def level_from_accel(f_b_mean: np.ndarray) -> tuple[float, float]:
+    """Coarse levelling: roll and pitch [rad] from the mean specific force at rest (FRD)."""
+    fx, fy, fz = f_b_mean
+    roll = math.atan2(-fy, -fz)
+    pitch = math.atan2(fx, math.hypot(fy, fz))
+    return roll, pitch

@@ -10,34 +10,26 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import cast
 
 import numpy as np
 
 from slcp.geo.earth import offset_llh
 
-from .error_model import ImuNoise, discretize_density, process_noise_density, system_matrix
+from .error_model import (
+    ImuNoise,
+    discretize_density,
+    gap_transition,
+    process_noise_density,
+    system_matrix,
+    unknown_heading_noise,
+)
 from .fusion import split_ci_update
-from .kalman import Measurement, UpdateResult, joseph, kalman_update, stack
+from .kalman import FilterStats, Measurement, UpdateResult, joseph, kalman_update, stack
 from .mechanization import mechanize_run
 from .rotation import euler_to_quat, quat_to_euler, wrap_angle
 from .source_fusion import COMMON_MODE, SourcePart, SourceSplit
 from .state import ATT, N_STATES, POS, VEL, NavState, remove_error
-
-
-@dataclass
-class FilterStats:
-    """Counters a filter keeps for diagnostics."""
-
-    imu_samples: int = 0
-    cov_steps: int = 0
-    updates: dict[str, int] = field(default_factory=dict)
-    rejected: dict[str, int] = field(default_factory=dict)
-
-    def count(self, result: UpdateResult) -> None:
-        table = self.updates if result.accepted else self.rejected
-        table[result.name] = table.get(result.name, 0) + 1
 
 
 class InsFilter:
@@ -265,13 +257,17 @@ class InsFilter:
             q = self._gqg
         phi, qd = discretize_density(F, q, dt, self.discretization)
         if self.yaw_free:
-            # with the heading unknown, the horizontal specific force goes in an unknown
-            # direction: the velocity error grows by up to twice its increment (180° off).
-            # As process noise, the velocity updates correct the velocity, not the tilt
-            f_n = c_bn @ f_b
-            q_h = (2.0 * math.hypot(f_n[0], f_n[1]) * dt) ** 2
-            qd[3, 3] += q_h
-            qd[4, 4] += q_h
+            qd[VEL, VEL] += unknown_heading_noise(c_bn @ f_b, dt)
+        self._transition(phi, qd)
+        self._acc_dt = 0.0
+        self._acc_dv_b = (0.0, 0.0, 0.0)
+        self._acc_dth_b = (0.0, 0.0, 0.0)
+        self._cov_state = None
+        self.stats.cov_steps += 1
+
+    # ------------------------------------------------------------------ updates
+    def _transition(self, phi: np.ndarray, qd: np.ndarray) -> None:
+        """P ← Φ P Φᵀ + Q_d, and the same for the independent part and the sources."""
         P = phi @ self.P @ phi.T + qd
         self.P = 0.5 * (P + P.T)
         if self.P_ind is not None:  # process noise is independent information loss...
@@ -283,13 +279,7 @@ class InsFilter:
             self.P_ind = 0.5 * (Pi + Pi.T)
         if self.sources is not None:
             self.sources.propagate(phi, qd)
-        self._acc_dt = 0.0
-        self._acc_dv_b = (0.0, 0.0, 0.0)
-        self._acc_dth_b = (0.0, 0.0, 0.0)
-        self._cov_state = None
-        self.stats.cov_steps += 1
 
-    # ------------------------------------------------------------------ updates
     def full_jacobian(self, H_nav: np.ndarray, H_extra: np.ndarray | None = None) -> np.ndarray:
         """Measurement Jacobian over the whole (augmented) state from its navigation part,
         shape (m, 15), and optionally its ``extra_states`` part, shape (m, len(extra))."""
@@ -462,45 +452,20 @@ class InsFilter:
 
     def coast(self, gap: float, sigma_accel: tuple[float, float], sigma_rate: tuple[float, float]) -> None:
         """No IMU data for ``gap`` s (a frozen process, a sensor outage): the state moves on at
-        its velocity, and the covariance grows by what the vehicle may have done meanwhile, an
-        unknown constant acceleration of σ ``sigma_accel`` (horizontal, vertical) [m/s²] and
-        turn rate of σ ``sigma_rate`` (roll and pitch, yaw) [rad/s]; the biases drift as
-        their processes do."""
+        its velocity, and the covariance grows by what the vehicle may have done meanwhile
+        (:func:`error_model.gap_transition`)."""
         if not gap > 0.0:
             return
         self.flush_covariance()
         st = self.state
         lat, lon, h = offset_llh(st.llh, st.v * gap)
         self.state = NavState(float(lat), float(lon), float(h), st.v.copy(), st.q.copy(), st.bg.copy(), st.ba.copy())
-        n = self.n
-        phi = np.eye(n)
-        phi[POS, VEL] = np.eye(3) * gap  # dr' = dr + G dv
-        qd = np.zeros((n, n))
-        for k, sa in ((0, sigma_accel[0]), (1, sigma_accel[0]), (2, sigma_accel[1])):
-            a, b = VEL.start + k, POS.start + k
-            qd[a, a] = (sa * gap) ** 2
-            qd[b, b] = (sa * gap * gap / 2.0) ** 2
-            qd[a, b] = qd[b, a] = sa * sa * gap**3 / 2.0
-        for k, sr in ((0, sigma_rate[0]), (1, sigma_rate[0]), (2, sigma_rate[1])):
-            qd[ATT.start + k, ATT.start + k] = (sr * gap) ** 2
-        for k in range(9, N_STATES):  # the bias processes' drive over the gap
-            qd[k, k] = self._gqg[k] * gap
-        if n > N_STATES:  # augmented states: their Gauss-Markov processes, exactly
-            tau, psd = self._aug_tau, self._aug_psd
-            decay = np.exp(-gap / tau)
-            idx = np.arange(N_STATES, n)
-            phi[idx, idx] = decay
-            with np.errstate(invalid="ignore"):
-                qd[idx, idx] = np.where(np.isinf(tau), psd * gap, psd * tau / 2.0 * (1.0 - decay**2))
+        phi, qd = gap_transition(self.n, gap, sigma_accel, sigma_rate, self._gqg, self._aug_tau, self._aug_psd)
+        if self.n > N_STATES:
+            decay = np.diag(phi)[N_STATES:]
             self.scale = self.scale * decay[: self.n_scale]
             self.extra = self.extra * decay[self.n_scale:]
-        P = phi @ self.P @ phi.T + qd
-        self.P = 0.5 * (P + P.T)
-        if self.P_ind is not None:
-            Pi = phi @ self.P_ind @ phi.T + qd
-            self.P_ind = 0.5 * (Pi + Pi.T)
-        if self.sources is not None:
-            self.sources.propagate(phi, qd)
+        self._transition(phi, qd)
         self.t += gap
 
     def inflate(self, delta: np.ndarray) -> None:
@@ -532,10 +497,3 @@ class InsFilter:
 _HORIZONTAL = np.array([POS.start, POS.start + 1])
 _HORIZONTAL_PV = np.array([POS.start, POS.start + 1, VEL.start, VEL.start + 1])
 
-
-def level_from_accel(f_b_mean: np.ndarray) -> tuple[float, float]:
-    """Coarse levelling: roll and pitch [rad] from the mean specific force at rest (FRD)."""
-    fx, fy, fz = f_b_mean
-    roll = math.atan2(-fy, -fz)
-    pitch = math.atan2(fx, math.hypot(fy, fz))
-    return roll, pitch

@@ -9,7 +9,7 @@ state (closed loop).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
@@ -170,3 +170,17 @@ def joseph(P: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.nda
     P_post = IKH @ P @ IKH.T + K @ R @ K.T
     P_sym: np.ndarray = 0.5 * (P_post + P_post.T)
     return P_sym
+
+
+@dataclass
+class FilterStats:
+    """Counters a filter keeps for diagnostics."""
+
+    imu_samples: int = 0
+    cov_steps: int = 0
+    updates: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def count(self, result: UpdateResult) -> None:
+        table = self.updates if result.accepted else self.rejected
+        table[result.name] = table.get(result.name, 0) + 1
