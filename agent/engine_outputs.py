@@ -27,6 +27,7 @@ def _next_tick(due: float, period: float, t: float) -> float:
         nxt = due + period * (math.floor((t - due) / period) + 1)
     return nxt
 
+
 class EngineOutputs:
     """The engine's timers and the messages they send to its ``outbox``."""
 

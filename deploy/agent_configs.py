@@ -105,19 +105,19 @@ def with_profile(cfg: AgentConfig, profile: VehicleProfile) -> AgentConfig:
                      accel_bias_sigma=imu.accel_bias, accel_bias_tau=imu.bias_correlation_s)
     # ZARU weighs the mean rate of the engine's last IMU_MEMORY samples: white rate noise
     # averages to ARW/√T, doubled for the vibration of a vehicle at rest with its engine on
-    zaru = math.radians(c.zaru_sigma_dps) or 2.0 * noise.arw / math.sqrt(IMU_MEMORY / imu.rate_hz)
-    s = dataclasses.replace(
-        cfg.settings, noise=noise, init_gyro_bias_sigma=imu.gyro_turn_on, init_accel_bias_sigma=imu.accel_turn_on,
-        gnss_lever_arm=g.lever_arm_m, gnss_quality_scale=g.quality_scale, gnss_min_sigma=g.min_sigma_m,
-        gnss_min_sigma_v=g.min_sigma_mps,
-        nhc_sigma=c.nhc_sigma_mps if c.nhc else None, nhc_vertical_sigma=c.nhc_vertical_sigma_mps,
-        nhc_lever_uncertainty=c.nhc_lever_uncertainty_m, nhc_coast_after=c.nhc_coast_after_s,
-        zupt_sigma=c.zupt_sigma_mps if c.zupt else None, zaru_sigma=zaru if c.zupt and c.zaru else None,
-        time_offset=(t.sigma_s, t.random_walk) if t.estimate else None, time_offset_bound=t.bound_s,
+    zaru_dps = c.zaru_sigma_dps or math.degrees(2.0 * noise.arw / math.sqrt(IMU_MEMORY / imu.rate_hz))
+    options = FilterOptions(  # the agent file's [filter] section, as the profile sets it (0: off)
+        gnss_lever_arm_m=g.lever_arm_m, gnss_quality_scale=g.quality_scale, gnss_min_sigma_m=g.min_sigma_m,
+        gnss_min_sigma_mps=g.min_sigma_mps, nhc_sigma_mps=c.nhc_sigma_mps if c.nhc else 0.0,
+        nhc_vertical_sigma_mps=c.nhc_vertical_sigma_mps, nhc_lever_uncertainty_m=c.nhc_lever_uncertainty_m,
+        nhc_coast_after_s=c.nhc_coast_after_s, zupt_sigma_mps=c.zupt_sigma_mps if c.zupt else 0.0,
+        zaru_sigma_dps=zaru_dps if c.zupt and c.zaru else 0.0,
+        time_offset_sigma_s=t.sigma_s if t.estimate else 0.0, time_offset_rw=t.random_walk,
         # one covariance step per fix period costs least and changes little
-        cov_interval=1.0 / g.rate_hz,
-        init_att_sigma=tuple(math.radians(x) for x in i.att_sigma_deg), init_vel_sigma=i.vel_sigma_mps)
-    return dataclasses.replace(cfg, settings=s)
+        cov_interval_s=1.0 / g.rate_hz, init_att_sigma_deg=i.att_sigma_deg, init_vel_sigma_mps=i.vel_sigma_mps)
+    s = dataclasses.replace(cfg.settings, noise=noise, init_gyro_bias_sigma=imu.gyro_turn_on,
+                            init_accel_bias_sigma=imu.accel_turn_on, time_offset_bound=t.bound_s)
+    return with_filter(dataclasses.replace(cfg, settings=s), options)
 
 
 def imu_noise_of(model: ImuModel) -> ImuNoise:

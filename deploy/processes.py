@@ -79,9 +79,9 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
     if isinstance(lease, bool) or not isinstance(lease, int) or not 100 <= lease <= MAX_LEASE_MS:
         raise ConfigError(f"{source}: zenoh.lease_ms: must be an integer from 100 to {MAX_LEASE_MS} (an hour), "
                           f"got {lease!r}")
-    for k in ("multicast_scouting",):
-        if not isinstance(d.get(k, False), bool):
-            raise ConfigError(f"{source}: zenoh.{k}: must be true or false, got {d[k]!r}")
+    if not isinstance(d.get("multicast_scouting", False), bool):
+        raise ConfigError(f"{source}: zenoh.multicast_scouting: must be true or false, "
+                          f"got {d['multicast_scouting']!r}")
     cf = d.get("config_file", "")
     if not isinstance(cf, str):
         raise ConfigError(f"{source}: zenoh.config_file: must be the path of a Zenoh JSON5 file, got {cf!r}")

@@ -265,7 +265,6 @@ class InsFilter:
         self._cov_state = None
         self.stats.cov_steps += 1
 
-    # ------------------------------------------------------------------ updates
     def _transition(self, phi: np.ndarray, qd: np.ndarray) -> None:
         """P ← Φ P Φᵀ + Q_d, and the same for the independent part and the sources."""
         P = phi @ self.P @ phi.T + qd
@@ -280,6 +279,7 @@ class InsFilter:
         if self.sources is not None:
             self.sources.propagate(phi, qd)
 
+    # ------------------------------------------------------------------ updates
     def full_jacobian(self, H_nav: np.ndarray, H_extra: np.ndarray | None = None) -> np.ndarray:
         """Measurement Jacobian over the whole (augmented) state from its navigation part,
         shape (m, 15), and optionally its ``extra_states`` part, shape (m, len(extra))."""

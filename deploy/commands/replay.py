@@ -104,6 +104,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         phase_protocols,
         pooled_metrics,
         reference_share,
+        run_replay,
     )
 
     length, gap = (0.0, 1.0) if args.no_outage else args.outage
@@ -117,8 +118,6 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         raise ValueError("--phases needs outages and the offline replay (not --no-outage or --publish)")
     if args.publish:
         return _replay_publish(args, drive, cfg)
-    from ..replay import run_replay
-
     res = run_replay(drive, cfg)
     pooled = None
     if args.phases > 1:  # phase 0 is the run above
