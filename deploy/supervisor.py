@@ -347,7 +347,8 @@ def _spawn(procs: dict[str, subprocess.Popen], name: str, args: list[str], log,
     interrupt (see `_termination_deferred`)."""
     with _termination_deferred():
         p = procs[name] = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                                           env={**os.environ, **(env or {}), SUPERVISOR_ENV: str(os.getpid())})
+                                           env={"RUST_LOG": "zenoh=warn", **os.environ, **(env or {}),
+                                                SUPERVISOR_ENV: str(os.getpid())})
     return p
 
 

@@ -59,6 +59,13 @@ class ZenohConfig:
         side only (a process frozen for about a lease) can leave a pair split for good: data
         one way, nothing back, no liveliness change (eclipse-zenoh/zenoh#2806). Routers are
         always dialled.
+    batching : bool
+        Whether Zenoh may hold a small message back (up to its batching time limit) to send it
+        in one link write with the next ones. Off by default: a beacon or sensor message goes
+        out at once, and in lock-step playback (the emulator waits for the agents' estimates,
+        which wait for its data) a message left in a partly filled batch would hold up the
+        whole fleet. Batching saves system calls when a link carries thousands of messages a
+        second.
     config_file : str, optional
         A Zenoh JSON5 configuration file (TLS, ACL, ...) loaded first; the fields above
         override it.
@@ -73,6 +80,7 @@ class ZenohConfig:
     multicast_scouting: bool = False
     lease_ms: int = 2000
     autoconnect_strategy: str = "greater-zid"
+    batching: bool = False
     config_file: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -83,6 +91,7 @@ class ZenohConfig:
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         conf.insert_json5("transport/link/tx/lease", json.dumps(int(self.lease_ms)))
+        conf.insert_json5("transport/link/tx/queue/batching/enabled", json.dumps(bool(self.batching)))
         if self.autoconnect_strategy not in AUTOCONNECT_STRATEGIES:
             raise ValueError(f"zenoh autoconnect_strategy must be one of {', '.join(AUTOCONNECT_STRATEGIES)}, "
                              f"got {self.autoconnect_strategy!r}")
@@ -104,11 +113,26 @@ class _Undeclarable(Protocol):
     def undeclare(self) -> object: ...
 
 
+_zenoh_log_started = False
+
+
+def _start_zenoh_log() -> None:
+    """Zenoh's own log to stderr: its errors, or what ``RUST_LOG`` asks for (``slcp run`` sets
+    ``zenoh=warn`` for its children, whose logs are files: lease expiries and lost links;
+    ``RUST_LOG=zenoh=debug`` traces a link). Once per process: Zenoh's logger is set once."""
+    global _zenoh_log_started
+    if not _zenoh_log_started:
+        _zenoh_log_started = True
+        os.environ.setdefault("NO_COLOR", "1")  # plain text in log files
+        zenoh.init_log_from_env_or("error")
+
+
 class ZenohBus:
     """Bus over a Zenoh session. Create inside a running event loop."""
 
     def __init__(self, config: ZenohConfig) -> None:
         self.loop = asyncio.get_running_loop()
+        _start_zenoh_log()
         conf = config.to_zenoh()
         try:
             self.session = zenoh.open(conf)
