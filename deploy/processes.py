@@ -26,7 +26,6 @@ Agent configuration file (TOML)::
     listen = []
     lease_ms = 2000
     autoconnect_strategy = "greater-zid"        # greater-zid | always: how peers dial the peers they learn of
-    batching = false                            # true: Zenoh may hold small messages back to batch them
     config_file = ""                            # optional Zenoh JSON5 (TLS, ACL)
     tls = false                                 # true: mutual TLS to the fleet router (`slcp router`) with
                                                 # this vehicle's certificate from [security]; connect must
@@ -60,8 +59,7 @@ class ConfigError(ValueError):
 
 
 def zenoh_config(d: dict, source: str) -> ZenohConfig:
-    allowed = {"mode", "connect", "listen", "lease_ms", "autoconnect_strategy", "config_file", "multicast_scouting",
-               "batching"}
+    allowed = {"mode", "connect", "listen", "lease_ms", "autoconnect_strategy", "config_file", "multicast_scouting"}
     for k in d:
         if k not in allowed:
             raise ConfigError(f"{source}: zenoh.{k}: unknown field (known: {', '.join(sorted(allowed))})")
@@ -81,9 +79,9 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
     if isinstance(lease, bool) or not isinstance(lease, int) or not 100 <= lease <= MAX_LEASE_MS:
         raise ConfigError(f"{source}: zenoh.lease_ms: must be an integer from 100 to {MAX_LEASE_MS} (an hour), "
                           f"got {lease!r}")
-    for k in ("multicast_scouting", "batching"):
-        if not isinstance(d.get(k, False), bool):
-            raise ConfigError(f"{source}: zenoh.{k}: must be true or false, got {d[k]!r}")
+    if not isinstance(d.get("multicast_scouting", False), bool):
+        raise ConfigError(f"{source}: zenoh.multicast_scouting: must be true or false, "
+                          f"got {d['multicast_scouting']!r}")
     cf = d.get("config_file", "")
     if not isinstance(cf, str):
         raise ConfigError(f"{source}: zenoh.config_file: must be the path of a Zenoh JSON5 file, got {cf!r}")
@@ -93,7 +91,7 @@ def zenoh_config(d: dict, source: str) -> ZenohConfig:
                           f"{', '.join(AUTOCONNECT_STRATEGIES)}, got {strategy!r}")
     return ZenohConfig(mode=mode, connect=tuple(d.get("connect", [])), listen=tuple(d.get("listen", [])),
                        lease_ms=lease, autoconnect_strategy=strategy, config_file=cf or None,
-                       multicast_scouting=d.get("multicast_scouting", False), batching=d.get("batching", False))
+                       multicast_scouting=d.get("multicast_scouting", False))
 
 
 def load_agent_config(path: Path, vehicle: str | None):

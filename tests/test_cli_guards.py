@@ -161,7 +161,6 @@ def test_a_file_of_garbage_bytes_is_an_error_that_names_it(what, tmp_path, capsy
 
 @pytest.mark.parametrize("body, field", [
     ('[zenoh]\nmulticast_scouting = "false"\n', "zenoh.multicast_scouting: must be true or false"),
-    ("[zenoh]\nbatching = 1\n", "zenoh.batching: must be true or false"),
     ("[zenoh]\nlease_ms = 1e14\n", "zenoh.lease_ms: must be an integer from 100 to 3600000"),
     ("[zenoh]\nlease_ms = 100000000000000\n", "zenoh.lease_ms: must be an integer from 100 to 3600000"),
     ("[zenoh]\nconfig_file = 5\n", "zenoh.config_file: must be the path of a Zenoh JSON5 file"),

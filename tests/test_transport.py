@@ -451,9 +451,6 @@ def test_zenoh_peer_settings_and_a_bad_strategy() -> None:
     assert got == {"peer": {"to_router": "always", "to_peer": "greater-zid"}}
     with pytest.raises(ValueError, match="autoconnect_strategy"):
         ZenohConfig(autoconnect_strategy="sometimes").to_zenoh()
-    batching = "transport/link/tx/queue/batching/enabled"
-    assert json.loads(ZenohConfig().to_zenoh().get_json(batching)) is False  # Zenoh's own default is on
-    assert json.loads(ZenohConfig(batching=True).to_zenoh().get_json(batching)) is True
 
 
 @pytest.mark.fleet

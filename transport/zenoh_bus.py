@@ -59,13 +59,6 @@ class ZenohConfig:
         side only (a process frozen for about a lease) can leave a pair split for good: data
         one way, nothing back, no liveliness change (eclipse-zenoh/zenoh#2806). Routers are
         always dialled.
-    batching : bool
-        Whether Zenoh may hold a small message back (up to its batching time limit) to send it
-        in one link write with the next ones. Off by default: a beacon or sensor message goes
-        out at once, and in lock-step playback (the emulator waits for the agents' estimates,
-        which wait for its data) a message left in a partly filled batch would hold up the
-        whole fleet. Batching saves system calls when a link carries thousands of messages a
-        second.
     config_file : str, optional
         A Zenoh JSON5 configuration file (TLS, ACL, ...) loaded first; the fields above
         override it.
@@ -80,7 +73,6 @@ class ZenohConfig:
     multicast_scouting: bool = False
     lease_ms: int = 2000
     autoconnect_strategy: str = "greater-zid"
-    batching: bool = False
     config_file: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -91,7 +83,6 @@ class ZenohConfig:
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         conf.insert_json5("transport/link/tx/lease", json.dumps(int(self.lease_ms)))
-        conf.insert_json5("transport/link/tx/queue/batching/enabled", json.dumps(bool(self.batching)))
         if self.autoconnect_strategy not in AUTOCONNECT_STRATEGIES:
             raise ValueError(f"zenoh autoconnect_strategy must be one of {', '.join(AUTOCONNECT_STRATEGIES)}, "
                              f"got {self.autoconnect_strategy!r}")
