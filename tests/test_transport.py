@@ -356,10 +356,11 @@ asyncio.run(main())
 
 @pytest.mark.fleet
 @pytest.mark.timeout(60)
-def test_the_light_runtime_runs_zenoh_on_one_thread_and_a_bad_one_is_a_clear_error() -> None:
+def test_the_light_runtime_runs_zenoh_on_few_threads_and_a_bad_one_is_a_clear_error() -> None:
     """slcp run gives its agents LIGHT_CLIENT_RUNTIME (ZENOH_RUNTIME): a router and a client on
-    loopback in one process still talk, with Zenoh's work on its application threads only; an
-    invalid ZENOH_RUNTIME is a RuntimeError that names it, not a bare Rust panic."""
+    loopback in one process still talk, with Zenoh's work on its application threads and one
+    transmission thread; an invalid ZENOH_RUNTIME is a RuntimeError that names it, not a bare
+    Rust panic."""
     import subprocess
     import sys
 
@@ -378,7 +379,8 @@ def test_the_light_runtime_runs_zenoh_on_one_thread_and_a_bad_one_is_a_clear_err
     assert d["got"] == li["got"] == "x"
     zenoh_threads = lambda names: [n for n in names if not n.startswith("python")]  # noqa: E731
     assert {n.split("-")[0] for n in zenoh_threads(d["threads"])} >= {"app", "acc", "net"}
-    assert zenoh_threads(li["threads"]) and all(n.startswith("app-") for n in zenoh_threads(li["threads"]))
+    light_kinds = {n.split("-")[0] for n in zenoh_threads(li["threads"])}
+    assert light_kinds == {"app", "tx"}  # transmission never waits behind a task of the one app worker
     assert len(zenoh_threads(li["threads"])) < len(zenoh_threads(d["threads"]))
     bad = probe("(bogus: 1)")
     assert bad.returncode != 0 and "RuntimeError: Zenoh could not start (is ZENOH_RUNTIME='(bogus: 1)'" in bad.stderr

@@ -28,13 +28,16 @@ log = logging.getLogger(__name__)
 AUTOCONNECT_STRATEGIES = ("greater-zid", "always")
 
 #: A Zenoh runtime configuration (``ZENOH_RUNTIME``, RON) for a light client process: the
-#: receive, transmit, accept and network runtimes hand their work over to one application worker
-#: thread, so a client process runs 2 Zenoh threads instead of 6. Zenoh reads the variable once,
-#: when its first session opens. ``slcp run`` gives it to the agents (unless ``ZENOH_RUNTIME`` is
-#: set already): on one machine dozens of processes share a few cores, and fewer threads to wake
-#: cost them less.
-LIGHT_CLIENT_RUNTIME = ("(rx: (handover: app), acc: (handover: app), tx: (handover: app), "
-                        "net: (handover: app), app: (worker_threads: 1))")
+#: receive, accept and network runtimes hand their work over to one application worker thread,
+#: and transmission keeps a thread of its own, so a client process runs 3 Zenoh threads instead
+#: of 6. Transmission must not share the one worker: a task that waits for room in a link's
+#: queue (BLOCK congestion control) would hold the only thread that can empty it, until Zenoh
+#: closes the link after 5 s ("Unable to push non droppable network message"). Zenoh reads the
+#: variable once, when its first session opens. ``slcp run`` gives it to the agents (unless
+#: ``ZENOH_RUNTIME`` is set already): on one machine dozens of processes share a few cores, and
+#: fewer threads to wake cost them less.
+LIGHT_CLIENT_RUNTIME = ("(rx: (handover: app), acc: (handover: app), net: (handover: app), "
+                        "tx: (worker_threads: 1), app: (worker_threads: 1))")
 
 
 @dataclass(frozen=True)
