@@ -522,3 +522,32 @@ def test_zenoh_peers_recover_both_ways_after_a_freeze_about_a_lease_long(tmp_pat
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+
+
+def test_zenohs_own_warnings_reach_a_child_of_slcp_run_and_stay_quiet_elsewhere(tmp_path, monkeypatch) -> None:
+    """The launcher's children log Zenoh's warnings (RUST_LOG=zenoh=warn unless set): a client
+    whose router is not there says so in its log; a process without RUST_LOG shows only
+    Zenoh's errors (the CLI's own one-line error stays the only message)."""
+    import subprocess
+    import sys
+
+    from slcp.deploy.supervisor import _spawn
+
+    probe = ("import asyncio, sys\n"
+             "from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig\n"
+             "async def main():\n"
+             "    try:\n"
+             "        ZenohBus(ZenohConfig(mode='client', connect=(sys.argv[1],)))\n"
+             "    except ConnectionError:\n"
+             "        print('refused')\n"
+             "asyncio.run(main())\n")
+    closed = f"tcp/127.0.0.1:{free_port()}"
+    monkeypatch.delenv("RUST_LOG", raising=False)
+    procs: dict = {}
+    with open(tmp_path / "child.log", "w") as lf:
+        _spawn(procs, "child", [sys.executable, "-c", probe, closed], lf).wait(timeout=30)
+    child = (tmp_path / "child.log").read_text()
+    assert "refused" in child and "WARN" in child and f"Unable to connect to {closed}" in child
+    assert "\x1b[" not in child  # plain text in a log file
+    quiet = subprocess.run([sys.executable, "-c", probe, closed], capture_output=True, text=True, timeout=30)
+    assert quiet.stdout.strip() == "refused" and "WARN" not in quiet.stderr

@@ -115,10 +115,18 @@ def _start_zenoh_log() -> None:
     ``zenoh=warn`` for its children, whose logs are files: lease expiries and lost links;
     ``RUST_LOG=zenoh=debug`` traces a link). Once per process: Zenoh's logger is set once."""
     global _zenoh_log_started
-    if not _zenoh_log_started:
-        _zenoh_log_started = True
-        os.environ.setdefault("NO_COLOR", "1")  # plain text in log files
+    if _zenoh_log_started:
+        return
+    _zenoh_log_started = True
+    before = os.environ.get("NO_COLOR")
+    os.environ["NO_COLOR"] = "1"  # plain text in log files; read once, when the logger starts
+    try:
         zenoh.init_log_from_env_or("error")
+    finally:
+        if before is None:
+            del os.environ["NO_COLOR"]
+        else:
+            os.environ["NO_COLOR"] = before
 
 
 class ZenohBus:
