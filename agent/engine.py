@@ -146,9 +146,30 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
         # held in time order (a batch delivered late is put back in its place), processed once
         # imu_hold newer data has arrived
         bisect.insort(self._imu_buffer, msg, key=lambda b: float(b.t[-1]))
+        self._release_imu()
+
+    def _release_imu(self) -> None:
+        """Process the held IMU batches that imu_hold newer data has passed. Before the filters
+        start, the first batch also waits (up to ``INIT_FIX_WINDOW`` more) for a GNSS fix near
+        its start: which fix starts the filters, and when, must depend on the data, not on
+        whether the fix or later IMU batches were delivered first (they travel on different
+        keys, and a host may hand them over in either order)."""
         newest = self.checks.imu_newest
-        while self._imu_buffer and float(self._imu_buffer[0].t[-1]) <= newest - self.cfg.imu_hold:
+        if newest is None:
+            return
+        hold = self.cfg.imu_hold
+        while self._imu_buffer and float(self._imu_buffer[0].t[-1]) <= newest - hold:
+            first = self._imu_buffer[0]
+            if (not self.filters and self._init_fix(first) is None
+                    and float(first.t[-1]) > newest - hold - self.INIT_FIX_WINDOW):
+                break  # its fix may still be on its way
             self._imu(self._imu_buffer.pop(0))
+
+    @property
+    def waiting_for_fix(self) -> bool:
+        """True while the filters have not started: a host should hand over a GNSS fix at once
+        (it may release IMU data held for it) rather than with the next IMU batch."""
+        return not self.filters
 
     def _on_own_sample(self, msg: GnssFix | LaneMarkings) -> None:
         """Own sensors, one sample per message."""
@@ -165,6 +186,7 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
         if not self.filters:
             if isinstance(msg, GnssFix):  # the filters start from these
                 self._pending_fixes.append(msg)
+                self._release_imu()
         elif isinstance(msg, GnssFix):
             self._push_fix(msg)
         else:
@@ -336,17 +358,22 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
                 else:
                     f.coast(True)
 
+    def _init_fix(self, batch: ImuBatch) -> GnssFix | None:
+        """The fix that would start the filters at the start of ``batch`` (None: none yet)."""
+        t0 = float(batch.t[0] - batch.dt[0])
+        # a position-only fix without an earlier one has no velocity yet: the next will
+        near = [g for g in self._pending_fixes if abs(g.t - t0) <= self.INIT_FIX_WINDOW and math.isfinite(g.sigma_v)]
+        return min(near, key=lambda g: (abs(g.t - t0), g.t)) if near else None
+
     def _init(self, batch: ImuBatch) -> bool:
         """Start the filters at the start of IMU ``batch`` from the GNSS fix nearest in time,
         moved to that time with its velocity (which fixes had arrived when the first batch is
         processed depends on message timing; this choice does not); later fixes are applied as
         measurements. False (nothing started) without a fix within ``INIT_FIX_WINDOW``."""
         t0 = float(batch.t[0] - batch.dt[0])
-        # a position-only fix without an earlier one has no velocity yet: the next will
-        near = [g for g in self._pending_fixes if abs(g.t - t0) <= self.INIT_FIX_WINDOW and math.isfinite(g.sigma_v)]
-        if not near:
+        fix = self._init_fix(batch)
+        if fix is None:
             return False
-        fix = min(near, key=lambda g: (abs(g.t - t0), g.t))
         later = sorted((g for g in self._pending_fixes if g.t > t0 and g is not fix), key=lambda g: g.t)
         self._pending_fixes.clear()
         f_b = batch.dvel.sum(axis=0) / max(float(batch.dt.sum()), 1e-3)

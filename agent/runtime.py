@@ -53,9 +53,11 @@ class Agent:
         # only the IMU wakes the agent (10 Hz): beacons, fixes and ranges wait in their queues
         # until then (or until a queue is half full). Processing is driven by IMU time and held
         # back by ``imu_hold`` anyway, so this delays nothing the filters see, and it saves the
-        # event loop a wake-up for every other message, the largest cost of a message.
+        # event loop a wake-up for every other message, the largest cost of a message. Until the
+        # filters start, a GNSS fix wakes it too: the engine may hold IMU data for that fix, and
+        # a fleet paced on the agents' estimates sends no more IMU until they report.
         subs = {
-            kind: self.bus.subscribe(key, self.cfg.queue_size, wake=kind == "imu", waker=waker)
+            kind: self.bus.subscribe(key, self.cfg.queue_size, wake=kind in ("imu", "gnss"), waker=waker)
             for kind, key in (("beacon", keys.radio_rx(v)), ("uwb", keys.uwb(v)), ("gnss", keys.gnss(v)),
                               ("lane", keys.lane(v)), ("imu", keys.imu(v)))
         }
@@ -88,6 +90,8 @@ class Agent:
         while True:
             await waker.wait()
             await self._drain(subs)
+            if subs["gnss"].wake and not self.engine.waiting_for_fix:
+                subs["gnss"].wake = False
 
     async def _drain(self, subs: dict[str, Subscription]) -> None:
         for kind, _, payload in drain_in_arrival_order(subs):

@@ -240,7 +240,12 @@ class EmulatorService:
                     log.warning("agents stalled at t=%.2f (%s at %s); continuing without them until they report",
                                 t, ", ".join(behind), ", ".join(f"{self.stalled[v]:.2f}" for v in behind))
                 else:
-                    log.warning("no agent reports at t=%.2f; continuing", t)
+                    # none reports: set them all aside too, or the clock would wait this long at
+                    # every event (an agent's first report clears it, as a stalled one's does)
+                    for v in self.ids:
+                        if v not in self.agent_time:
+                            self.stalled.setdefault(v, -np.inf)
+                    log.warning("no agent reports at t=%.2f; continuing without waiting until one reports", t)
                 break
             await asyncio.sleep(0.001)
         await asyncio.sleep(0)
