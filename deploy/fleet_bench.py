@@ -261,7 +261,8 @@ def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign:
                     imu_batch: int = 20, fusion: str = DEFAULT_FUSION) -> dict:
     """One benchmark point: ``n`` agents on the grid at 1× with ``imu_batch`` IMU samples per
     message (20: 5 messages a second at 100 Hz), CP methods fusing by ``fusion``; returns
-    :meth:`FleetMonitor.result`."""
+    :meth:`FleetMonitor.result`. A client-mode fleet is secured as ``slcp run``'s is (mutual
+    TLS, the access control list); a peer-mode one cannot be, and runs on plain TCP."""
     from .launcher import run_fleet
 
     with tempfile.TemporaryDirectory(prefix=f"slcp-bench-{n}-") as tmp:
@@ -273,12 +274,13 @@ def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign:
         wall0 = time.monotonic()
         stats = run_fleet(str(scn), methods=(method,), speed=1.0, seed=0, out=base / "run", sign=sign,
                           monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n), agent_nice=agent_nice,
-                          zenoh_mode=zenoh_mode, fusion=fusion)
+                          zenoh_mode=zenoh_mode, fusion=fusion, secure=zenoh_mode == "client")
         res = mon.result()
         res["method"] = method
         res["fusion"] = fusion
         res["agent_nice"] = agent_nice
         res["zenoh_mode"] = zenoh_mode
+        res["secure"] = zenoh_mode == "client"
         res["imu_batch"] = imu_batch
         res["duration_s"] = duration
         res["total_wall_s"] = time.monotonic() - wall0

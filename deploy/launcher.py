@@ -1,6 +1,6 @@
 """``slcp run``: a fleet on one machine over Zenoh on loopback.
 
-The launcher opens a Zenoh session in router mode on ``tcp/127.0.0.1:<free port>`` and records
+The launcher opens a Zenoh session in router mode on ``tls/127.0.0.1:<free port>`` and records
 every estimate and diagnostics message (append-only JSON lines, flushed per batch). It starts the
 emulator service and one agent process per vehicle (each a ``slcp`` subprocess in its own
 session, logging to ``logs/``), waits for the emulator to finish, stops the agents with SIGTERM
@@ -10,7 +10,8 @@ evaluates the recording against the truth and writes the run directory.
 Run directory::
 
     config/agent-<vehicle>.toml      the agents' configurations
-    keys/                            fleet CA, per-vehicle keys and certificates (beacon signing)
+    keys/                            the run's fleet CA, keys and certificates (the router's mutual
+                                     TLS and access control; beacon signing)
     logs/<process>.log               each process's log
     recorded/messages.jsonl          every recorded message, one JSON object per line
     estimates/<vehicle>.csv          time, method, lat, lon, h, velocity, attitude, sigma, errors
@@ -54,7 +55,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = DEFAULT_FUSION,
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
               wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True,
-              zenoh_mode: str = "client") -> dict:
+              zenoh_mode: str = "client", secure: bool = True) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called about twice a second with a
@@ -73,9 +74,20 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     (default) sends every message through the router, one link per process; ``"peer"`` lets them
     dial each other as well (a full mesh of N²/2 links whose keep-alives alone cost a 50-agent
     fleet about a third of a core on one machine). Agents get Zenoh's light runtime
-    (:data:`transport.zenoh_bus.LIGHT_CLIENT_RUNTIME`) unless ``ZENOH_RUNTIME`` is set."""
+    (:data:`transport.zenoh_bus.LIGHT_CLIENT_RUNTIME`) unless ``ZENOH_RUNTIME`` is set.
+
+    With ``secure`` (default) the run is locked down as a deployed fleet is
+    (:mod:`deploy.zenoh_security`): the router listens on TLS only, admits only certificates of
+    the run's own CA (``out/keys``, new for every run) and lets each process publish only under
+    its own keys; the recorder then takes a message only on the key of the sender it names
+    (:class:`deploy.recorder.Recorder`). Another user of the host can neither join nor forge the
+    run's results. Without it the router is plain TCP on loopback, open to any local process;
+    peer mode needs it off (peers link directly, past the router's access control)."""
     if zenoh_mode not in ZENOH_MODES:
         raise ValueError(f"zenoh_mode must be one of {', '.join(ZENOH_MODES)}, got {zenoh_mode!r}")
+    if secure and zenoh_mode == "peer":
+        raise ValueError("zenoh_mode 'peer' links the processes directly, past the router's access control: "
+                         "it needs secure=False (slcp run --insecure)")
     scn = load_scenario(scenario)
     schedule = load_faults(faults, {v.id for v in scn.vehicles}) if faults is not None else []
     out = Path(out)
@@ -89,24 +101,29 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
         "scenario": source, "seed": seed, "methods": list(methods), "fusion": fusion,
         "lane_constraint": lane_constraint}, indent=2))
     port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
     vehicles = [v.id for v in scn.vehicles]
     configs = {}
     security = ""
-    if sign:
-        create_fleet(out / "keys", vehicles, overwrite=True)
-        security = '[security]\ntrust_dir = "../keys"\n\n'
+    fleet_dir = out / "keys"
+    if sign or secure:
+        # a new CA for every run: the certificates of an earlier run in this directory, or of
+        # another run on the host, must not admit anyone to this one
+        create_fleet(fleet_dir, vehicles, new_ca=True)
+        security = ('[security]\ntrust_dir = "../keys"\n'
+                    + ('' if sign else 'sign_beacons = false\n') + '\n')
     for vid in vehicles:
         p = out / "config" / f"agent-{vid}.toml"
         p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
                      f'fusion = "{fusion}"\nlane_constraint = {str(lane_constraint).lower()}\n\n{security}'
-                     f'[zenoh]\nmode = "{zenoh_mode}"\nconnect = ["{endpoint}"]\n')
+                     f'[zenoh]\nmode = "{zenoh_mode}"\nconnect = ["{endpoint}"]\n'
+                     + ('tls = true\n' if secure else ''))
         configs[vid] = p
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
                                    agent_nice=agent_nice, zenoh_mode=zenoh_mode, end_t=scn.duration,
-                                   title=scn.name))
+                                   title=scn.name, fleet_dir=fleet_dir if secure else None))
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}

@@ -19,6 +19,8 @@ Agent configuration file (TOML)::
     trust_dir = "keys"                          # ca.crt + vehicle certificates (``slcp keys create``);
                                                 # relative paths are relative to this file
     key = "keys/V1.key"                         # this vehicle's private key (default <trust_dir>/<vehicle>.key)
+    sign_beacons = true                         # false: the keys serve zenoh.tls only; beacons are
+                                                # neither signed nor checked
 
     [zenoh]
     mode = "peer"                               # peer | client | router
@@ -250,15 +252,20 @@ def security_config(d: dict, path: Path, vehicle: str) -> dict:
 
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: [security]: must be a table")
-    unknown = set(d) - {"trust_dir", "key"}
+    unknown = set(d) - {"trust_dir", "key", "sign_beacons"}
     if unknown:
-        raise ConfigError(f"{path}: security.{sorted(unknown)[0]}: unknown field (known: key, trust_dir)")
+        raise ConfigError(f"{path}: security.{sorted(unknown)[0]}: unknown field (known: key, sign_beacons, trust_dir)")
+    sign = d.get("sign_beacons", True)
+    if not isinstance(sign, bool):
+        raise ConfigError(f"{path}: security.sign_beacons: must be true or false, got {sign!r}")
     for k in ("trust_dir", "key"):
         if k in d and (not isinstance(d[k], str) or not d[k]):
             raise ConfigError(f"{path}: security.{k}: must be a non-empty path string")
     if "trust_dir" not in d:
         raise ConfigError(f"{path}: security.trust_dir: missing")
     trust_dir = path.parent / d["trust_dir"]
+    if not sign:
+        return {"signer": None, "trust": None, "trust_dir": trust_dir}
     key = path.parent / d["key"] if "key" in d else trust_dir / f"{vehicle}.key"
     try:
         trust = TrustStore.from_dir(trust_dir)
@@ -390,7 +397,8 @@ async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
             t.cancel()
         rec.close()
         await bus.close()
-    log.info("recorder stopped: %d recorded, %d bad payloads", rec.recorded, rec.codec_errors)
+    log.info("recorder stopped: %d recorded, %d bad payloads, refused %s", rec.recorded, rec.codec_errors,
+             dict(rec.rejected) or "none")
     return 0
 
 

@@ -3,18 +3,28 @@
 Append-only and flushed after every batch taken off the queue (every 0.1 s), so a message the
 recorder has taken survives a crash of the recorder (at most a last line cut short, which the
 evaluation skips) and a restarted recorder continues the same file. Bad payloads are counted and dropped.
+
+The recorder trusts a message's key, not its content: on a secured fleet the router lets a process
+publish only under its own keys (:mod:`deploy.zenoh_security`), so the key says who sent it. A
+message whose content names another sender than its key (an estimate of V2 under V1's key, a
+diagnostics message of V1 under another source's), or whose time lies outside the window the
+recorder was given, is counted in :attr:`Recorder.rejected` and dropped: it would otherwise be
+scored, shown, or set the launcher's clock, which times faults and the emulator's resume.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
+import math
 import time
 from pathlib import Path
 from typing import IO
 
 import numpy as np
 
+from slcp.transport import keys
 from slcp.transport.bus import Subscription
 from slcp.transport.codec import CodecError, decode
 from slcp.transport.messages import Diagnostics, Estimate, Message
@@ -35,6 +45,11 @@ class Recorder:
     ----------
     recorded, codec_errors : int
         Messages written; payloads that failed to decode.
+    rejected : dict
+        Reason -> count of decodable messages dropped: ``"wrong_key"`` (the content names another
+        sender or method than the key it came on), ``"wrong_type"`` (not an estimate under an
+        estimate key, nor diagnostics under a diagnostics key), ``"out_of_window"`` (a time outside
+        ``t_window``).
     latest_t : dict
         Vehicle -> newest estimate time [s].
     last_wall : dict
@@ -43,8 +58,12 @@ class Recorder:
         Source -> (monotonic receipt time [s], counters, status) of its newest diagnostics.
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, t_window: tuple[float, float] = (-math.inf, math.inf)) -> None:
+        """``t_window`` [s, sensor time]: the times a message may carry (a run's scenario, with a
+        margin); the default takes any finite time."""
         self.path = Path(path)
+        self.t_window = t_window
+        self.rejected: collections.Counter[str] = collections.Counter()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file: IO[str] = open(self.path, "a")
         self.recorded = 0
@@ -54,13 +73,17 @@ class Recorder:
         self.diag: dict[str, tuple[float, dict, dict]] = {}
         self._subs: list[Subscription] = []
 
-    def write(self, payloads: list[bytes]) -> None:
-        """Decode, write and flush a batch of payloads."""
-        for p in payloads:
+    def write(self, batch: list[tuple[str, bytes]]) -> None:
+        """Decode, check against its key, write and flush a batch of ``(key, payload)``."""
+        for key, p in batch:
             try:
                 m = decode(p)
             except CodecError:
                 self.codec_errors += 1
+                continue
+            why = self._refusal(key, m)
+            if why:
+                self.rejected[why] += 1
                 continue
             self._file.write(json.dumps(to_json(m)) + "\n")
             self.recorded += 1
@@ -71,6 +94,27 @@ class Recorder:
                 self.diag[m.source] = (time.monotonic(), m.counters, m.status)
         self._file.flush()
 
+    def _refusal(self, key: str, m: Message) -> str:
+        """Why ``m`` may not be recorded from ``key`` ("" if it may)."""
+        if isinstance(m, Estimate):
+            try:
+                if key != keys.estimate(m.vehicle, m.method):
+                    return "wrong_key"
+            except ValueError:  # a name the keys cannot hold
+                return "wrong_key"
+        elif isinstance(m, Diagnostics):
+            try:
+                if key != keys.diag(m.source):
+                    return "wrong_key"
+            except ValueError:
+                return "wrong_key"
+        else:
+            return "wrong_type"
+        lo, hi = self.t_window
+        if not lo <= m.t <= hi:  # also NaN
+            return "out_of_window"
+        return ""
+
     async def run(self, sub: Subscription, poll_s: float = 0.1) -> None:
         """Record everything ``sub`` delivers, taken off its queue every ``poll_s`` [s wall] (the
         subscription should be non-waking: a fleet's estimates would otherwise wake the recorder
@@ -78,22 +122,20 @@ class Recorder:
         self._subs.append(sub)
         while True:
             await asyncio.sleep(poll_s)
-            batch = [payload for _, payload in sub.drain()]
+            batch = sub.drain()
             if batch:
                 self.write(batch)
 
     def start(self, bus) -> list:
         """Subscribe on ``bus`` to every estimate and diagnostics message and record them; returns
         the two recording tasks (cancel them, then :meth:`close`)."""
-        from slcp.transport import keys
-
         return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000, wake=False))),
                 asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False)))]
 
     def close(self) -> None:
         """Record what is still queued, then close the file."""
         for sub in self._subs:
-            batch = [payload for _, payload in sub.drain()]
+            batch = sub.drain()
             if batch:
                 self.write(batch)
         self._file.close()

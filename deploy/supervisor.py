@@ -28,6 +28,9 @@ from .recorder import Recorder
 
 log = logging.getLogger(__name__)
 
+#: [s] how far before the scenario's start and after its end a recorded message's time may lie
+RECORD_MARGIN_S = 60.0
+
 
 def _slcp(*args: str) -> list[str]:
     return [sys.executable, "-m", "slcp.deploy.cli", *args]
@@ -50,7 +53,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                     max_restarts: int = 3, faults: list | None = None, monitor=None,
                     wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client",
                     end_t: float | None = None, stall_s: float = 30.0, exit_grace_s: float = 15.0,
-                    title: str = "") -> dict:
+                    title: str = "", fleet_dir: Path | None = None) -> dict:
     """Run the fleet's processes until the emulator has played the scenario; return their statistics.
 
     A process that dies is restarted (at most ``max_restarts`` times each; the emulator resumes
@@ -60,14 +63,23 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
     time] it gets ``exit_grace_s`` [s, wall] of silence to exit before it is killed (counted in
     ``stats["emulator_killed_at_end"]``; its scenario was played, so the run goes on). A resumed
     emulator that fails again before the fleet gets past its resume point is not restarted a
-    second time there: the run fails with what was seen (:func:`_check_resume_progressed`)."""
+    second time there: the run fails with what was seen (:func:`_check_resume_progressed`).
+
+    With ``fleet_dir`` (the run's keys) the router is the fleet's: mutual TLS and the access
+    control list (:func:`deploy.zenoh_security.router_config`), and the emulator joins with its
+    certificate; the agents' configurations say the same for them."""
     from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
-    router = ZenohBus(ZenohConfig(mode="router", listen=(endpoint,)))
+    from .zenoh_security import router_config
+
+    router = ZenohBus(router_config(fleet_dir, (endpoint,)) if fleet_dir is not None
+                      else ZenohConfig(mode="router", listen=(endpoint,)))
     sup = _Supervisor(vehicles, configs, out, progress, max_restarts, faults or [], monitor, wait_agents,
                       agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario))
     emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint, "--mode", zenoh_mode,
                 "--wait-agents", f"{wait_agents:g}"]
+    if fleet_dir is not None:
+        emu_args += ["--fleet", str(fleet_dir)]
     if faults:
         emu_args += ["--faults", str(out / "config" / "faults.toml")]
     if speed:
@@ -101,10 +113,13 @@ class _Supervisor:
         self.agent_env = {} if "ZENOH_RUNTIME" in os.environ else {"ZENOH_RUNTIME": LIGHT_CLIENT_RUNTIME}
         self.procs: dict[str, subprocess.Popen] = {}
         self.logs: list = []
-        self.stats: dict = {"exit_codes": {}, "recorded": 0, "codec_errors": 0, "emulator_killed_at_end": False}
+        self.stats: dict = {"exit_codes": {}, "recorded": 0, "codec_errors": 0, "rejected": {},
+                            "emulator_killed_at_end": False}
         rec_path = out / "recorded" / "messages.jsonl"
         rec_path.unlink(missing_ok=True)  # a new run starts a new recording
-        self.rec = Recorder(rec_path)
+        # an estimate's time can set the fleet's clock (faults, resume): only the scenario's, with
+        # a margin for the agents' alignment and hold-back
+        self.rec = Recorder(rec_path, (-RECORD_MARGIN_S, (end_t if end_t is not None else math.inf) + RECORD_MARGIN_S))
         self.restarts: list[dict] = []
         self.wall0 = time.monotonic()
         self.pending = sorted((f for f in faults if f.kind in PROCESS_FAULTS), key=lambda f: f.start)
@@ -269,6 +284,7 @@ class _Supervisor:
         stats["exit_codes"] = {n: p.returncode for n, p in self.procs.items()}
         stats["restarts"] = [{k: v for k, v in r.items() if not k.startswith("_")} for r in self.restarts]
         stats["recorded"], stats["codec_errors"] = self.rec.recorded, self.rec.codec_errors
+        stats["rejected"] = dict(self.rec.rejected)
         return stats
 
 

@@ -54,6 +54,9 @@ def add_run(sub) -> None:
     )
     rn.add_argument("--no-sign", action="store_true",
                     help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
+    rn.add_argument("--insecure", action="store_true",
+                    help="a plain TCP router open to every process of the host (default: mutual TLS with the run's "
+                         "own keys, and each process may publish only under its own keys); --zenoh-mode peer needs it")
 
 
 def add_report(sub) -> None:
@@ -97,7 +100,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         try:
             study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign,
                               agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
-                              zenoh_mode=args.zenoh_mode)
+                              zenoh_mode=args.zenoh_mode, secure=not args.insecure)
         except StudyError as exc:
             print(f"slcp run: {exc}", file=sys.stderr)
             return 1
@@ -122,7 +125,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         with ProgressView() as view:
             m = run_fleet(args.scenario, methods, args.speed, args.seed, out, progress=view, fusion=args.fusion,
                           sign=not args.no_sign, faults=args.faults, agent_nice=args.agent_nice,
-                          lane_constraint=not args.no_lane_constraint, zenoh_mode=args.zenoh_mode)
+                          lane_constraint=not args.no_lane_constraint, zenoh_mode=args.zenoh_mode,
+                          secure=not args.insecure)
     except KeyboardInterrupt:
         print("\nslcp run: interrupted; the fleet's processes are stopped", file=sys.stderr)
         _report_partial_run(out)
