@@ -51,6 +51,27 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def _write_agent_configs(out: Path, vehicles: list[str], scenario: str, methods: tuple[str, ...], fusion: str,
+                         lane_constraint: bool, endpoint: str, zenoh_mode: str, sign: bool,
+                         secure: bool) -> dict[str, Path]:
+    """The agents' files under ``out/config`` (and, for ``sign`` or ``secure``, the run's keys)."""
+    security = ""
+    if sign or secure:
+        # a new CA for every run: the certificates of an earlier run in this directory, or of
+        # another run on the host, must not admit anyone to this one
+        create_fleet(out / "keys", vehicles, new_ca=True)
+        security = '[security]\ntrust_dir = "../keys"\n' + ('' if sign else 'sign_beacons = false\n') + '\n'
+    configs = {}
+    for vid in vehicles:
+        p = out / "config" / f"agent-{vid}.toml"
+        p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
+                     f'fusion = "{fusion}"\nlane_constraint = {str(lane_constraint).lower()}\n\n{security}'
+                     f'[zenoh]\nmode = "{zenoh_mode}"\nconnect = ["{endpoint}"]\n'
+                     + ('tls = true\n' if secure else ''))
+        configs[vid] = p
+    return configs
+
+
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = DEFAULT_FUSION,
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
@@ -100,25 +121,11 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     (out / "config" / "run.json").write_text(json.dumps({
         "scenario": source, "seed": seed, "methods": list(methods), "fusion": fusion,
         "lane_constraint": lane_constraint}, indent=2))
-    port = free_port()
-    endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
+    endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{free_port()}"
     vehicles = [v.id for v in scn.vehicles]
-    configs = {}
-    security = ""
     fleet_dir = out / "keys"
-    if sign or secure:
-        # a new CA for every run: the certificates of an earlier run in this directory, or of
-        # another run on the host, must not admit anyone to this one
-        create_fleet(fleet_dir, vehicles, new_ca=True)
-        security = ('[security]\ntrust_dir = "../keys"\n'
-                    + ('' if sign else 'sign_beacons = false\n') + '\n')
-    for vid in vehicles:
-        p = out / "config" / f"agent-{vid}.toml"
-        p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
-                     f'fusion = "{fusion}"\nlane_constraint = {str(lane_constraint).lower()}\n\n{security}'
-                     f'[zenoh]\nmode = "{zenoh_mode}"\nconnect = ["{endpoint}"]\n'
-                     + ('tls = true\n' if secure else ''))
-        configs[vid] = p
+    configs = _write_agent_configs(out, vehicles, scenario, methods, fusion, lane_constraint, endpoint, zenoh_mode,
+                                   sign, secure)
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
