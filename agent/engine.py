@@ -32,6 +32,7 @@ from slcp.transport.messages import (
     UwbRange,
     UwbRound,
 )
+from slcp.transport.rate_limit import TokenBuckets
 
 from .decision_step import first_stopped_step
 from .engine_config import AgentConfig, RangeObserver
@@ -79,6 +80,8 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
         self.decision_log: list[tuple[float, str, str]] = []
         #: GNSS fixes received before the filters start (the newest few)
         self._pending_fixes: deque[GnssFix] = deque(maxlen=32)
+        #: per (vehicle, method): the signature verifications a sender may cost (made when first used)
+        self._verify_budget: TokenBuckets | None = None
         #: fixes waiting for the filter time of their GNSS time (time offset estimated)
         self._held_fixes: list[tuple[float, int, GnssFix]] = []
         self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
@@ -255,7 +258,10 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
             tab.counters["duplicate_or_old"] += 1
             return
         if self.cfg.trust is not None:
-            outcome = self.cfg.trust.verify(msg)
+            outcome = self.cfg.trust.precheck(msg)
+            if not outcome and not self._may_verify(msg):
+                outcome = "verify_budget"
+            outcome = outcome or self.cfg.trust.check_signature(msg)
             if outcome != "ok":
                 self._count(f"beacon_{outcome}")
                 return
@@ -276,16 +282,6 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
                                                         msg.first_stopped)
 
     # ----------------------------------------------------------------- neighbours
-    def _stale_or_future(self, msg: Beacon) -> str | None:
-        """``stale`` or ``future`` for a beacon outside the time window of the filter time, or None."""
-        now = self.seq.t
-        if now is not None:
-            if now - msg.t > self.cfg.max_beacon_age:
-                return "stale"
-            if msg.t - now > self.cfg.max_beacon_future:
-                return "future"
-        return None
-
     def _count(self, name: str, n: int = 1) -> None:
         self.counters[name] = self.counters.get(name, 0) + n
 

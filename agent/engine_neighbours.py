@@ -11,6 +11,7 @@ from collections.abc import Callable
 import numpy as np
 
 from slcp.transport.messages import Beacon
+from slcp.transport.rate_limit import TokenBuckets
 
 from .engine_config import AgentConfig
 from .first_stopped import StopTracker
@@ -37,6 +38,7 @@ class EngineNeighbours:
 
     cfg: AgentConfig
     _count: Callable[..., None]
+    _verify_budget: TokenBuckets | None
 
     def neighbour_alive(self, other: str, alive: bool) -> None:
         """A neighbour's liveliness token appeared (``alive``) or vanished."""
@@ -92,3 +94,28 @@ class EngineNeighbours:
             while len(self.lost) > self.MAX_LOST:  # the oldest first (insertion order)
                 del self.lost[next(iter(self.lost))]
                 self._count("neighbour_lost_forgotten")
+
+    def _may_verify(self, msg: Beacon) -> bool:
+        """Whether a beacon that names a fleet vehicle and carries its key id may cost a signature
+        verification: a token bucket per vehicle and method on the filter time, twice the beacon
+        rate and two seconds' worth of burst. Genuine beacons come at the beacon rate, so only a
+        flood of forgeries in a vehicle's name (bad signatures, fresh times) meets the bound: it
+        then costs at most twice the genuine verifications, and that vehicle's genuine beacons
+        compete with it (counted ``beacon_verify_budget``) until it stops."""
+        now = self.seq.t
+        if now is None:
+            return True
+        if self._verify_budget is None:
+            rate = 2.0 * self.cfg.beacon_rate
+            self._verify_budget = TokenBuckets(rate, 2.0 * rate)
+        return self._verify_budget.take((msg.vehicle, msg.method), now)
+
+    def _stale_or_future(self, msg: Beacon) -> str | None:
+        """``stale`` or ``future`` for a beacon outside the time window of the filter time, or None."""
+        now = self.seq.t
+        if now is not None:
+            if now - msg.t > self.cfg.max_beacon_age:
+                return "stale"
+            if msg.t - now > self.cfg.max_beacon_future:
+                return "future"
+        return None

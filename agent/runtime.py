@@ -14,7 +14,7 @@ from typing import Any
 
 from slcp.transport import keys
 from slcp.transport.bus import Bus, Subscription, Waker, drain_in_arrival_order
-from slcp.transport.codec import CodecError, decode, encode
+from slcp.transport.codec import MAX_PAYLOAD, CodecError, decode, encode
 from slcp.transport.messages import Beacon, Diagnostics, Estimate, Message
 
 from .engine import AgentConfig, VehicleEngine
@@ -22,6 +22,11 @@ from .engine import AgentConfig, VehicleEngine
 __all__ = ["Agent", "AgentConfig"]
 
 log = logging.getLogger(__name__)
+
+#: [bytes] each input queue's bound beside its length: a flood of large payloads cannot hold more.
+#: A payload the codec would refuse for its size (``codec.MAX_PAYLOAD``) is counted
+#: (``oversized_<kind>``), not even copied.
+QUEUE_BYTES = 4 << 20
 
 
 class Agent:
@@ -57,7 +62,8 @@ class Agent:
         # filters start, a GNSS fix wakes it too: the engine may hold IMU data for that fix, and
         # a fleet paced on the agents' estimates sends no more IMU until they report.
         subs = {
-            kind: self.bus.subscribe(key, self.cfg.queue_size, wake=kind in ("imu", "gnss"), waker=waker)
+            kind: self.bus.subscribe(key, self.cfg.queue_size, wake=kind in ("imu", "gnss"), waker=waker,
+                                     maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD)
             for kind, key in (("beacon", keys.radio_rx(v)), ("uwb", keys.uwb(v)), ("gnss", keys.gnss(v)),
                               ("lane", keys.lane(v)), ("imu", keys.imu(v)))
         }
@@ -84,7 +90,9 @@ class Agent:
         self.engine.neighbour_alive(key.rsplit("/", 1)[-1], alive)
 
     def _queue_counters(self) -> dict[str, int]:
-        return {f"queue_dropped_{k}": s.dropped for k, s in self._subs.items()}
+        out = {f"queue_dropped_{k}": s.dropped for k, s in self._subs.items()}
+        out.update({f"oversized_{k}": s.oversized for k, s in self._subs.items() if s.oversized})
+        return out
 
     async def _consume(self, waker: Waker, subs: dict[str, Subscription]) -> None:
         while True:

@@ -26,7 +26,7 @@ import numpy as np
 
 from slcp.transport import keys
 from slcp.transport.bus import Subscription
-from slcp.transport.codec import CodecError, decode
+from slcp.transport.codec import MAX_PAYLOAD, CodecError, decode
 from slcp.transport.messages import Diagnostics, Estimate, Message
 
 
@@ -36,6 +36,10 @@ def to_json(m: Message) -> dict:
     for k, v in vars(m).items():
         out[k] = v.tolist() if isinstance(v, np.ndarray) else (v.hex() if isinstance(v, bytes) else v)
     return out
+
+
+#: [bytes] each queue's bound (drained every 0.1 s: a 50-vehicle fleet's estimates fill a few MB)
+QUEUE_BYTES = 128 << 20
 
 
 class Recorder:
@@ -49,7 +53,8 @@ class Recorder:
         Reason -> count of decodable messages dropped: ``"wrong_key"`` (the content names another
         sender or method than the key it came on), ``"wrong_type"`` (not an estimate under an
         estimate key, nor diagnostics under a diagnostics key), ``"out_of_window"`` (a time outside
-        ``t_window``).
+        ``t_window``); and the queues' ``"oversized"`` (a payload over the codec's ``MAX_PAYLOAD``) and
+        ``"queue_dropped"`` (a queue over its bound).
     latest_t : dict
         Vehicle -> newest estimate time [s].
     last_wall : dict
@@ -125,12 +130,23 @@ class Recorder:
             batch = sub.drain()
             if batch:
                 self.write(batch)
+            self._count_queue_losses()
+
+    def _count_queue_losses(self) -> None:
+        """The subscriptions' refusals (payloads over the codec's limit) and drops (a queue
+        over its bound), in :attr:`rejected`."""
+        for name, n in (("oversized", sum(s.oversized for s in self._subs)),
+                        ("queue_dropped", sum(s.dropped for s in self._subs))):
+            if n:
+                self.rejected[name] = n
 
     def start(self, bus) -> list:
         """Subscribe on ``bus`` to every estimate and diagnostics message and record them; returns
         the two recording tasks (cancel them, then :meth:`close`)."""
-        return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000, wake=False))),
-                asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False)))]
+        return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000, wake=False,
+                                                           maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD))),
+                asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False,
+                                                           maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD)))]
 
     def close(self) -> None:
         """Record what is still queued, then close the file."""
@@ -138,4 +154,5 @@ class Recorder:
             batch = sub.drain()
             if batch:
                 self.write(batch)
+        self._count_queue_losses()
         self._file.close()

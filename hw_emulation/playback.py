@@ -16,6 +16,7 @@ import numpy as np
 import pymap3d
 
 from slcp.transport.messages import Beacon, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
+from slcp.transport.rate_limit import TokenBuckets
 
 from .emulate import emulate_uwb, emulate_vehicle_sensors
 from .faults import LINK_FAULTS
@@ -156,6 +157,10 @@ class RadioStats:
     codec_errors: int = 0
     #: beacons stamped further ahead of the radio's clock than :data:`MAX_AHEAD`: dropped
     future_dated: int = 0
+    #: beacons beyond the transmitter's share of the channel (``RadioModel.max_tx_rate``): not sent
+    channel_busy: int = 0
+    #: payloads over the radio's size limit: not decoded, not sent
+    oversized: int = 0
 
 
 @dataclass
@@ -202,6 +207,8 @@ class Radio:
         self._pending: list[tuple[float, str, Any]] = []  # (deliver at, receiver, payload)
         self._earliest = math.inf  #: at most the earliest delivery time pending [s]
         self._ge_bad: dict[tuple[str, str], bool] = {}
+        # the channel's share of each transmitter (see RadioModel.max_tx_rate): a second's burst
+        self._airtime = TokenBuckets(self.model.max_tx_rate, self.model.max_tx_rate)
 
     def positions(self, now: float) -> np.ndarray:
         """True horizontal positions of ``ids`` at sensor time ``now``, shape (N, 2) [m] north and
@@ -219,13 +226,17 @@ class Radio:
             self._ne_at = (now, ne)
         return self._ne_at[1]
 
-    def send(self, b: Beacon, payload: Any, now: float) -> None:
-        """A beacon sent when the radio's clock reads ``now`` [s sensor time]."""
-        if b.vehicle not in self._index:
-            self.stats.codec_errors += 1
+    def send(self, b: Beacon, payload: Any, now: float, transmitter: str | None = None) -> None:
+        """A beacon sent when the radio's clock reads ``now`` [s sensor time] by ``transmitter``
+        (the station whose key it came on; default the vehicle it names)."""
+        if b.vehicle not in self._index or (transmitter is not None and transmitter not in self._index):
+            self.stats.codec_errors += 1  # not a vehicle of the scenario
             return
         if not b.t <= now + MAX_AHEAD:
             self.stats.future_dated += 1
+            return
+        if not self._airtime.take(transmitter or b.vehicle, now):
+            self.stats.channel_busy += 1
             return
         self.stats.sent += 1
         for attack in self.attacks:

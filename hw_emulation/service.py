@@ -25,7 +25,7 @@ import numpy as np
 
 from slcp.transport import keys
 from slcp.transport.bus import Bus
-from slcp.transport.codec import CodecError, decode, encode
+from slcp.transport.codec import MAX_PAYLOAD, CodecError, decode, encode
 from slcp.transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
 
 from .playback import Radio, RadioStats, SensorPlayback
@@ -102,7 +102,7 @@ class EmulatorService:
         self.stalled: dict[str, float] = {}
 
     # ----------------------------------------------------------------- radio
-    def _radio_send(self, payload: bytes) -> None:
+    def _radio_send(self, key: str, payload: bytes) -> None:
         try:
             b = decode(payload)
         except CodecError:
@@ -111,7 +111,8 @@ class EmulatorService:
         if not isinstance(b, Beacon):
             self.radio_stats.codec_errors += 1
             return
-        self.radio.send(b, payload, self.now)
+        # the key names the transmitter (on a secured fleet only it may publish there)
+        self.radio.send(b, payload, self.now, transmitter=key.rsplit("/", 1)[-1])
 
     async def _radio_deliver(self) -> None:
         for _, rx, payload in self.radio.due(self.now):
@@ -120,10 +121,11 @@ class EmulatorService:
     async def _radio_loop(self) -> None:
         sub = self._subs[0]
         while True:
-            _, payload = await sub.get()
-            self._radio_send(payload)
-            for _, payload in sub.drain():  # the rest of a burst, from the same wake-up
-                self._radio_send(payload)
+            key, payload = await sub.get()
+            self._radio_send(key, payload)
+            for key, payload in sub.drain():  # the rest of a burst, from the same wake-up
+                self._radio_send(key, payload)
+            self.radio_stats.oversized = sub.oversized
             # deliver at once what is due: beacons arrive after the radio's clock passed their
             # time (agents trail it by their IMU hold), so waiting for the next sensor event
             # would add up to a batch period of latency
@@ -177,9 +179,9 @@ class EmulatorService:
         them); :meth:`run` calls it if needed. The estimates do not wake the emulator: the pacing
         loop reads them when it looks (at a fixed speed they are not needed at all)."""
         if self._subs is None:
-            est = (self.bus.subscribe(keys.ROOT + "/estimate/**", 65536, wake=False)
+            est = (self.bus.subscribe(keys.ROOT + "/estimate/**", 65536, wake=False, max_payload=MAX_PAYLOAD)
                    if self.speed is None else None)
-            self._subs = (self.bus.subscribe(keys.ROOT + "/radio/tx/*", 65536), est)
+            self._subs = (self.bus.subscribe(keys.ROOT + "/radio/tx/*", 65536, max_payload=MAX_PAYLOAD), est)
 
     async def run(self, stop: asyncio.Event | None = None) -> None:
         stop = stop or asyncio.Event()

@@ -264,6 +264,32 @@ def test_the_radio_drops_future_dated_beacons_instead_of_keeping_them() -> None:
     assert radio.stats.sent == 1
 
 
+def test_one_transmitter_gets_its_share_of_the_channel_and_no_more() -> None:
+    """#39 finding 6: a station flooding the radio. Each transmitter may send max_tx_rate
+    packets a second (a second's burst); the rest are counted as channel_busy, and the other
+    stations are not affected."""
+    from slcp.hw_emulation.playback import Radio
+    from slcp.transport.messages import Beacon
+
+    truth = build_truth(load_scenario("paper-1"))
+    radio = Radio(truth, seed=0)
+    a, b = radio.ids[0], radio.ids[1]
+    rate = radio.model.max_tx_rate
+    llh = truth.vehicles[a].truth.llh[0]
+    for k in range(10_000):  # 10,000 beacons in 1 s, all keyed as a's transmissions
+        now = 5.0 + k * 1e-4
+        x = Beacon(a, k, "SL-CP", now, llh, np.zeros(3), np.eye(3))
+        radio.send(x, x, now, transmitter=a)
+        if k % 500 == 0:  # b at 20 a second
+            y = Beacon(b, k, "SL-CP", now, llh, np.zeros(3), np.eye(3))
+            radio.send(y, y, now, transmitter=b)
+    assert radio.stats.sent == pytest.approx(rate + rate * 1.0 + 20, abs=2)
+    assert radio.stats.channel_busy == 10_020 - radio.stats.sent
+    x = Beacon(a, 1, "SL-CP", 6.0, llh, np.zeros(3), np.eye(3))
+    radio.send(x, x, 6.0, transmitter="stranger")  # not a station of the scenario
+    assert radio.stats.codec_errors == 1
+
+
 @pytest.mark.timeout(300)
 def test_agent_paced_play_with_longer_imu_batches_does_not_wait_for_itself() -> None:
     """With 0.2 s IMU messages (imu_batch 20) an agent reports up to 0.2 s + its hold behind the

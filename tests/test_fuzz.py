@@ -43,6 +43,7 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
                     **{keys.estimate(v, "CP"): "recorder" for v in ids}, **{keys.diag(v): "recorder" for v in ids}}
     topics = sorted(agent_topics) + sorted(other_topics)
     expected_codec = collections.Counter()
+    expected_oversized = collections.Counter()
     sent = collections.Counter()
 
     async def main():
@@ -85,7 +86,9 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
                 for _ in range(BURST):
                     key = topics[int(rng.integers(len(topics)))]
                     kind, payload = _bad_payload(rng, key, latest.get(key), key in agent_topics)
-                    if kind in MALFORMED:
+                    if kind == "oversized":  # refused by size before the codec sees it
+                        expected_oversized[agent_topics.get(key) or other_topics[key]] += 1
+                    elif kind in MALFORMED:
                         expected_codec[agent_topics.get(key) or other_topics[key]] += 1
                     mine.add(payload)
                     sent[kind] += 1
@@ -111,9 +114,12 @@ def test_ten_thousand_bad_payloads_are_counted_and_nothing_breaks(tmp_path) -> N
     # every malformed payload counted by its receiver
     for v, a in agents.items():
         assert a.counters["codec_errors"] == expected_codec[v], (v, a.counters["codec_errors"], expected_codec[v])
+        assert sum(s.oversized for s in a._subs.values()) == expected_oversized[v] > 0
         assert all(d == 0 for d in a.dropped.values()), a.dropped
     assert emu.radio_stats.codec_errors == expected_codec["radio"]
+    assert emu.radio_stats.oversized == expected_oversized["radio"] > 0
     assert rec.codec_errors == expected_codec["recorder"]
+    assert rec.rejected["oversized"] == expected_oversized["recorder"] > 0
     _check_semantic_counts(agents)
     _check_estimates(tmp_path / "messages.jsonl", agents, truth)
 

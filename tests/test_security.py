@@ -383,7 +383,10 @@ def test_stale_future_and_replayed_beacons_cost_no_signature_verification() -> N
     class CountingTrust:
         calls = 0
 
-        def verify(self, beacon) -> str:
+        def precheck(self, beacon) -> str:
+            return ""
+
+        def check_signature(self, beacon) -> str:
             CountingTrust.calls += 1
             return "ok"
 
@@ -407,3 +410,40 @@ def test_stale_future_and_replayed_beacons_cost_no_signature_verification() -> N
     assert CountingTrust.calls == 1
     assert eng.counters["beacon_stale"] == 300 and eng.counters["beacon_future"] == 300
     assert eng.tables["CP"].counters["duplicate_or_old"] == 300
+
+
+def test_a_flood_in_one_vehicles_name_costs_a_bounded_number_of_verifications(fleet) -> None:
+    """#39 finding 6: every forged beacon with a fleet key id and a fresh time cost an ECDSA
+    verification. Per sender and method the verifications are a token bucket on the filter time
+    (twice the beacon rate, two seconds of burst): 10,000 forgeries in V0's name in 1 s of filter
+    time cost at most 20 + 10 verifications, and V2's genuine beacons meanwhile are all verified
+    and taken."""
+    import dataclasses as dc
+
+    from slcp.agent.engine import VehicleEngine
+
+    trust = TrustStore.from_dir(fleet)
+    calls = {"n": 0}
+    real = trust.check_signature
+
+    def counting(b):
+        calls["n"] += 1
+        return real(b)
+
+    trust.check_signature = counting  # type: ignore[method-assign]
+    scn = load_scenario("paper-1")
+    eng = VehicleEngine(dc.replace(agent_config(scn, "V1", ("CP",)), trust=trust))
+    eng.seq.t = 100.0  # a running filter's time (the budget runs on it)
+    forged = BeaconSigner.from_file("V0", fleet / "V0.key").sign(beacon("V0", t=100.0))
+    forged = dc.replace(forged, auth=forged.auth[:-1] + bytes([forged.auth[-1] ^ 1]))  # a bad signature
+    v2 = BeaconSigner.from_file("V2", fleet / "V2.key")
+    for k in range(10_000):
+        eng.seq.t = 100.0 + k * 1e-4  # 1 s of filter time
+        eng.handle(dc.replace(forged, seq=10 + k, t=eng.seq.t + 0.5))
+        if k % 2000 == 0:  # V2 at its beacon rate
+            eng.handle(v2.sign(beacon("V2", seq=k, t=eng.seq.t)))
+    rate = 2.0 * eng.cfg.beacon_rate
+    assert eng.counters["beacon_bad_signature"] <= 2 * rate + rate * 1.0 + 1
+    assert eng.counters["beacon_verify_budget"] == 10_000 - eng.counters["beacon_bad_signature"]
+    assert calls["n"] == eng.counters["beacon_bad_signature"] + 5
+    assert eng.beacons_from.get("V2") == 5 and "V0" not in eng.beacons_from

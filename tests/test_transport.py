@@ -551,3 +551,41 @@ def test_zenohs_own_warnings_reach_a_child_of_slcp_run_and_stay_quiet_elsewhere(
     assert "\x1b[" not in child  # plain text in a log file
     quiet = subprocess.run([sys.executable, "-c", probe, closed], capture_output=True, text=True, timeout=30)
     assert quiet.stdout.strip() == "refused" and "WARN" not in quiet.stderr
+
+
+def test_a_queue_is_bounded_in_bytes_and_refuses_oversized_payloads() -> None:
+    """#39 finding 6: queues were bounded in messages only (100 payloads of 10 MB took a process
+    to 668 MB). A payload over ``max_payload`` is counted and not queued; the queue drops its
+    oldest items to stay within ``maxbytes``; the byte count follows every path out."""
+    from slcp.transport.bus import Subscription
+
+    async def main() -> None:
+        sub = Subscription("k", 1000, asyncio.get_running_loop(), maxbytes=10_000, max_payload=4_000)
+        sub.offer("k", b"x" * 4_001)
+        assert sub.oversized == 1 and len(sub) == 0 and sub.queued_bytes == 0
+        for k in range(10):
+            sub.offer("k", bytes([k]) * 3_000)
+        # 3 fit in 10,000 bytes: the 7 oldest were dropped, the newest 3 kept, in order
+        assert sub.dropped == 7 and len(sub) == 3 and sub.queued_bytes == 9_000
+        assert [p[0] for _, p in sub.drain()] == [7, 8, 9] and sub.queued_bytes == 0
+        sub.offer("k", b"a" * 100)
+        sub.offer("k", b"b" * 200)
+        assert (await sub.get())[1] == b"a" * 100 and sub.queued_bytes == 200
+        assert sub.received == 13
+        with pytest.raises(ValueError):
+            Subscription("k", 10, asyncio.get_running_loop(), maxbytes=100, max_payload=1000)
+
+    asyncio.run(main())
+
+
+def test_token_buckets_in_closed_form() -> None:
+    from slcp.transport.rate_limit import TokenBuckets
+
+    tb = TokenBuckets(rate=10.0, burst=5.0)
+    assert sum(tb.take("a", 0.0) for _ in range(8)) == 5  # a full bucket: the burst, then nothing
+    assert tb.take("b", 0.0)  # another key has its own
+    assert not tb.take("a", 0.05) and tb.take("a", 0.1)  # 0.5 then 1 token back: one take
+    assert sum(tb.take("a", 10.0) for _ in range(8)) == 5  # never more than the burst
+    assert not tb.take("a", 9.0)  # a clock going back adds nothing
+    with pytest.raises(ValueError):
+        TokenBuckets(0.0, 1.0)

@@ -1,8 +1,10 @@
 """The Bus interface and an in-memory implementation for unit tests.
 
-Subscriptions deliver ``(key, payload bytes)`` through a bounded queue. Drop policy: when the
-queue is full the *oldest* item is dropped (fresh data wins, as for sensor and beacon streams),
-and the drop is counted in :attr:`Subscription.dropped`. Waking the event loop is the dominant
+Subscriptions deliver ``(key, payload bytes)`` through a queue bounded in messages and in bytes.
+Drop policy: when the queue is full the *oldest* item is dropped (fresh data wins, as for sensor
+and beacon streams), and the drop is counted in :attr:`Subscription.dropped`; a payload larger
+than the subscription's ``max_payload`` is not queued at all (:attr:`Subscription.oversized`), so
+a flood of huge payloads costs neither memory nor a decode. Waking the event loop is the dominant
 cost of a message on a busy machine, so a consumer is woken once per burst, and a subscription
 may be non-waking (drained when its consumer wakes for another one).
 """
@@ -16,6 +18,7 @@ from collections import defaultdict, deque
 from collections.abc import AsyncIterator, Callable
 from typing import Protocol
 
+from . import codec
 from .keys import matches
 
 #: arrival stamps shared by every subscription of the process (``next`` is atomic in CPython), so
@@ -71,12 +74,20 @@ class Subscription:
     share one waker. ``await get()`` and ``async for`` serve single-subscription consumers.
     """
 
+    #: default bounds: a payload the codec would refuse for its size anyway, and a queue of 64 MB
+    MAX_PAYLOAD = codec.MAX_PAYLOAD
+    MAX_BYTES = 64 << 20
+
     def __init__(self, expr: str, maxsize: int, loop: asyncio.AbstractEventLoop, wake: bool = True,
-                 waker: Waker | None = None) -> None:
+                 waker: Waker | None = None, maxbytes: int | None = None, max_payload: int | None = None) -> None:
         if maxsize < 1:
             raise ValueError("queue size must be >= 1")
         self.expr = expr
         self.maxsize = maxsize
+        self.maxbytes = self.MAX_BYTES if maxbytes is None else int(maxbytes)
+        self.max_payload = self.MAX_PAYLOAD if max_payload is None else int(max_payload)
+        if self.max_payload < 1 or self.maxbytes < self.max_payload:
+            raise ValueError(f"need 1 <= max_payload <= maxbytes, got {self.max_payload} and {self.maxbytes}")
         self.loop = loop
         self.wake = wake
         self.waker = waker if waker is not None else Waker(loop)
@@ -84,7 +95,11 @@ class Subscription:
         self._high_water = max(1, maxsize // 2)
         self.received = 0
         self.dropped = 0
+        self.oversized = 0
         self.closed = False
+        # queued bytes = _added - _shed - _taken; each counter has one writer (the producer's
+        # thread for the first two, the consumer's for the third), so no update is lost
+        self._added = self._shed = self._taken = 0
 
     def __len__(self) -> int:
         return len(self._items)
@@ -94,25 +109,39 @@ class Subscription:
         if self.closed:
             return
         self.received += 1
+        n = len(payload)
+        if n > self.max_payload:
+            self.oversized += 1
+            return
         items = self._items
-        if len(items) >= self.maxsize:
+        while items and (len(items) >= self.maxsize or self.queued_bytes + n > self.maxbytes):
             try:
-                items.popleft()
+                self._shed += len(items.popleft()[2])
                 self.dropped += 1
             except IndexError:  # drained meanwhile by the consumer
-                pass
+                break
         items.append((next(_arrival), key, payload))
+        self._added += n
         if self.wake or len(items) >= self._high_water:
             self.waker.signal(threadsafe)
+
+    @property
+    def queued_bytes(self) -> int:
+        """Payload bytes queued now (approximate while the other thread is at work)."""
+        return self._added - self._shed - self._taken
 
     def _take(self) -> list[tuple[int, str, bytes]]:
         out = []
         items = self._items
+        taken = 0
         while items:
             try:
-                out.append(items.popleft())
+                item = items.popleft()
             except IndexError:
                 break
+            out.append(item)
+            taken += len(item[2])
+        self._taken += taken
         return out
 
     def drain(self) -> list[tuple[str, bytes]]:
@@ -123,6 +152,7 @@ class Subscription:
         while not self._items:
             await self.waker.wait()
         _, key, payload = self._items.popleft()
+        self._taken += len(payload)
         return key, payload
 
     def __aiter__(self) -> AsyncIterator[tuple[str, bytes]]:
@@ -146,8 +176,9 @@ class Bus(Protocol):
     async def publish(self, key: str, payload: bytes) -> None: ...
 
     def subscribe(self, expr: str, maxsize: int = 1024, wake: bool = True,
-                  waker: Waker | None = None) -> Subscription:
-        """A subscription to ``expr`` (see :class:`Subscription` for ``wake`` and ``waker``)."""
+                  waker: Waker | None = None, maxbytes: int | None = None,
+                  max_payload: int | None = None) -> Subscription:
+        """A subscription to ``expr`` (see :class:`Subscription` for the other arguments)."""
 
     def declare_alive(self, key: str) -> None: ...
 
@@ -195,8 +226,9 @@ class InMemoryBus:
                     sub.offer(key, bytes(payload))
 
     def subscribe(self, expr: str, maxsize: int = 1024, wake: bool = True,
-                  waker: Waker | None = None) -> Subscription:
-        sub = Subscription(expr, maxsize, asyncio.get_running_loop(), wake, waker)
+                  waker: Waker | None = None, maxbytes: int | None = None,
+                  max_payload: int | None = None) -> Subscription:
+        sub = Subscription(expr, maxsize, asyncio.get_running_loop(), wake, waker, maxbytes, max_payload)
         self.subs.append(sub)
         return sub
 

@@ -177,6 +177,11 @@ class TrustStore:
 
     def verify(self, beacon: Beacon) -> str:
         """``"ok"`` or the reason the beacon is refused (one of :data:`REJECTIONS`)."""
+        return self.precheck(beacon) or self.check_signature(beacon)
+
+    def precheck(self, beacon: Beacon) -> str:
+        """The checks that cost no signature verification: ``""`` if the beacon is signed with
+        the key of the fleet vehicle it names, else the reason it is refused."""
         auth = beacon.auth
         if not auth:
             return "unsigned"
@@ -185,9 +190,14 @@ class TrustStore:
         entry = self._keys.get(bytes(auth[:KEY_ID_LEN]))
         if entry is None:
             return "unknown_key"
-        owner, pk = entry
-        if owner != beacon.vehicle:  # a valid key speaking for another vehicle
+        if entry[0] != beacon.vehicle:  # a valid key speaking for another vehicle
             return "wrong_vehicle"
+        return ""
+
+    def check_signature(self, beacon: Beacon) -> str:
+        """``"ok"`` or ``"bad_signature"`` for a beacon that passed :meth:`precheck` (ECDSA)."""
+        auth = beacon.auth
+        _, pk = self._keys[bytes(auth[:KEY_ID_LEN])]
         r = int.from_bytes(auth[KEY_ID_LEN:KEY_ID_LEN + 32], "big")
         s = int.from_bytes(auth[KEY_ID_LEN + 32:], "big")
         try:

@@ -171,11 +171,17 @@ class ZenohBus:
         pub.put(payload)
 
     def subscribe(self, expr: str, maxsize: int = 1024, wake: bool = True,
-                  waker: Waker | None = None) -> Subscription:
-        sub = Subscription(expr, maxsize, self.loop, wake, waker)
+                  waker: Waker | None = None, maxbytes: int | None = None,
+                  max_payload: int | None = None) -> Subscription:
+        sub = Subscription(expr, maxsize, self.loop, wake, waker, maxbytes, max_payload)
 
         def on_sample(sample: zenoh.Sample) -> None:  # zenoh thread: copy, queue, wake the loop at most once
-            sub.offer(str(sample.key_expr), sample.payload.to_bytes(), threadsafe=True)
+            payload = sample.payload
+            if len(payload) > sub.max_payload:  # counted, never copied
+                sub.received += 1
+                sub.oversized += 1
+                return
+            sub.offer(str(sample.key_expr), payload.to_bytes(), threadsafe=True)
 
         self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
         self._subs.append(sub)

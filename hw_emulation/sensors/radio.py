@@ -34,6 +34,12 @@ class RadioModel:
         The range of a stale packet's extra delay [s].
     max_range : float
         No delivery beyond this distance [m].
+    max_tx_rate : float
+        Packets a station may transmit per second [1/s], with a burst of one second's worth: the
+        channel's decentralised congestion control (ETSI TS 102 687: at least 25 ms between a
+        station's packets when the channel is relaxed, 40 per second) keeps any one station,
+        a faulty or hostile one too, from taking the channel. slcp's vehicles send 5 Hz per
+        method, 20 per second with all four.
     """
 
     loss: float = 0.05
@@ -47,11 +53,12 @@ class RadioModel:
     stale_min: float = 0.100
     stale_max: float = 0.300
     max_range: float = 300.0
+    max_tx_rate: float = 40.0
 
     def __post_init__(self) -> None:
         params.probability(self, "loss", "ge_p_good_to_bad", "ge_p_bad_to_good", "ge_loss_bad", "stale_prob")
         params.non_negative(self, "latency_min", "jitter_mean", "stale_min")
-        params.positive(self, "max_range")
+        params.positive(self, "max_range", "max_tx_rate")
         params.ordered(self, "latency_min", "latency_max")
         params.ordered(self, "stale_min", "stale_max")
 
