@@ -228,7 +228,7 @@ class EmulatorService:
             # the slowest agent that reports (one that left is forgotten until it reports again,
             # so a dead agent never stalls the fleet and a restarted one rejoins the pacing)
             slow = min((self.agent_time[v] for v in self.ids if v in self.agent_time), default=-np.inf)
-            if slow >= t - self._lead or (not final and slow == -np.inf and (t - t0 < self._lead or self.stalled)):
+            if slow >= t - self._lead or (slow == -np.inf and (self.stalled or (not final and t - t0 < self._lead))):
                 break  # (with every agent set aside, the clock runs at max_speed until one reports)
             if time.monotonic() > deadline:
                 if final:

@@ -129,5 +129,6 @@ def test_with_no_agent_reporting_the_emulator_waits_once_not_at_every_event(pape
         return asyncio.get_running_loop().time() - t0
 
     wall = asyncio.run(main())
-    # one wait of 0.3 s and the final 5 s for the last beacons, not 0.3 s at each of ~100 events
-    assert wall < 10.0
+    # one wait of 0.3 s, then 3 s of events at up to 20x: not 0.3 s at each of ~100 events, nor
+    # the final wait for the last estimates (nobody reports them)
+    assert wall < 2.0
