@@ -429,6 +429,10 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
 
         def on_alive(key: str, up: bool) -> None:
             v = key.rsplit("/", 1)[-1]
+            if v not in truth.vehicles:  # not an agent of this scenario (counted by the service)
+                if not up:
+                    emu.forget_agent(v)
+                return
             if up:
                 alive.add(v)
                 emu.agent_back(v)
@@ -447,7 +451,8 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
             log.warning("starting without agents %s", sorted(missing))
         await asyncio.sleep(0.3)  # let the agents' subscriptions propagate
         await emu.run(stop)
-        log.info("emulator done: published %s, radio %s, faults %s", emu.published, emu.radio_stats, emu.fault_stats)
+        log.info("emulator done: published %s, radio %s, faults %s, unknown liveliness tokens gone %d",
+                 emu.published, emu.radio_stats, emu.fault_stats, emu.unknown_liveliness)
     finally:
         await bus.close()
     return 0

@@ -100,6 +100,8 @@ class EmulatorService:
         #: vehicle -> sensor time [s] of its last estimate when it stalled the clock; the clock no
         #: longer waits for it until it reports a later time
         self.stalled: dict[str, float] = {}
+        #: departures of names that are not the scenario's vehicles, ignored
+        self.unknown_liveliness = 0
 
     # ----------------------------------------------------------------- radio
     def _radio_send(self, key: str, payload: bytes) -> None:
@@ -160,7 +162,12 @@ class EmulatorService:
     def forget_agent(self, vehicle: str) -> None:
         """The agent of ``vehicle`` left (its liveliness token went away): stop pacing on it. In
         agent-paced mode the clock waits up to ``rejoin_grace`` (wall) for it to come back, as it
-        would not run ahead of a restarting vehicle in real time."""
+        would not run ahead of a restarting vehicle in real time. A name that is not one of the
+        scenario's vehicles is ignored (counted in :attr:`unknown_liveliness`): a token anyone
+        could declare must not hold the clock."""
+        if vehicle not in self.ids:
+            self.unknown_liveliness += 1
+            return
         self.agent_time.pop(vehicle, None)
         self._away[vehicle] = time.monotonic()
 

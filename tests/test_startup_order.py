@@ -132,3 +132,24 @@ def test_with_no_agent_reporting_the_emulator_waits_once_not_at_every_event(pape
     # one wait of 0.3 s, then 3 s of events at up to 20x: not 0.3 s at each of ~100 events, nor
     # the final wait for the last estimates (nobody reports them)
     assert wall < 2.0
+
+
+@pytest.mark.timeout(60)
+def test_a_departure_of_a_name_outside_the_scenario_does_not_hold_the_clock(paper1) -> None:
+    """#39 finding 5: the emulator took a 'left' notice for any name and held the clock for the
+    rejoin grace (8-10 s). Only the scenario's vehicles count; the rest is counted and ignored."""
+    _, truth = paper1
+
+    async def main() -> tuple[float, EmulatorService]:
+        emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0, stall_timeout=0.3, rejoin_grace=5.0)
+        emu.playback.messages = lambda start_at=None, orig=emu.playback.messages: (
+            x for x in orig(start_at) if x[0] <= 1.0)
+        for k in range(5000):
+            emu.forget_agent(f"X{k}")
+        t0 = asyncio.get_running_loop().time()
+        await emu.run()
+        return asyncio.get_running_loop().time() - t0, emu
+
+    wall, emu = asyncio.run(main())
+    assert emu.unknown_liveliness == 5000 and not emu._away
+    assert wall < 2.0  # not the 5 s grace
