@@ -148,11 +148,15 @@ class Recorder:
                 asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False,
                                                            maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD)))]
 
-    def close(self) -> None:
-        """Record what is still queued, then close the file."""
+    def flush(self) -> None:
+        """Record what is still queued (the recording tasks cancelled, or their bus closing)."""
         for sub in self._subs:
             batch = sub.drain()
             if batch:
                 self.write(batch)
         self._count_queue_losses()
+
+    def close(self) -> None:
+        """Record what is still queued, then close the file."""
+        self.flush()
         self._file.close()

@@ -72,10 +72,13 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
 
     from .zenoh_security import router_config
 
-    router = ZenohBus(router_config(fleet_dir, (endpoint,)) if fleet_dir is not None
-                      else ZenohConfig(mode="router", listen=(endpoint,)))
+    def open_router() -> ZenohBus:
+        return ZenohBus(router_config(fleet_dir, (endpoint,)) if fleet_dir is not None
+                        else ZenohConfig(mode="router", listen=(endpoint,)))
+
     sup = _Supervisor(vehicles, configs, out, progress, max_restarts, faults or [], monitor, wait_agents,
                       agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario))
+    sup.open_router(open_router)
     emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint, "--mode", zenoh_mode,
                 "--wait-agents", f"{wait_agents:g}"]
     if fleet_dir is not None:
@@ -84,17 +87,17 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
         emu_args += ["--faults", str(out / "config" / "faults.toml")]
     if speed:
         emu_args += ["--speed", str(speed)]
-    tasks = sup.rec.start(router)
     try:
         sup.start(emu_args)
         if monitor is not None:
-            monitor.attach(router, sup.procs)
+            monitor.attach(sup.router, sup.procs)
         while not await sup.tick():
             pass
         await asyncio.sleep(0.5)  # last estimates in flight
     finally:
-        sup.stop(tasks)
-        await router.close()
+        sup.stop()
+        if sup.router is not None:
+            await sup.router.close()
     return sup.statistics()
 
 
@@ -130,6 +133,39 @@ class _Supervisor:
         self.prev_diag: dict = {}
         self.silenced: float | None = None  # the watchdog killed the emulator after this long [s] of silence
         self.emu_args: list[str] = []
+        self.router = None  # the Zenoh router (this process's session), None while it is down
+        self.rec_tasks: list[asyncio.Task] = []
+        self._router_factory = None
+        self._router_down: tuple[float, float] | None = None  # (wall time to reopen, fleet time it went down)
+
+    def open_router(self, factory) -> None:
+        """Open the router with ``factory()`` and record what it carries."""
+        self._router_factory = factory
+        self.router = factory()
+        self.rec_tasks = self.rec.start(self.router)
+
+    async def _cycle_router(self) -> None:
+        """A ``router_restart`` fault: the router was closed; reopen it when due. Clients (the
+        agents, the emulator) reconnect by themselves and declare their liveliness again; what
+        was published while it was down is lost, as on a real network."""
+        if self._router_down is None or time.monotonic() < self._router_down[0]:
+            return
+        after_t = self._router_down[1]
+        self._router_down = None
+        self.open_router(self._router_factory)
+        now = time.monotonic()
+        log.warning("router reopened at t=%.1f s", after_t)
+        self.restarts.append({"process": "router", "exit_code": "stopped", "at_s": now - self.wall0, "_t": now,
+                              "_after_t": after_t, "rejoined_after_s": None})
+
+    async def _stop_router(self, down_s: float) -> None:
+        for t in self.rec_tasks:
+            t.cancel()
+        self.rec.flush()
+        if self.router is not None:
+            await self.router.close()
+        self.router = None
+        self._router_down = (time.monotonic() + down_s, self._fleet_t())
 
     def _log(self, name: str, mode: str = "w"):
         lf = open(self.out / "logs" / f"{name}.log", mode)
@@ -158,7 +194,9 @@ class _Supervisor:
         await asyncio.sleep(0.2)
         if self.monitor is not None:
             self.monitor.sample(self.rec)
-        self._apply_faults()
+        for f in self._apply_faults():
+            await self._stop_router(f.end - f.start)
+        await self._cycle_router()
         self._restart_agents()
         self._note_rejoins()
         self._report()
@@ -201,11 +239,18 @@ class _Supervisor:
         self.restarts.append({"process": "emulator", "exit_code": rc, "at_s": now - self.wall0, "_t": now,
                               "_after_t": t_resume, "rejoined_after_s": None, "resumed_at_t_s": t_resume})
 
-    def _apply_faults(self) -> None:
-        """Process faults, at the fleet's sensor time; frozen processes thawed when due."""
+    def _apply_faults(self) -> list:
+        """Process faults, at the fleet's sensor time; frozen processes thawed when due. Returns
+        the router faults now due (:meth:`_stop_router` takes them)."""
         now_s = self._fleet_t()
+        router_faults = []
         while self.pending and self.pending[0].start <= now_s:
             f = self.pending.pop(0)
+            if f.kind == "router_restart":
+                if self.router is not None:
+                    log.warning("fault router_restart at t=%.1f s (down %.1f s)", now_s, f.end - f.start)
+                    router_faults.append(f)
+                continue
             p = self.procs.get("emulator" if f.kind == "emulator_kill" else f"agent-{f.vehicles[0]}")
             if p is None or p.poll() is not None:
                 continue
@@ -217,6 +262,7 @@ class _Supervisor:
             self.frozen.remove((due, n))
             if self.procs[n].poll() is None:
                 os.kill(self.procs[n].pid, signal.SIGCONT)
+        return router_faults
 
     def _restart_agents(self) -> None:
         """An agent died (crash, kill -9): start it again; it re-initialises from GNSS and
@@ -239,7 +285,7 @@ class _Supervisor:
             if r["rejoined_after_s"] is not None:
                 continue
             v = r["process"].removeprefix("agent-")
-            if r["process"] == "emulator":
+            if r["process"] in ("emulator", "router"):
                 fresh = [u for u, t in rec.latest_t.items() if t > r["_after_t"]]
             else:
                 fresh = [v] if rec.latest_t.get(v, -math.inf) > r["_after_t"] else []
@@ -264,7 +310,7 @@ class _Supervisor:
             sum(now_w - w < 3.0 for w in rec.last_wall.values()), len(self.vehicles), rec.recorded,
             now_w - self.wall0, self.table, now_w - self.play0 if self.play0 is not None else 0.0))
 
-    def stop(self, tasks) -> None:
+    def stop(self) -> None:
         """Stop every child; a second Ctrl-C while they are stopped waits until they are (they
         run in their own sessions: the terminal's signal never reaches them)."""
         with _termination_deferred():
@@ -273,7 +319,7 @@ class _Supervisor:
                     with contextlib.suppress(ProcessLookupError):
                         os.kill(p.pid, signal.SIGCONT)
             _stop_all(self.procs)
-            for t in tasks:
+            for t in self.rec_tasks:
                 t.cancel()
             self.rec.close()
             for lf in self.logs:

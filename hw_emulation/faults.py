@@ -30,6 +30,9 @@ Kinds played by the launcher (processes; one vehicle each):
                     (the clock of the fleet does not wait for a frozen agent)
 ``emulator_kill``   SIGKILL to the emulator at ``start`` (no vehicles); the launcher restarts
                     it at the fleet's newest sensor time (``slcp emulate --start-at``)
+``router_restart``  the launcher's Zenoh router closes at ``start`` and opens again on the
+                    same endpoint ``end - start`` seconds of *wall* time later (no vehicles);
+                    the clients reconnect, and what was sent meanwhile is lost
 ==================  ======================================================================
 """
 
@@ -42,7 +45,7 @@ from pathlib import Path
 
 LINK_FAULTS = ("v2v_blackout", "burst_loss", "latency_spike")
 SENSOR_FAULTS = ("uwb_outage", "gnss_outage")
-PROCESS_FAULTS = ("agent_kill", "agent_freeze", "emulator_kill")
+PROCESS_FAULTS = ("agent_kill", "agent_freeze", "emulator_kill", "router_restart")
 KINDS = LINK_FAULTS + SENSOR_FAULTS + PROCESS_FAULTS
 
 
@@ -57,7 +60,7 @@ class Fault:
     Attributes
     ----------
     kind : str
-        One of the link, sensor and process kinds (``v2v_blackout``, ..., ``emulator_kill``).
+        One of the link, sensor and process kinds (``v2v_blackout``, ..., ``router_restart``).
     start : float
         Sensor time at which it begins [s].
     end : float
@@ -139,6 +142,8 @@ def _parse_fault(d: dict, where: str, known_vehicles: set[str] | None) -> Fault:
         raise FaultError(f"{where}: unknown vehicle {sorted(set(vehicles) - known_vehicles)[0]!r}")
     if kind in ("agent_kill", "agent_freeze") and len(vehicles) != 1:
         raise FaultError(f"{where}: {kind} needs exactly one vehicle")
+    if kind in ("emulator_kill", "router_restart") and vehicles:
+        raise FaultError(f"{where}: {kind} takes no vehicles")
     loss, latency = d.get("loss", 0.5), d.get("latency", 0.25)
     if isinstance(loss, bool) or not isinstance(loss, (int, float)) or not 0.0 <= loss <= 1.0:
         raise FaultError(f"{where}: loss must be a probability in [0, 1]")

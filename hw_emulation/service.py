@@ -172,8 +172,11 @@ class EmulatorService:
         self._away[vehicle] = time.monotonic()
 
     def agent_back(self, vehicle: str) -> None:
-        """The agent of ``vehicle`` (re)declared its liveliness."""
-        self._away.pop(vehicle, None)
+        """The agent of ``vehicle`` (re)declared its liveliness. One that comes back is set aside
+        until it reports: it has no estimate to report before the sensor data it missed, and
+        when every agent was away (the network went down) the clock would wait for nobody."""
+        if self._away.pop(vehicle, None) is not None and vehicle not in self.agent_time:
+            self.stalled.setdefault(vehicle, -np.inf)
 
     # ----------------------------------------------------------------- playback
     def _events(self):

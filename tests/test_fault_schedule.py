@@ -29,7 +29,9 @@ def test_a_schedule_file_is_read_and_its_errors_name_the_fault(tmp_path) -> None
            ('kind = "agent_freeze"\nstart = 1\nend = 2', "agent_freeze needs exactly one vehicle"),
            ('kind = "burst_loss"\nstart = 1\nend = 2\nloss = 1.5', "loss must be a probability"),
            ('kind = "burst_loss"\nstart = 1\nend = 2\nduration = 3', "unknown field 'duration'"),
-           ('kind = "burst_loss"\nend = 2', "start is missing")]
+           ('kind = "burst_loss"\nend = 2', "start is missing"),
+           ('kind = "router_restart"\nstart = 1\nend = 1', "router_restart needs an end after its start"),
+           ('kind = "router_restart"\nstart = 1\nend = 2\nvehicles = ["V1"]', "router_restart takes no vehicles")]
     for body, msg in bad:
         p.write_text("[[fault]]\n" + body + "\n")
         with pytest.raises(FaultError, match=f"faults.toml: fault 1: {msg}"):

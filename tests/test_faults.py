@@ -88,7 +88,7 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
 @pytest.mark.timeout(240)
 def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
     """The shipped example schedule (every fault kind: link and sensor faults, an agent frozen, an
-    agent killed, the emulator killed) on `slcp run`."""
+    agent killed, the emulator killed, the router restarted) on `slcp run`."""
 
     schedule = Path(__file__).resolve().parents[1] / "deploy" / "faults" / "paper-1.toml"
     out = tmp_path / "run"
@@ -97,23 +97,26 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert [f["kind"] for f in m["faults"]] == ["v2v_blackout", "burst_loss", "latency_spike", "uwb_outage",
-                                                "gnss_outage", "agent_freeze", "agent_kill", "emulator_kill"]
+                                                "gnss_outage", "agent_freeze", "agent_kill", "emulator_kill",
+                                                "router_restart"]
     restarts = m["processes"]["restarts"]
-    assert [(x["process"], x["exit_code"]) for x in restarts] == [("agent-V1", -9), ("emulator", -9)]
+    assert [(x["process"], x["exit_code"]) for x in restarts] == [("router", "stopped"), ("agent-V1", -9),
+                                                                  ("emulator", -9)]
     # an agent is back within 5 s; the emulator rebuilds the scenario's truth and sensor data
     # before it resumes (about 2.5 s of CPU), and took 5.15 and 5.46 s in two suite runs on
     # the 2-core machine: its bound only tells a resumed run from a stuck one (speed is a figure)
-    limit = {"agent-V1": 5.0, "emulator": 15.0}
+    limit = {"agent-V1": 5.0, "emulator": 15.0, "router": 10.0}
     assert all(x["rejoined_after_s"] is not None and x["rejoined_after_s"] < limit[x["process"]]
                for x in restarts), restarts
     # resumed where the fleet was: the kill comes at t = 45 s on the launcher's 0.2 s (wall) poll,
     # up to 4 s of sensor time later at the emulator's 20x, and it leads the agents by 0.5 s
-    assert 45.0 <= restarts[1]["resumed_at_t_s"] < 50.0
+    assert 45.0 <= restarts[2]["resumed_at_t_s"] < 50.0
     report = (out / "report.md").read_text()
     assert "## Faults" in report and "| agent_freeze (V0) |" in report and "## Process faults" in report
     lines = [json.loads(x) for x in (out / "recorded" / "messages.jsonl").read_text().splitlines()]
     for row in ("| gnss_outage (V2) | 8.0–14.0 | V2 |", "| v2v_blackout (V2) | 20.0–24.0 | V2 |",
-                "| emulator_kill (all) | 45.0–45.0 | V0 |"):
+                "| emulator_kill (all) | 45.0–45.0 | V0 |", "| router_restart (all) | 16.0–18.0 | V0 |",
+                "| router | stopped |"):
         assert row in report, row
     v0 = [d["t"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == "V0" and d["method"] == "SP"]
     assert max(v0) > 45.0  # the frozen agent resumed and went on to the end
