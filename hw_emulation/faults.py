@@ -43,6 +43,8 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 LINK_FAULTS = ("v2v_blackout", "burst_loss", "latency_spike")
 SENSOR_FAULTS = ("uwb_outage", "gnss_outage")
 PROCESS_FAULTS = ("agent_kill", "agent_freeze", "emulator_kill", "router_restart")
@@ -164,3 +166,58 @@ def load_faults(path: Path | str, known_vehicles: set[str] | None = None) -> lis
     except tomllib.TOMLDecodeError as exc:
         raise FaultError(f"{p}: not valid TOML ({exc})") from None
     return parse_faults(data, str(p), known_vehicles)
+
+
+def random_schedule(vehicles: list[str], duration: float, rng: np.random.Generator, per_minute: float = 4.0,
+                    max_freeze: float = 30.0, margin: float = 10.0) -> list[Fault]:
+    """A chaos schedule: about ``per_minute`` faults a minute of sensor time, drawn from agent
+    kills, agent freezes (up to ``max_freeze`` s of wall time), V2V blackouts, GNSS outages,
+    emulator kills and router restarts (``rng``: a numpy Generator). Process faults are at least
+    ``margin`` s of sensor time apart, none comes within ``margin`` of the start or the end, and
+    no process is killed more often than the launcher restarts one (3 times)."""
+    if not vehicles or duration <= 3 * margin:
+        raise FaultError(f"a chaos schedule needs vehicles and more than {3 * margin:g} s, got {duration:g} s")
+    n = max(1, int(round(per_minute * duration / 60.0)))
+    kinds = ("agent_kill", "agent_freeze", "v2v_blackout", "gnss_outage", "emulator_kill", "router_restart")
+    weights = np.array([3.0, 3.0, 2.0, 1.0, 1.0, 1.0])
+    out: list[Fault] = []
+    kills: dict[str, int] = {}
+    last_process = -math.inf
+    for start in np.sort(rng.uniform(margin, duration - margin, n)):
+        kind = str(rng.choice(kinds, p=weights / weights.sum()))
+        start = round(float(start), 1)
+        if kind in PROCESS_FAULTS:
+            if start - last_process < margin:
+                kind = "v2v_blackout"  # too close to the last process fault: a link fault instead
+            else:
+                last_process = start
+        v = str(rng.choice(vehicles))
+        who = "emulator" if kind == "emulator_kill" else v
+        if kind in ("agent_kill", "emulator_kill"):
+            if kills.get(who, 0) >= 2:
+                kind = "agent_freeze"
+            else:
+                kills[who] = kills.get(who, 0) + 1
+        if kind == "agent_kill":
+            out.append(Fault(kind, start, start, (v,)))
+        elif kind == "emulator_kill":
+            out.append(Fault(kind, start, start))
+        elif kind == "agent_freeze":
+            out.append(Fault(kind, start, round(start + float(rng.uniform(1.0, max_freeze)), 1), (v,)))
+        elif kind == "router_restart":
+            out.append(Fault(kind, start, round(start + float(rng.uniform(0.5, 5.0)), 1)))
+        else:  # a link or sensor fault of one vehicle, a few seconds
+            out.append(Fault(kind, start, round(start + float(rng.uniform(2.0, 10.0)), 1), (v,)))
+    return out
+
+
+def schedule_toml(faults: list[Fault], comment: str = "") -> str:
+    """A schedule as the TOML that :func:`load_faults` reads."""
+    lines = [f"# {comment}"] if comment else []
+    for f in faults:
+        lines += ["", "[[fault]]", f'kind = "{f.kind}"', f"start = {f.start!r}"]
+        if f.end != f.start or f.kind not in ("agent_kill", "emulator_kill"):
+            lines.append(f"end = {f.end!r}")
+        if f.vehicles:
+            lines.append("vehicles = [" + ", ".join(f'"{v}"' for v in f.vehicles) + "]")
+    return "\n".join(lines) + "\n"

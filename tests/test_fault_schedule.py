@@ -94,3 +94,28 @@ def test_link_and_sensor_faults_on_a_running_fleet() -> None:
     for v in ("V1", "V2"):
         assert agents[v].filters["CP"].counters["ranges"] + agents[v].filters["CP"].counters["ranges_skipped"] > 0
     assert all(np.all(np.isfinite(e.llh)) and np.all(np.isfinite(e.cov_pos)) for e in est)
+
+
+def test_a_chaos_schedule_is_valid_spaced_and_within_the_restart_limits(tmp_path) -> None:
+    import numpy as np
+
+    from slcp.hw_emulation.faults import PROCESS_FAULTS, random_schedule, schedule_toml
+
+    vehicles = [f"V{k}" for k in range(6)]
+    for seed in range(20):
+        fs = random_schedule(vehicles, 300.0, np.random.default_rng(seed), per_minute=6.0, max_freeze=30.0)
+        assert len(fs) == 30
+        p = tmp_path / f"chaos-{seed}.toml"
+        p.write_text(schedule_toml(fs, "test"))
+        assert load_faults(p, set(vehicles)) == fs  # the file says exactly this schedule
+        proc = [f.start for f in fs if f.kind in PROCESS_FAULTS]
+        assert all(b - a >= 10.0 for a, b in zip(proc, proc[1:]))
+        assert all(10.0 <= f.start <= 290.0 for f in fs)
+        kills = [f.vehicles[0] if f.vehicles else "emulator" for f in fs if f.kind.endswith("_kill")]
+        assert all(kills.count(k) <= 2 for k in kills)
+        assert all(f.end - f.start <= 30.0 for f in fs if f.kind == "agent_freeze")
+    kinds = {f.kind for seed in range(20)
+             for f in random_schedule(vehicles, 300.0, np.random.default_rng(seed))}
+    assert kinds == {"agent_kill", "agent_freeze", "v2v_blackout", "gnss_outage", "emulator_kill", "router_restart"}
+    with pytest.raises(FaultError):
+        random_schedule(vehicles, 20.0, np.random.default_rng(0))

@@ -30,6 +30,17 @@ def add_scenario(sub) -> None:
     gt.add_argument("name", help="shipped scenario name or path to a .toml file")
     gt.add_argument("--seeds", type=T.positive_int, default=25, help="seeds 0..N-1 (default 25)")
     gt.add_argument("--json", action="store_true", help="print one JSON object")
+    ch = ssub.add_parser("chaos", help="write a random fault schedule for a scenario (kills, freezes, blackouts, "
+                                       "emulator and router restarts), for slcp run --faults")
+    ch.add_argument("name", help="shipped scenario name or path to a .toml file")
+    ch.add_argument("--seed", type=T.seed, default=0, help="random seed (default 0)")
+    ch.add_argument("--per-minute", type=T.positive_float, default=4.0,
+                    help="faults per minute of sensor time (default 4)")
+    ch.add_argument("--max-freeze", type=T.positive_float, default=30.0,
+                    help="longest agent freeze [s of wall time] (default 30)")
+    ch.add_argument("--out", type=Path, default=None, metavar="FILE.toml",
+                    help="write here (default: print to the terminal); an existing file is kept unless --force")
+    ch.add_argument("--force", action="store_true", help="replace an existing --out file")
     ev = ssub.add_parser("evaluate", help="run all vehicles and the four methods in one process (no bus)")
     ev.add_argument("name", help="shipped scenario name or path to a .toml file")
     ev.add_argument("--seed", type=T.seed, default=0, help="sensor seed (default 0)")
@@ -56,6 +67,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
         args.out.write_text(text)
         print(f"wrote {args.out} (scenario {args.name}; run it with: slcp run {args.out})")
         return 0
+    if args.scenario_command == "chaos":
+        return _chaos(args)
     from slcp.hw_emulation.events import event_times, window_bounds
     from slcp.hw_emulation.truth import build_truth
 
@@ -191,3 +204,24 @@ def _sp_check(args: argparse.Namespace, scn, truth) -> int:
 
 
 HANDLERS = {"scenario": _cmd_scenario}
+
+
+def _chaos(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from slcp.hw_emulation.faults import random_schedule, schedule_toml
+    from slcp.hw_emulation.scenario import load_scenario
+
+    scn = load_scenario(args.name)
+    faults = random_schedule([v.id for v in scn.vehicles], scn.duration, np.random.default_rng(args.seed),
+                             args.per_minute, args.max_freeze)
+    text = schedule_toml(faults, f"slcp scenario chaos {args.name} --seed {args.seed}: {len(faults)} faults "
+                                 f"in {scn.duration:g} s")
+    if args.out is None:
+        print(text, end="")
+        return 0
+    if args.out.exists() and not args.force:
+        raise FileExistsError(f"{args.out}: exists (use --force to replace it)")
+    args.out.write_text(text)
+    print(f"wrote {args.out} ({len(faults)} faults; run it with: slcp run {args.name} --faults {args.out})")
+    return 0
