@@ -58,15 +58,8 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
     if args.scenario_command == "export":
         from slcp.hw_emulation.scenario import shipped_scenario_text
 
-        text = shipped_scenario_text(args.name)
-        if args.out is None:
-            print(text, end="")
-            return 0
-        if args.out.exists() and not args.force:
-            raise FileExistsError(f"{args.out}: exists (use --force to replace it)")
-        args.out.write_text(text)
-        print(f"wrote {args.out} (scenario {args.name}; run it with: slcp run {args.out})")
-        return 0
+        return _write_or_print(args, shipped_scenario_text(args.name),
+                               f"scenario {args.name}; run it with: slcp run {args.out}")
     if args.scenario_command == "chaos":
         return _chaos(args)
     from slcp.hw_emulation.events import event_times, window_bounds
@@ -217,11 +210,16 @@ def _chaos(args: argparse.Namespace) -> int:
                              args.per_minute, args.max_freeze)
     text = schedule_toml(faults, f"slcp scenario chaos {args.name} --seed {args.seed}: {len(faults)} faults "
                                  f"in {scn.duration:g} s")
+    return _write_or_print(args, text, f"{len(faults)} faults; run it with: slcp run {args.name} --faults {args.out}")
+
+
+def _write_or_print(args: argparse.Namespace, text: str, what: str) -> int:
+    """``text`` to ``args.out`` (kept unless ``args.force``), or to the terminal without one."""
     if args.out is None:
         print(text, end="")
         return 0
     if args.out.exists() and not args.force:
         raise FileExistsError(f"{args.out}: exists (use --force to replace it)")
     args.out.write_text(text)
-    print(f"wrote {args.out} ({len(faults)} faults; run it with: slcp run {args.name} --faults {args.out})")
+    print(f"wrote {args.out} ({what})")
     return 0
