@@ -44,6 +44,12 @@ class EngineNeighbours:
         """A neighbour's liveliness token appeared (``alive``) or vanished."""
         if other == self.cfg.vehicle:
             return
+        trust = self.cfg.trust
+        if trust is not None and not trust.is_vehicle(other):
+            # not a vehicle of the fleet: no beacon of it can pass, so it is no neighbour, and a
+            # stranger churning thousands of tokens must not fill the departures or the log
+            self._count("liveliness_unknown")
+            return
         if alive:
             self.lost.pop(other, None)
             return

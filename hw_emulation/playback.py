@@ -204,7 +204,14 @@ class Radio:
         if self._ne_grid is not None:  # one copy: the per-vehicle rows as views of the stack
             self._ne = [self._ne_grid[:, k] for k in range(len(self.ids))]
         self._ne_at: tuple[float, np.ndarray] | None = None
-        self._pending: list[tuple[float, str, Any]] = []  # (deliver at, receiver, payload)
+        #: (deliver at, receiver, payload, (transmitter, receiver, method), beacon time)
+        self._pending: list[tuple[float, str, Any, tuple[str, str, str], float]] = []
+        #: (transmitter, receiver) -> [delivered, out of order]: a beacon is out of order when
+        #: it reaches the receiver after a newer one of the same transmitter and method (a late
+        #: delivery overtaken), so a receiver that refuses old beacons rightly drops it. Bounded
+        #: by the scenario's vehicles (the radio carries no other transmitter).
+        self.links: dict[tuple[str, str], list[int]] = {}
+        self._newest: dict[tuple[str, str, str], float] = {}
         self._earliest = math.inf  #: at most the earliest delivery time pending [s]
         self._ge_bad: dict[tuple[str, str], bool] = {}
         # the channel's share of each transmitter (see RadioModel.max_tx_rate): a second's burst
@@ -280,14 +287,16 @@ class Radio:
             _count(self.fault_stats, "latency_spike")
         # the radio works in sensor time: the beacon reaches rx at its own time plus latency
         at = b.t + lat + spike
-        self._pending.append((at, rx, payload))
+        self._pending.append((at, rx, payload, (b.vehicle, rx, b.method), b.t))
         self._earliest = min(self._earliest, at)
 
     def due(self, now: float) -> list[tuple[float, str, Any]]:
         """The deliveries due by ``now`` (deliver time, receiver, payload), in time order."""
         if not self._pending or self._earliest > now:  # the common case: nothing due, no scan
             return []
-        due, keep, earliest = [], [], math.inf
+        due: list = []
+        keep: list = []
+        earliest = math.inf
         for p in self._pending:
             if p[0] <= now:
                 due.append(p)
@@ -297,4 +306,14 @@ class Radio:
         self._pending, self._earliest = keep, earliest
         due.sort(key=lambda p: p[0])
         self.stats.delivered += len(due)
-        return due
+        newest, links = self._newest, self.links
+        for *_, stream, t in due:
+            counts = links.get(stream[:2])
+            if counts is None:
+                counts = links[stream[:2]] = [0, 0]
+            counts[0] += 1
+            if t <= newest.get(stream, -math.inf):
+                counts[1] += 1
+            else:
+                newest[stream] = t
+        return [p[:3] for p in due]

@@ -16,6 +16,7 @@ agent's latest estimate (so no sample is dropped by a full queue and the agents 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import time
@@ -26,7 +27,7 @@ import numpy as np
 from slcp.transport import keys
 from slcp.transport.bus import Bus
 from slcp.transport.codec import MAX_PAYLOAD, CodecError, decode, encode
-from slcp.transport.messages import Beacon, Estimate, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
+from slcp.transport.messages import Beacon, Diagnostics, Estimate, GnssFix, ImuBatch, LaneMarkings, Message, UwbRound
 
 from .playback import Radio, RadioStats, SensorPlayback
 from .truth import ScenarioTruth
@@ -69,6 +70,8 @@ class EmulatorService:
     #: link and sensor faults (hw_emulation.faults.Fault); process faults are the launcher's
     faults: list = field(default_factory=list)
     fault_stats: dict[str, int] = field(default_factory=dict)
+    #: [s of sensor time] between the emulator's diagnostics (``diag/emulator``); 0: none
+    diag_period: float = 1.0
 
     def __post_init__(self) -> None:
         if self.batch is None:
@@ -102,6 +105,24 @@ class EmulatorService:
         self.stalled: dict[str, float] = {}
         #: departures of names that are not the scenario's vehicles, ignored
         self.unknown_liveliness = 0
+
+    # ----------------------------------------------------------------- diagnostics
+    def diagnostics(self) -> Diagnostics:
+        """The emulator's counters (what it published, the radio's and the faults' statistics)
+        and, in the status, the radio's deliveries per link (``"V0>V1": [delivered, out of
+        order]``) and the agents the clock no longer waits for."""
+        counters = {f"published_{k}": v for k, v in self.published.items()}
+        counters.update({f"radio_{k}": v for k, v in dataclasses.asdict(self.radio_stats).items()})
+        counters.update({f"fault_{k}": v for k, v in self.fault_stats.items()})
+        counters["unknown_liveliness"] = self.unknown_liveliness
+        if self._subs is not None:
+            counters["radio_queue_dropped"] = self._subs[0].dropped
+        status = {"t": self.now, "links": {f"{tx}>{rx}": list(c) for (tx, rx), c in sorted(self.radio.links.items())},
+                  "stalled": sorted(self.stalled)}
+        return Diagnostics("emulator", self.now, counters, status)
+
+    async def _publish_diag(self) -> None:
+        await self.bus.publish(keys.diag("emulator"), encode(self.diagnostics()))
 
     # ----------------------------------------------------------------- radio
     def _radio_send(self, key: str, payload: bytes) -> None:
@@ -203,6 +224,7 @@ class EmulatorService:
             log.warning("resuming the scenario at t=%.2f s", self.now)
         wall0, t0 = time.monotonic(), self.now
         try:
+            next_diag = t0
             for t, messages in self.playback.messages(start_at=t0):
                 if stop.is_set():
                     break
@@ -211,8 +233,14 @@ class EmulatorService:
                 await self._radio_deliver()
                 for msg in messages:
                     await self.bus.publish(_topic(msg), encode(msg))
+                if self.diag_period and t >= next_diag:
+                    await self._publish_diag()
+                    next_diag = t + self.diag_period
             # let the last beacons and estimates through (agents hold back a fraction of a second)
             await self._pace(self.now, wall0, t0, stop, final=True)
+            await self._radio_deliver()
+            if self.diag_period:
+                await self._publish_diag()
         finally:
             radio.cancel()
             self.done.set()

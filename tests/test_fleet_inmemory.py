@@ -14,6 +14,7 @@ from slcp.deploy.agent_configs import agent_config
 from slcp.hw_emulation.scenario import load_scenario
 from slcp.hw_emulation.service import EmulatorService
 from slcp.hw_emulation.truth import build_truth
+from slcp.transport.messages import Beacon
 from slcp.transport import keys
 from slcp.transport.bus import InMemoryNetwork
 from slcp.transport.codec import decode
@@ -209,7 +210,6 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
     import pymap3d
 
     from slcp.hw_emulation.playback import Radio
-    from slcp.transport.messages import Beacon
 
     truth = build_truth(load_scenario("rush-hour"))
     radio = Radio(truth, seed=0)
@@ -239,10 +239,37 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
         before = radio.stats.out_of_range
         b = Beacon(sender, 1, "SL-CP", now, llh[sender], np.zeros(3), np.eye(3))
         radio.send(b, b, now)
-        got = [rx for _, rx, _ in radio._pending]
+        got = [p[1] for p in radio._pending]
         assert got == sorted(v for v, d in dist.items() if d <= reach) and got
         assert radio.stats.out_of_range - before == sum(d > reach for d in dist.values()) > 0
         assert sorted(rx for _, rx, _ in radio.due(now + 1.0)) == got and radio.stats.delivered >= len(got)
+
+
+def test_the_radio_counts_per_link_what_it_delivers_and_what_a_late_delivery_lets_overtake() -> None:
+    """The radio's per-link account (the emulator's diagnostics publish it): every delivery
+    counts on its (transmitter, receiver) link, and one that reaches the receiver after a newer
+    beacon of the same transmitter and method is out of order (a receiver refuses it as old)."""
+    import dataclasses
+
+    from slcp.hw_emulation.playback import Radio
+
+    truth = build_truth(load_scenario("paper-1"))
+    radio = Radio(truth, seed=0)
+    now = 5.0
+    late = dataclasses.replace(radio.model, loss=0.0, ge_p_good_to_bad=0.0, stale_prob=1.0, stale_min=0.3,
+                               stale_max=0.3, max_range=1e6)
+    radio.model = late
+    llh = truth.vehicles["V0"].truth.llh[0]
+    first = Beacon("V0", 1, "SL-CP", now, llh, np.zeros(3), np.eye(3))
+    radio.send(first, first, now)  # delivered at now + 0.3
+    radio.model = dataclasses.replace(late, stale_prob=0.0)
+    for seq, (t, method) in enumerate([(now + 0.2, "SL-CP"), (now + 0.2, "CP")], start=2):
+        b = Beacon("V0", seq, method, t, llh, np.zeros(3), np.eye(3))
+        radio.send(b, b, t)
+    got = radio.due(now + 1.0)
+    assert [p[0] for p in got] == sorted(p[0] for p in got) and len(got) == 3 * 2  # to V1 and V2
+    assert radio.links == {("V0", "V1"): [3, 1], ("V0", "V2"): [3, 1]}
+    assert radio.stats.delivered == 6
 
 
 def test_the_radio_drops_future_dated_beacons_instead_of_keeping_them() -> None:
@@ -250,7 +277,6 @@ def test_the_radio_drops_future_dated_beacons_instead_of_keeping_them() -> None:
     at every event. A beacon stamped more than MAX_AHEAD past the radio's clock is counted and
     dropped; nothing stays pending."""
     from slcp.hw_emulation.playback import MAX_AHEAD, Radio
-    from slcp.transport.messages import Beacon
 
     truth = build_truth(load_scenario("paper-1"))
     radio = Radio(truth, seed=0)
@@ -269,7 +295,6 @@ def test_one_transmitter_gets_its_share_of_the_channel_and_no_more() -> None:
     packets a second (a second's burst); the rest are counted as channel_busy, and the other
     stations are not affected."""
     from slcp.hw_emulation.playback import Radio
-    from slcp.transport.messages import Beacon
 
     truth = build_truth(load_scenario("paper-1"))
     radio = Radio(truth, seed=0)

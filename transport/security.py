@@ -171,6 +171,10 @@ class TrustStore:
         """The identities (certificate CNs) of a role."""
         return sorted(n for n, r in self.roles.items() if r == role)
 
+    def is_vehicle(self, name: str) -> bool:
+        """Whether ``name`` is a vehicle of the fleet (a valid vehicle certificate's CN)."""
+        return self.roles.get(name) == VEHICLE
+
     def key_ids(self) -> dict[str, bytes]:
         """Identity (certificate CN) -> key id."""
         return {v: kid for kid, (v, _) in sorted(self._keys.items(), key=lambda kv: kv[1][0])}
