@@ -14,10 +14,10 @@ from slcp.deploy.agent_configs import agent_config
 from slcp.hw_emulation.scenario import load_scenario
 from slcp.hw_emulation.service import EmulatorService
 from slcp.hw_emulation.truth import build_truth
-from slcp.transport.messages import Beacon
 from slcp.transport import keys
 from slcp.transport.bus import InMemoryNetwork
 from slcp.transport.codec import decode
+from slcp.transport.messages import Beacon
 
 pytestmark = pytest.mark.slow
 
