@@ -133,6 +133,8 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
             self._imu(self._imu_buffer.pop(0))
         if self.filters:
             self._fuse_ranges(final=True)
+        if self.seq.t is not None:  # the final account, after the last input
+            self.outbox.append(self.diagnostics(self.seq.t))
 
     def take_outbox(self) -> list[Message]:
         """The messages produced since the last call, oldest first."""
@@ -268,7 +270,8 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
         self.lost.pop(msg.vehicle, None)
         for g in self._ghosts.values():
             g.pop(msg.vehicle, None)
-        self.beacons_from[msg.vehicle] = self.beacons_from.get(msg.vehicle, 0) + 1
+        if msg.vehicle in self.beacons_from or len(self.beacons_from) < self.MAX_SENDERS:
+            self.beacons_from[msg.vehicle] = self.beacons_from.get(msg.vehicle, 0) + 1
         if self._untrusted(msg):
             self.excluded_from[msg.vehicle] = self.excluded_from.get(msg.vehicle, 0) + 1
             return

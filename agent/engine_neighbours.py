@@ -27,6 +27,9 @@ class EngineNeighbours:
 
     #: neighbours gone that the diagnostics list (the latest); a long-lived fleet sees thousands
     MAX_LOST = 64
+    #: senders whose verified beacons are counted one by one (``beacons_from``); an unsigned fleet
+    #: open to strangers would otherwise count every name it hears
+    MAX_SENDERS = 256
 
     tables: dict[str, NeighbourTable]
     trackers: dict[str, StopTracker]

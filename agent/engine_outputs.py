@@ -41,6 +41,8 @@ class EngineOutputs:
     misbehaviour: MisbehaviourDetector | None
     lost: dict[str, tuple[float, str]]
     departures: deque
+    beacons_from: dict[str, int]
+    MAX_LOST: int
     extra_counters: Callable[[], dict[str, int]] | None
     _next: dict[str, float | None]
     _timer_due: float
@@ -109,6 +111,8 @@ class EngineOutputs:
                   "first_stopped": [m for m in self.trackers if self.claim(m)],
                   "lost": {v: [lt, how] for v, (lt, how) in self.lost.items()},
                   "departures": [list(d) for d in self.departures],
+                  # verified beacons per sender (the most frequent, within the codec's map limit)
+                  "beacons_from": dict(sorted(self.beacons_from.items(), key=lambda kv: -kv[1])[:self.MAX_LOST]),
                   "flagged": {v: [ft, why] for v, (ft, why) in mb.flagged.items()} if mb else {}}
         if mb:
             counters.update({f"mb_{k}": v for k, v in mb.counters.items()})

@@ -110,7 +110,7 @@ class FleetMonitor:
         self.threads: dict[str, int] = {}
         self._next = 0.0
 
-    def attach(self, bus, procs: dict) -> None:
+    def attach(self, bus, procs: dict, endpoint: str = "") -> None:  # noqa: ARG002 - the monitor interface
         self.procs = procs
         bus.tap(f"{keys.ROOT}/radio/tx/*", self._on_tx)
         bus.tap(f"{keys.ROOT}/radio/rx/*", self._on_rx)

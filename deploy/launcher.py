@@ -83,7 +83,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     :class:`deploy.progress.FleetProgress` (and once more before the evaluation). With ``sign``
     a fleet CA and per-vehicle keys are created in ``out/keys`` and every beacon is signed and
     verified. ``monitor`` (optional, see :class:`deploy.fleet_bench.FleetMonitor`) gets
-    ``attach(bus, procs)`` once every process is started and ``sample(recorder)`` every 0.2 s.
+    ``attach(bus, procs, endpoint)`` (the router's bus, the processes by name, the router's
+    endpoint) once every process is started and ``sample(recorder)`` every 0.2 s.
     Without ``evaluate`` only the process statistics are returned (no truth, no metrics files).
     The emulator waits up to ``wait_agents`` seconds for every agent's liveliness. The agents run
     ``agent_nice`` steps below the normal scheduling priority (``nice``): on one machine the

@@ -90,7 +90,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
     try:
         sup.start(emu_args)
         if monitor is not None:
-            monitor.attach(sup.router, sup.procs)
+            monitor.attach(sup.router, sup.procs, endpoint)
         while not await sup.tick():
             pass
         await asyncio.sleep(0.5)  # last estimates in flight

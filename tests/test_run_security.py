@@ -45,7 +45,7 @@ class _Forger:
         self.outcome: dict[str, object] = {}
         self.thread: threading.Thread | None = None
 
-    def attach(self, bus, procs) -> None:  # noqa: ARG002 - the monitor interface
+    def attach(self, bus, procs, endpoint="") -> None:  # noqa: ARG002 - the monitor interface
         self.thread = threading.Thread(target=lambda: asyncio.run(self._forge()), daemon=True)
         self.thread.start()
 

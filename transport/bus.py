@@ -97,6 +97,11 @@ class Subscription:
         self.dropped = 0
         self.oversized = 0
         self.closed = False
+        #: ``prefilter(payload)`` -> "" to queue the payload, else the reason it is refused
+        #: (counted in :attr:`refused`): a receiver's cheapest checks, run in the producer's
+        #: thread so that a flood never fills the queue (it must be quick and thread-safe)
+        self.prefilter: Callable[[bytes], str] | None = None
+        self.refused: dict[str, int] = {}
         # queued bytes = _added - _shed - _taken; each counter has one writer (the producer's
         # thread for the first two, the consumer's for the third), so no update is lost
         self._added = self._shed = self._taken = 0
@@ -113,6 +118,11 @@ class Subscription:
         if n > self.max_payload:
             self.oversized += 1
             return
+        if self.prefilter is not None:
+            why = self.prefilter(payload)
+            if why:
+                self.refused[why] = self.refused.get(why, 0) + 1
+                return
         items = self._items
         while items and (len(items) >= self.maxsize or self.queued_bytes + n > self.maxbytes):
             try:
@@ -182,6 +192,9 @@ class Bus(Protocol):
 
     def declare_alive(self, key: str) -> None: ...
 
+    def withdraw_alive(self, key: str) -> None:
+        """Undeclare this bus's liveliness token ``key`` (its watchers see it go)."""
+
     def tap(self, expr: str, callback: TapCallback) -> None:
         """``callback(key, payload)`` at arrival, on the transport's own thread (for measurements:
         it must be quick and thread-safe)."""
@@ -241,6 +254,15 @@ class InMemoryBus:
         for expr, cb in self.network.watchers:
             if matches(expr, key):
                 cb(key, True)
+
+    def withdraw_alive(self, key: str) -> None:
+        if key not in self.tokens:
+            return
+        self.tokens.remove(key)
+        self.network.alive.discard(key)
+        for expr, cb in self.network.watchers:
+            if matches(expr, key):
+                cb(key, False)
 
     def watch_alive(self, expr: str, callback: AliveCallback) -> None:
         self.network.watchers.append((expr, callback))

@@ -186,7 +186,11 @@ class TrustStore:
     def precheck(self, beacon: Beacon) -> str:
         """The checks that cost no signature verification: ``""`` if the beacon is signed with
         the key of the fleet vehicle it names, else the reason it is refused."""
-        auth = beacon.auth
+        return self.precheck_fields(beacon.vehicle, beacon.auth)
+
+    def precheck_fields(self, vehicle: str, auth: bytes) -> str:
+        """:meth:`precheck` on a beacon's sender and authenticator alone (see
+        :func:`transport.codec.peek_beacon`); thread-safe (it only reads)."""
         if not auth:
             return "unsigned"
         if len(auth) != AUTH_LEN:
@@ -194,7 +198,7 @@ class TrustStore:
         entry = self._keys.get(bytes(auth[:KEY_ID_LEN]))
         if entry is None:
             return "unknown_key"
-        if entry[0] != beacon.vehicle:  # a valid key speaking for another vehicle
+        if entry[0] != vehicle:  # a valid key speaking for another vehicle
             return "wrong_vehicle"
         return ""
 

@@ -152,7 +152,7 @@ class ZenohBus:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._subscribers: list[zenoh.Subscriber[None]] = []
         self._subs: list[Subscription] = []
-        self._tokens: list[zenoh.LivelinessToken] = []
+        self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self._closed = False
 
     def connected(self) -> bool:
@@ -196,7 +196,14 @@ class ZenohBus:
         self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
 
     def declare_alive(self, key: str) -> None:
-        self._tokens.append(self.session.liveliness().declare_token(key))
+        if key in self._tokens:  # one token per key
+            return
+        self._tokens[key] = self.session.liveliness().declare_token(key)
+
+    def withdraw_alive(self, key: str) -> None:
+        token = self._tokens.pop(key, None)
+        if token is not None:
+            token.undeclare()  # type: ignore[no-untyped-call]  # zenoh's stub leaves it unannotated
 
     def watch_alive(self, expr: str, callback: AliveCallback) -> None:
         """``callback(key, alive: bool)`` on the event loop for tokens matching ``expr``."""
@@ -217,7 +224,7 @@ class ZenohBus:
         self._closed = True
         for sub in self._subs:
             sub.closed = True
-        entities: list[_Undeclarable] = [*self._tokens, *self._subscribers, *self._publishers.values()]
+        entities: list[_Undeclarable] = [*self._tokens.values(), *self._subscribers, *self._publishers.values()]
         for obj in entities:
             try:
                 obj.undeclare()
