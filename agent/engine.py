@@ -251,7 +251,9 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
         # beacons costs no ECDSA verification (only a verified beacon enters the table, so a
         # forged one cannot make a genuine one look old)
         tab = self.tables[msg.method]
-        refused = self._stale_or_future(msg)
+        # before the own clock runs there is no time window to hold a beacon to (and nothing
+        # to fuse it with): a flood then would cost a verification per forgery
+        refused = "before_clock" if self.seq.t is None else self._stale_or_future(msg)
         if refused:
             self._count(f"beacon_{refused}")
             return

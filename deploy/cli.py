@@ -42,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     fleet.add_keys(sub)
     lab.add_bound(sub)
     lab.add_bench(sub)
+    lab.add_soak(sub)
     run.add_report(sub)
     scenario.add_scenario(sub)
     return p

@@ -27,7 +27,6 @@ import asyncio
 import json
 import logging
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -36,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from slcp.hw_emulation.hostile import HostileStation
-from slcp.hw_emulation.scenario import load_scenario, shipped_scenario_text
+from slcp.hw_emulation.scenario import load_scenario, scenario_lasting
 from slcp.transport import keys
 from slcp.transport.codec import CodecError, decode
 from slcp.transport.messages import Beacon
@@ -48,21 +47,6 @@ log = logging.getLogger(__name__)
 
 #: growth allowed over the last third of a soak, beyond the peak of its middle third
 GROWTH_REL, GROWTH_MB = 0.05, 8.0
-
-
-def scenario_copy(scenario: str, duration: float, out: Path) -> Path:
-    """A copy of ``scenario`` (shipped name or file) that lasts ``duration`` seconds, in ``out``."""
-    text = Path(scenario).read_text() if Path(scenario).is_file() else shipped_scenario_text(scenario)
-    new, n = re.subn(r"(?m)^duration\s*=.*$", f"duration = {float(duration)!r}", text, count=1)
-    if n != 1:
-        raise ValueError(f"scenario {scenario!r} has no 'duration' line to change")
-    name = f"{Path(scenario).stem}-{duration:g}s"
-    path = out / f"{name}.toml"
-    path.write_text(new)
-    scn = load_scenario(str(path))
-    if abs(scn.duration - duration) > 1e-9:
-        raise ValueError(f"the copy of {scenario!r} lasts {scn.duration} s, not {duration} s")
-    return path
 
 
 # ----------------------------------------------------------------- the hostile process
@@ -271,7 +255,8 @@ def evaluate_soak(out: Path, vehicles: list[str], duration: float, curve: list[d
     # the recorder's refusals but the oversized payloads (the flood's, counted and never copied)
     rejected = {k: v for k, v in (stats.get("rejected") or {}).items() if k != "oversized"}
     agents = {v: diags.get(v, {}).get("counters", {}) for v in vehicles}
-    shed = {v: {k: c.get(k, 0) for k in FLOOD_COUNTERS} for v, c in agents.items()}
+    shed = {v: {k: n for k, n in c.items() if k in FLOOD_COUNTERS or k.startswith("prefilter_")}
+            for v, c in agents.items()}
     verified_bad = {v: c.get("beacon_bad_signature", 0) + c.get("beacon_verify_budget", 0) for v, c in agents.items()}
     checks = {
         "memory_bounded": bool(memory) and all(m["bounded"] for m in memory.values()),
@@ -294,7 +279,7 @@ def run_soak(scenario: str = "paper-1", duration: float = 600.0, seed: int = 0, 
     ``out/soak-rss.csv``)."""
     out = Path(out)
     (out / "logs").mkdir(parents=True, exist_ok=True)
-    path = scenario_copy(scenario, duration, out)
+    path = scenario_lasting(scenario, duration, out)
     vehicles = [v.id for v in load_scenario(str(path)).vehicles]
     mon = SoakMonitor(out, vehicles, ["--rate", f"{rate:g}", "--big-rate", f"{big_rate:g}", "--identities",
                                       str(identities), "--token-life", f"{token_life:g}", "--seed", str(seed)])

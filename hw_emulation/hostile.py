@@ -93,11 +93,15 @@ class HostileStation:
         self._pool: list[tuple[str, bytes]] = []
         self._pool_kind = np.zeros(0, int)
         self._pool_t = -np.inf
+        self._forged: set[bytes] = set()
 
     # ----------------------------------------------------------------- what it hears
     def hear(self, key: str, payload: bytes, beacon: Beacon) -> None:
         """A genuine beacon delivered on ``key``: its time is the fleet's clock, and it can be
-        replayed (to the same receiver, which has it already)."""
+        replayed (to the same receiver, which has it already). The station's own forgeries,
+        heard back, are not taken."""
+        if payload in self._forged:
+            return
         if beacon.t > self.now:
             self.now, self.llh = beacon.t, np.asarray(beacon.llh, float)
         self.captured.append((key, payload))
@@ -140,6 +144,7 @@ class HostileStation:
         self._pool = [self._one(KINDS[k], self.fleet[int(rng.integers(len(self.fleet)))]) for k in kinds.tolist()]
         self._pool_kind = kinds
         self._pool_t = self.now
+        self._forged = {p for _, p in self._pool}
         # replays are drawn from what was heard last
         if self.captured:
             for i in np.flatnonzero(kinds == KINDS.index("replay")).tolist():

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -468,6 +469,21 @@ def shipped_scenario_text(name: str) -> str:
     if name not in shipped_scenarios():
         raise ScenarioError(f"unknown scenario {name!r}; shipped: {', '.join(shipped_scenarios())}")
     return resources.files("slcp.hw_emulation.scenarios").joinpath(f"{name}.toml").read_text()
+
+
+def scenario_lasting(scenario: str, duration: float, folder: Path) -> Path:
+    """A copy of ``scenario`` (shipped name or file) that lasts ``duration`` seconds of sensor
+    time, written to ``folder`` as ``<name>-<duration>s.toml`` (a long soak, or a short test of a
+    mechanism that needs the fleet running, not the whole drive)."""
+    text = Path(scenario).read_text() if Path(scenario).is_file() else shipped_scenario_text(scenario)
+    new, n = re.subn(r"(?m)^duration\s*=.*$", f"duration = {float(duration)!r}", text, count=1)
+    if n != 1:
+        raise ScenarioError(f"scenario {scenario!r} has no 'duration' line to change")
+    path = Path(folder) / f"{Path(scenario).stem}-{duration:g}s.toml"
+    path.write_text(new)
+    if abs(load_scenario(str(path)).duration - duration) > 1e-9:
+        raise ScenarioError(f"the copy of {scenario!r} in {path} does not last {duration:g} s")
+    return path
 
 
 def shipped_scenarios() -> list[str]:

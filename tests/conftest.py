@@ -6,7 +6,6 @@ import atexit
 import contextlib
 import math
 import os
-import re
 import shutil
 import signal
 import socket
@@ -62,14 +61,9 @@ def pytest_xdist_auto_num_workers(config) -> int:
 def short_scenario(folder: Path, name: str = "paper-1", duration: float = 25.0) -> Path:
     """A copy of the shipped scenario ``name`` in ``folder`` that ends after ``duration`` s of
     sensor time (for tests of mechanisms that need the fleet running, not the whole drive)."""
-    from importlib import resources
+    from slcp.hw_emulation.scenario import scenario_lasting
 
-    text = resources.files("slcp.hw_emulation.scenarios").joinpath(f"{name}.toml").read_text()
-    cut = re.sub(r"(?m)^duration = [0-9.]+$", f"duration = {duration!r}", text, count=1)
-    assert cut != text, f"{name}.toml has no duration line to cut"
-    path = Path(folder) / f"{name}-{duration:g}s.toml"
-    path.write_text(cut)
-    return path
+    return scenario_lasting(name, duration, Path(folder))
 
 
 def free_port() -> int:

@@ -1,4 +1,4 @@
-"""The lab's commands: ``slcp attack-eval``, ``bound`` and ``bench``."""
+"""The lab's commands: ``slcp attack-eval``, ``bound``, ``bench`` and ``soak``."""
 
 from __future__ import annotations
 
@@ -68,6 +68,54 @@ def add_bench(sub) -> None:
                     help="how the fleet's processes join the router (as slcp run --zenoh-mode; default client)")
     bn.add_argument("--fleet-imu-batch", type=int, choices=range(1, 101), default=20, metavar="1-100",
                     help="IMU samples per message in the fleet's grid (default 20: 5 messages a second at 100 Hz)")
+
+
+def add_soak(sub) -> None:
+    """The ``soak`` command's parser."""
+    sk = sub.add_parser("soak", help="a long fleet run on an open bus beside a hostile station: bounded memory, "
+                                     "decodable diagnostics, every genuine beacon delivered")
+    sk.add_argument("scenario", nargs="?", default="paper-1", help="shipped scenario name or .toml (default paper-1)")
+    sk.add_argument("--duration", type=T.positive_float, default=600.0,
+                    help="sensor time [s]: the scenario is played this long (default 600)")
+    sk.add_argument("--rate", type=T.nonnegative_float, default=10_000.0,
+                    help="bad beacons per second from the hostile station (default 10000)")
+    sk.add_argument("--big-rate", type=T.nonnegative_float, default=1.0,
+                    help="10 MB payloads per second, each to an agent, the radio and the recorder (default 1)")
+    sk.add_argument("--identities", type=T.positive_int, default=5000,
+                    help="stranger identities churning through liveliness (default 5000)")
+    sk.add_argument("--token-life", type=T.positive_float, default=5.0,
+                    help="how long a stranger's liveliness token lives [s] (default 5)")
+    sk.add_argument("--speed", type=T.positive_float, default=1.0, help="real-time factor of the fleet (default 1)")
+    sk.add_argument("--seed", type=T.seed, default=0)
+    sk.add_argument("--out", type=Path, default=None, help="run directory (default runs/soak-<scenario>)")
+    sk.add_argument("--json", action="store_true", help="print the verdict as one JSON object")
+
+
+def _cmd_soak(args: argparse.Namespace) -> int:
+    from ..soak import run_soak
+
+    out = args.out or Path("runs") / f"soak-{Path(args.scenario).stem}"
+    if args.identities < 2:
+        raise ValueError("--identities must be at least 2")
+    v = run_soak(args.scenario, args.duration, args.seed, out, args.rate, args.big_rate, args.identities,
+                 args.token_life, args.speed)
+    if args.json:
+        print(json.dumps(v, default=str))
+        return 0 if v["passed"] else 1
+    a = v["attacker"]
+    print(f"soak of {args.scenario} for {args.duration:g} s: {'passed' if v['passed'] else 'FAILED'} ({out})")
+    print(f"  hostile station: {a.get('bad_beacons', 0):,} bad beacons ({a.get('bad_per_s', 0):,.0f}/s), "
+          f"{a.get('oversized_payloads', 0)} payloads of {a.get('oversized_bytes', 0) / 2**20:g} MB, "
+          f"{a.get('tokens_declared', 0):,} liveliness tokens over {a.get('identities', 0):,} identities")
+    for name, ok in v["checks"].items():
+        print(f"  {'ok  ' if ok else 'FAIL'} {name.replace('_', ' ')}")
+    print("  resident set [MB], peak of the middle third -> of the last third:")
+    for name, m in v["memory"].items():
+        print(f"    {name:12s} {m['peak_mid_mb']:8.1f} -> {m['peak_end_mb']:8.1f}")
+    lost = sum(b.get("lost", 0) for b in v["beacons"].values() if isinstance(b.get("lost"), int))
+    got = sum(b.get("verified", 0) for b in v["beacons"].values())
+    print(f"  genuine beacons: {got:,} verified, {lost} lost; the curve: {out / 'soak-rss.csv'}")
+    return 0 if v["passed"] else 1
 
 
 def _cmd_attack_eval(args: argparse.Namespace) -> int:
@@ -234,4 +282,4 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-HANDLERS = {"attack-eval": _cmd_attack_eval, "bound": _cmd_bound, "bench": _cmd_bench}
+HANDLERS = {"attack-eval": _cmd_attack_eval, "bound": _cmd_bound, "bench": _cmd_bench, "soak": _cmd_soak}
