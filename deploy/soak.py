@@ -7,8 +7,8 @@ run's router, churns thousands of liveliness identities, floods the agents with 
 replay them. Meanwhile the resident set of every process is sampled. The verdict
 (``soak.json``, and the curve in ``soak-rss.csv``):
 
-* ``memory_bounded``: no process grows over the last third of the run beyond its peak of the
-  middle third (a tolerance of 5 % or 8 MB, whichever is larger);
+* ``memory_bounded``: no process of the fleet grows over the last third of the run beyond its
+  peak of the middle third (a tolerance of 5 % or 8 MB, whichever is larger);
 * ``diagnostics_decodable``: every recorded line reads back, the recorder refused nothing it
   could decode, and every agent's diagnostics came in once a sensor second;
 * ``genuine_beacons_delivered``: on every link, the verified beacons the receiver counted equal
@@ -259,7 +259,8 @@ def evaluate_soak(out: Path, vehicles: list[str], duration: float, curve: list[d
             for v, c in agents.items()}
     verified_bad = {v: c.get("beacon_bad_signature", 0) + c.get("beacon_verify_budget", 0) for v, c in agents.items()}
     checks = {
-        "memory_bounded": bool(memory) and all(m["bounded"] for m in memory.values()),
+        # the fleet's processes: the hostile station's own memory is its business (reported)
+        "memory_bounded": bool(memory) and all(m["bounded"] for n, m in memory.items() if n != "attacker"),
         "diagnostics_decodable": bad == 0 and not rejected and stats.get("codec_errors", 0) == 0
         and all(count.get(v, 0) >= 0.9 * duration for v in vehicles),
         "genuine_beacons_delivered": bool(account) and all(a.get("lost") == 0 for a in account.values()),

@@ -164,3 +164,17 @@ def mechanization_drift(truth, n: int | None = None, every: int = 100):
             e = _earth.ned_offset(s.lat, s.lon, s.h, *truth.llh[k + 1])
             worst = max(worst, float(np.linalg.norm(e)))
     return s, worst
+
+
+def count_verifications(trust) -> dict:
+    """Wrap ``trust.check_signature`` so that every signature verification is counted in the
+    returned dict's ``"n"``."""
+    calls = {"n": 0}
+    real = trust.check_signature
+
+    def counting(b):
+        calls["n"] += 1
+        return real(b)
+
+    trust.check_signature = counting
+    return calls

@@ -422,15 +422,10 @@ def test_a_flood_in_one_vehicles_name_costs_a_bounded_number_of_verifications(fl
 
     from slcp.agent.engine import VehicleEngine
 
+    from conftest import count_verifications
+
     trust = TrustStore.from_dir(fleet)
-    calls = {"n": 0}
-    real = trust.check_signature
-
-    def counting(b):
-        calls["n"] += 1
-        return real(b)
-
-    trust.check_signature = counting  # type: ignore[method-assign]
+    calls = count_verifications(trust)
     scn = load_scenario("paper-1")
     eng = VehicleEngine(dc.replace(agent_config(scn, "V1", ("CP",)), trust=trust))
     eng.seq.t = 100.0  # a running filter's time (the budget runs on it)

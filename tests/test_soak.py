@@ -17,7 +17,7 @@ from slcp.transport.codec import CodecError, decode, encode, peek_beacon
 from slcp.transport.messages import Beacon
 from slcp.transport.security import BeaconSigner, TrustStore, create_fleet
 
-from conftest import free_port
+from conftest import count_verifications, free_port
 
 
 @pytest.fixture(scope="module")
@@ -67,14 +67,7 @@ def test_every_kind_of_the_hostile_flood_is_shed_without_a_signature_verificatio
     from slcp.hw_emulation.scenario import load_scenario
 
     trust = TrustStore.from_dir(fleet)
-    verified = {"n": 0}
-    real = trust.check_signature
-
-    def counting(b):
-        verified["n"] += 1
-        return real(b)
-
-    trust.check_signature = counting  # type: ignore[method-assign]
+    verified = count_verifications(trust)
     eng = VehicleEngine(dc.replace(agent_config(load_scenario("paper-1"), "V1", ("CP",)), trust=trust))
     eng.seq.t = 50.0
     prefilter = _beacon_prefilter(trust)

@@ -226,10 +226,8 @@ for _name, _cls in MESSAGE_TYPES.items():
     _SCHEMA[_name] = (_cls, tuple(_rows), frozenset(["v", "type", *(r[0] for r in _rows)]))
 
 
-def decode(payload: bytes) -> Message:
-    """Parse and validate a payload; raises :class:`CodecError` on anything wrong."""
-    if not isinstance(payload, (bytes, bytearray, memoryview)):
-        raise CodecError("payload is not bytes")
+def _unpack(payload: bytes) -> dict[Any, Any]:
+    """The payload's msgpack map, within the codec's size limits."""
     if len(payload) > MAX_PAYLOAD:
         raise CodecError(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
     try:
@@ -239,6 +237,14 @@ def decode(payload: bytes) -> Message:
         raise CodecError(f"not msgpack: {type(exc).__name__}") from None
     if not isinstance(obj, dict):
         raise CodecError("payload is not a map")
+    return obj
+
+
+def decode(payload: bytes) -> Message:
+    """Parse and validate a payload; raises :class:`CodecError` on anything wrong."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise CodecError("payload is not bytes")
+    obj = _unpack(payload)
     if obj.get("v") != SCHEMA_VERSION:
         raise CodecError(f"schema version {obj.get('v')!r}, expected {SCHEMA_VERSION}")
     name = obj.get("type")
@@ -267,14 +273,8 @@ def peek_beacon(payload: bytes) -> tuple[str, bytes]:
     """The sender and the authenticator of a beacon payload, and nothing else validated: the
     cheap look a receiver takes before it queues, decodes or verifies a beacon (a tenth of
     :func:`decode`'s cost). Raises :class:`CodecError` for a payload that is not a beacon's map."""
-    if len(payload) > MAX_PAYLOAD:
-        raise CodecError(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
-    try:
-        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_bin_len=MAX_PAYLOAD,
-                              max_str_len=4096, max_array_len=4096, max_map_len=256)
-    except Exception as exc:  # msgpack raises several unrelated types on bad input
-        raise CodecError(f"not msgpack: {type(exc).__name__}") from None
-    if not isinstance(obj, dict) or obj.get("type") != "beacon":
+    obj = _unpack(payload)
+    if obj.get("type") != "beacon":
         raise CodecError("not a beacon")
     vehicle, auth = obj.get("vehicle"), obj.get("auth", b"")
     if not isinstance(vehicle, str) or not isinstance(auth, bytes):
