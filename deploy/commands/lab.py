@@ -86,7 +86,7 @@ def add_soak(sub) -> None:
     sk.add_argument("--token-life", type=T.positive_float, default=5.0,
                     help="how long a stranger's liveliness token lives [s] (default 5)")
     sk.add_argument("--speed", type=T.positive_float, default=1.0, help="real-time factor of the fleet (default 1)")
-    sk.add_argument("--seed", type=T.seed, default=0)
+    sk.add_argument("--seed", type=T.seed, default=0, help="seed of the run and of the hostile station (default 0)")
     sk.add_argument("--out", type=Path, default=None, help="run directory (default runs/soak-<scenario>)")
     sk.add_argument("--json", action="store_true", help="print the verdict as one JSON object")
 
