@@ -275,15 +275,16 @@ def evaluate_soak(out: Path, vehicles: list[str], duration: float, curve: list[d
 
 def run_soak(scenario: str = "paper-1", duration: float = 600.0, seed: int = 0, out: Path = Path("runs/soak"),
              rate: float = 10_000.0, big_rate: float = 1.0, identities: int = 5000, token_life: float = 5.0,
-             speed: float | None = 1.0, progress=None) -> dict:
-    """Run the soak; the verdict is returned and written to ``out/soak.json`` (the RSS curve to
-    ``out/soak-rss.csv``)."""
+             speed: float | None = 1.0, progress=None, sample_every: float = 5.0) -> dict:
+    """Run the soak; the verdict is returned and written to ``out/soak.json`` (the RSS curve,
+    sampled every ``sample_every`` seconds of wall time, to ``out/soak-rss.csv``)."""
     out = Path(out)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     path = scenario_lasting(scenario, duration, out)
     vehicles = [v.id for v in load_scenario(str(path)).vehicles]
     mon = SoakMonitor(out, vehicles, ["--rate", f"{rate:g}", "--big-rate", f"{big_rate:g}", "--identities",
-                                      str(identities), "--token-life", f"{token_life:g}", "--seed", str(seed)])
+                                      str(identities), "--token-life", f"{token_life:g}", "--seed", str(seed)],
+                      every=sample_every)
     try:
         res = run_fleet(str(path), speed=speed, seed=seed, out=out, secure=False, evaluate=False, monitor=mon,
                         progress=progress)
