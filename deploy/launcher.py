@@ -14,6 +14,7 @@ Run directory::
                                      TLS and access control; beacon signing)
     logs/<process>.log               each process's log
     recorded/messages.jsonl          every recorded message, one JSON object per line
+    recorded/bag/                    the same as a ROS 2 bag in MCAP storage (deploy.mcap_recording)
     estimates/<vehicle>.csv          time, method, lat, lon, h, velocity, attitude, sigma, errors
     metrics.json                     RMSE per window, vehicle and method; detection; counters
     report.md                        paper-style tables beside the paper's figures
@@ -131,7 +132,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
                                    agent_nice=agent_nice, zenoh_mode=zenoh_mode, end_t=scn.duration,
-                                   title=scn.name, fleet_dir=fleet_dir if secure else None))
+                                   title=scn.name, fleet_dir=fleet_dir if secure else None,
+                                   origin_llh=scn.origin_llh))
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}

@@ -379,16 +379,18 @@ async def report_reachability(bus, endpoints: tuple[str, ...], who: str, first: 
         log.warning("%s: connected", who)
 
 
-async def recorder_main(zcfg: ZenohConfig, path: Path) -> int:
-    """Record every estimate and diagnostics message to ``path`` (appending) until SIGINT/SIGTERM."""
+async def recorder_main(zcfg: ZenohConfig, path: Path, bag: Path | None = None) -> int:
+    """Record every estimate and diagnostics message to ``path`` (appending), and with ``bag`` to
+    a ROS 2 bag in MCAP storage, until SIGINT/SIGTERM."""
     from slcp.transport.zenoh_bus import ZenohBus
 
+    from .mcap_recording import McapSink
     from .recorder import Recorder
 
     stop = asyncio.Event()
     _install_signals(stop)
     bus = ZenohBus(zcfg)
-    rec = Recorder(path)
+    rec = Recorder(path, sink=McapSink(bag) if bag is not None else None)
     tasks = [*rec.start(bus), asyncio.create_task(report_reachability(bus, zcfg.connect, "record"))]
     try:
         await stop.wait()

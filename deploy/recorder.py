@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import json
+import logging
 import math
 import time
 from pathlib import Path
@@ -28,6 +29,8 @@ from slcp.transport import keys
 from slcp.transport.bus import Subscription
 from slcp.transport.codec import MAX_PAYLOAD, CodecError, decode
 from slcp.transport.messages import Diagnostics, Estimate, Message
+
+log = logging.getLogger(__name__)
 
 
 def to_json(m: Message) -> dict:
@@ -63,9 +66,11 @@ class Recorder:
         Source -> (monotonic receipt time [s], counters, status) of its newest diagnostics.
     """
 
-    def __init__(self, path: Path, t_window: tuple[float, float] = (-math.inf, math.inf)) -> None:
+    def __init__(self, path: Path, t_window: tuple[float, float] = (-math.inf, math.inf), sink=None) -> None:
         """``t_window`` [s, sensor time]: the times a message may carry (a run's scenario, with a
-        margin); the default takes any finite time."""
+        margin); the default takes any finite time. ``sink`` (optional, e.g.
+        :class:`deploy.mcap_recording.McapSink`) gets every message recorded too (``write(m)``,
+        ``close()``); its failures are logged and counted (``sink_errors``), and the JSON lines go on."""
         self.path = Path(path)
         self.t_window = t_window
         self.rejected: collections.Counter[str] = collections.Counter()
@@ -77,6 +82,10 @@ class Recorder:
         self.last_wall: dict[str, float] = {}  #: vehicle -> monotonic time [s] of its newest estimate
         self.diag: dict[str, tuple[float, dict, dict]] = {}
         self._subs: list[Subscription] = []
+        self.sink = sink
+        self.sink_errors = 0
+        #: messages recorded per bus key
+        self.counts: collections.Counter[str] = collections.Counter()
 
     def write(self, batch: list[tuple[str, bytes]]) -> None:
         """Decode, check against its key, write and flush a batch of ``(key, payload)``."""
@@ -92,6 +101,9 @@ class Recorder:
                 continue
             self._file.write(json.dumps(to_json(m)) + "\n")
             self.recorded += 1
+            self.counts[key] += 1
+            if self.sink is not None:
+                self._to_sink(m)
             if isinstance(m, Estimate):
                 self.latest_t[m.vehicle] = max(self.latest_t.get(m.vehicle, 0.0), m.t)
                 self.last_wall[m.vehicle] = time.monotonic()
@@ -156,7 +168,21 @@ class Recorder:
                 self.write(batch)
         self._count_queue_losses()
 
+    def _to_sink(self, m: Message) -> None:
+        try:
+            self.sink.write(m)
+        except Exception:  # noqa: BLE001 - the JSON lines must go on whatever the sink does
+            self.sink_errors += 1
+            if self.sink_errors == 1:
+                log.exception("the recording's second format failed; the JSON lines go on")
+
     def close(self) -> None:
-        """Record what is still queued, then close the file."""
+        """Record what is still queued, then close the file (and the sink)."""
         self.flush()
         self._file.close()
+        if self.sink is not None:
+            try:
+                self.sink.close()
+            except Exception:  # noqa: BLE001
+                self.sink_errors += 1
+                log.exception("closing the recording's second format failed")

@@ -31,7 +31,8 @@ def next_free(root: Path, stem: str) -> Path:
 def looks_like_a_run(path: Path) -> bool:
     """Whether ``path`` holds a previous slcp run or study (what ``--force`` may replace): a
     run's recording or start record, or a study's summary beside its seed folders."""
-    return ((path / "recorded" / "messages.jsonl").is_file() or (path / "config" / "run.json").is_file()
+    return ((path / "recorded" / "messages.jsonl").is_file() or (path / "recorded" / "bag").is_dir()
+            or (path / "config" / "run.json").is_file()
             or ((path / "study.json").is_file() and any(path.glob("seed-*"))))
 
 

@@ -85,7 +85,13 @@ ESTIMATE_COLUMNS = ["time_s", "method", "lat_deg", "lon_deg", "h_m", "vn_mps", "
 
 def _read_recording(path: Path) -> tuple[dict[tuple[str, str], list[dict]], dict[str, dict], int]:
     """The recording's estimates per (vehicle, method), the last diagnostics per source, and the
-    number of lines that could not be read (e.g. a line cut short when a recorder was killed)."""
+    number of lines that could not be read (e.g. a line cut short when a recorder was killed).
+    ``path`` is the JSON lines file, or a ROS 2 bag directory (:mod:`deploy.mcap_recording`)."""
+    if Path(path).is_dir():
+        from .mcap_recording import read_recording
+
+        est_bag, diags_bag, _ = read_recording(Path(path))
+        return est_bag, diags_bag, 0
     est: dict[tuple[str, str], list[dict]] = {}
     diags: dict[str, dict] = {}
     bad_lines = 0
@@ -319,15 +325,21 @@ def map_estimates(est: dict, truth, method: str | None) -> dict:
     return out
 
 
+def recording_of(run_dir: Path) -> Path:
+    """A run's recording: its JSON lines, or else its ROS 2 bag (``recorded/bag``)."""
+    for rec in (run_dir / "recorded" / "messages.jsonl", run_dir / "recorded" / "bag"):
+        if rec.exists():
+            return rec
+    raise ValueError(f"{run_dir}: not a run directory (no recorded/messages.jsonl or recorded/bag)")
+
+
 def rebuild_report(run_dir: Path) -> dict:
     """Re-evaluate a single run directory from its recording (``slcp report``)."""
     import tomllib
 
     run_dir = Path(run_dir)
     mpath = run_dir / "metrics.json"
-    rec = run_dir / "recorded" / "messages.jsonl"
-    if not rec.is_file():
-        raise ValueError(f"{run_dir}: not a run directory (no recorded/messages.jsonl)")
+    rec = recording_of(run_dir)
     old: dict = {}
     if mpath.is_file():
         try:

@@ -12,6 +12,7 @@ import contextlib
 import logging
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -22,6 +23,7 @@ from pathlib import Path
 from slcp.agent.methods import METHODS
 from slcp.hw_emulation.faults import PROCESS_FAULTS
 
+from .mcap_recording import McapSink
 from .processes import SUPERVISOR_ENV
 from .progress import FleetProgress
 from .recorder import Recorder
@@ -53,7 +55,8 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                     max_restarts: int = 3, faults: list | None = None, monitor=None,
                     wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client",
                     end_t: float | None = None, stall_s: float = 30.0, exit_grace_s: float = 15.0,
-                    title: str = "", fleet_dir: Path | None = None) -> dict:
+                    title: str = "", fleet_dir: Path | None = None,
+                    origin_llh: tuple[float, float, float] | None = None) -> dict:
     """Run the fleet's processes until the emulator has played the scenario; return their statistics.
 
     A process that dies is restarted (at most ``max_restarts`` times each; the emulator resumes
@@ -77,7 +80,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                         else ZenohConfig(mode="router", listen=(endpoint,)))
 
     sup = _Supervisor(vehicles, configs, out, progress, max_restarts, faults or [], monitor, wait_agents,
-                      agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario))
+                      agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario), origin_llh)
     sup.open_router(open_router)
     emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint, "--mode", zenoh_mode,
                 "--wait-agents", f"{wait_agents:g}"]
@@ -106,7 +109,7 @@ class _Supervisor:
 
     def __init__(self, vehicles, configs, out: Path, progress, max_restarts: int, faults: list, monitor,
                  wait_agents: float, agent_nice: int, end_t: float | None, stall_s: float,
-                 exit_grace_s: float, title: str) -> None:
+                 exit_grace_s: float, title: str, origin_llh: tuple[float, float, float] | None = None) -> None:
         from slcp.transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
 
         self.vehicles, self.configs, self.out = vehicles, configs, out
@@ -120,9 +123,12 @@ class _Supervisor:
                             "emulator_killed_at_end": False}
         rec_path = out / "recorded" / "messages.jsonl"
         rec_path.unlink(missing_ok=True)  # a new run starts a new recording
+        bag = out / "recorded" / "bag"
+        shutil.rmtree(bag, ignore_errors=True)
         # an estimate's time can set the fleet's clock (faults, resume): only the scenario's, with
         # a margin for the agents' alignment and hold-back
-        self.rec = Recorder(rec_path, (-RECORD_MARGIN_S, (end_t if end_t is not None else math.inf) + RECORD_MARGIN_S))
+        self.rec = Recorder(rec_path, (-RECORD_MARGIN_S, (end_t if end_t is not None else math.inf) + RECORD_MARGIN_S),
+                            sink=McapSink(bag, origin_llh))
         self.restarts: list[dict] = []
         self.wall0 = time.monotonic()
         self.pending = sorted((f for f in faults if f.kind in PROCESS_FAULTS), key=lambda f: f.start)
@@ -331,6 +337,9 @@ class _Supervisor:
         stats["restarts"] = [{k: v for k, v in r.items() if not k.startswith("_")} for r in self.restarts]
         stats["recorded"], stats["codec_errors"] = self.rec.recorded, self.rec.codec_errors
         stats["rejected"] = dict(self.rec.rejected)
+        stats["recorded_by_key"] = dict(sorted(self.rec.counts.items()))
+        if self.rec.sink_errors:
+            stats["recording_sink_errors"] = self.rec.sink_errors
         return stats
 
 

@@ -54,9 +54,57 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
     assert again["rmse"]["t_s1-t_e"]["V1"]["SL-SP"]["rmse_m"] == pytest.approx(
         m["rmse"]["t_s1-t_e"]["V1"]["SL-SP"]["rmse_m"]
     )
+    _the_bag_holds_the_recording(out, m, recs)
     # no process left behind
     ps = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True)
     assert ps.stdout.strip() == ""
+
+
+def _the_bag_holds_the_recording(out, m, recs) -> None:
+    """#44 acceptance 1: the run's ROS 2 bag (MCAP) holds per topic what the launcher counted,
+    a decoded estimate equals the recorded one, and the report made from the bag alone is the
+    report made from the JSON lines."""
+    import numpy as np
+
+    from slcp.deploy.cli import main
+    from slcp.deploy.mcap_recording import read_recording, topic_name
+
+    bag = out / "recorded" / "bag"
+    est, diags, counts = read_recording(bag)
+    by_key = m["processes"]["recorded_by_key"]
+    assert sorted(f"slcp/v1/estimate/{v}/{meth}" for v, meth in est) == sorted(k for k in by_key if "/estimate/" in k)
+    for (v, meth), rows in est.items():
+        n = by_key[f"slcp/v1/estimate/{v}/{meth}"]
+        assert counts[topic_name(v, meth, "fix")] == counts[topic_name(v, meth, "odom")] == len(rows) == n
+    assert counts["/slcp/diagnostics"] == sum(n for k, n in by_key.items() if "/diag/" in k)
+    assert set(diags) == {"V0", "V1", "V2", "emulator"}
+    jsonl = [r for r in recs if r["type"] == "Estimate" and (r["vehicle"], r["method"]) == ("V1", "SL-CP")]
+    for a, b in zip(jsonl, est[("V1", "SL-CP")], strict=True):
+        assert b["t"] == pytest.approx(a["t"], abs=1e-9) and b["first_stopped"] == a["first_stopped"]
+        np.testing.assert_allclose(b["llh"], a["llh"], rtol=0, atol=1e-13)
+        np.testing.assert_allclose(b["cov_pos"], a["cov_pos"], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(b["v_ned"], a["v_ned"], rtol=0, atol=1e-12)
+    before = json.loads((out / "metrics.json").read_text())
+    # the same to a micrometre: a bag's stamps are whole nanoseconds and its latitudes degrees
+    (out / "recorded" / "messages.jsonl").rename(out / "messages.jsonl.aside")
+    assert main(["report", str(out)]) == 0
+    after = json.loads((out / "metrics.json").read_text())
+    for window, cells in before["rmse"].items():
+        for v, per_method in cells.items():
+            for meth, cell in per_method.items():
+                assert after["rmse"][window][v][meth]["rmse_m"] == pytest.approx(cell["rmse_m"], rel=1e-6, abs=1e-6)
+    # the claims' times come back to the nanosecond (the bag's stamps)
+    assert _flat(after["first_stopped"]) == pytest.approx(_flat(before["first_stopped"]), rel=1e-9, abs=1e-6)
+
+
+def _flat(d, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}/"))
+        elif isinstance(v, (int, float)) and v is not None:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 @pytest.mark.timeout(150)

@@ -99,6 +99,9 @@ def add_record(sub) -> None:
     rc.add_argument("--out", type=Path, required=True, help="recording file (appended to; a restart continues it)")
     rc.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
     rc.add_argument("--fleet", type=Path, default=None, help="fleet directory: mutual TLS as identity 'recorder'")
+    rc.add_argument("--bag", type=Path, default=None,
+                    help="also write a ROS 2 bag in MCAP storage to this new directory (standard ROS 2 "
+                         "message types; the map frame's origin is the first estimate's position)")
 
 
 def add_keys(sub) -> None:
@@ -199,7 +202,9 @@ def _cmd_infrastructure(args: argparse.Namespace) -> int:
             from ..zenoh_security import client_config
 
             z = client_config(args.fleet, "recorder", tuple(args.connect))
-        return asyncio.run(recorder_main(z, args.out))
+        if args.bag is not None and args.bag.exists():
+            raise ValueError(f"--bag {args.bag}: exists; a bag is written to a new directory")
+        return asyncio.run(recorder_main(z, args.out, args.bag))
     if args.fleet:
         from ..zenoh_security import as_json5, router_config
 

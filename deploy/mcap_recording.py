@@ -1,0 +1,233 @@
+"""A run's recording as a ROS 2 bag in MCAP storage, with standard ROS 2 message types (written
+and read with the rosbags package: no ROS install). Foxglove opens it; ``ros2 bag play`` plays it.
+
+Topics, per vehicle ``V`` and method ``M`` (``-`` in a method's name becomes ``_``: ROS names
+take letters, digits and ``_``):
+
+=====================================  ====================================================
+``/slcp/V/M/fix``                      ``sensor_msgs/msg/NavSatFix``: latitude and longitude
+                                       [deg], height above the WGS-84 ellipsoid [m], position
+                                       covariance in east, north, up [m²] (type KNOWN)
+``/slcp/V/M/odom``                     ``nav_msgs/msg/Odometry`` in ``map``, the local ENU frame
+                                       at the scenario's origin: position [m], attitude (body
+                                       x forward, y left, z up), position covariance (ENU);
+                                       velocity in the body frame, as ROS has it [m/s]
+``/slcp/V/M/first_stopped``            ``std_msgs/msg/Bool``: the vehicle's first-stopped claim,
+                                       written when it changes (and first)
+``/slcp/diagnostics``                  ``diagnostic_msgs/msg/DiagnosticArray``: one status per
+                                       message, its name the source, its values the counters,
+                                       its message the status as JSON
+``/slcp/map_origin``                   ``sensor_msgs/msg/NavSatFix``: the origin of ``map``, once
+=====================================  ====================================================
+
+Every message is stamped, in its header and its log time, with the sensor time of the run [s]
+(an estimate's GNSS time). :func:`read_recording` gives the estimates and diagnostics back as the
+JSON lines recording has them, so a run's report can be made from either.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pymap3d
+
+from slcp.transport.messages import Diagnostics, Estimate, Message
+
+log = logging.getLogger(__name__)
+
+FIX, ODOM, BOOL, DIAG = ("sensor_msgs/msg/NavSatFix", "nav_msgs/msg/Odometry", "std_msgs/msg/Bool",
+                         "diagnostic_msgs/msg/DiagnosticArray")
+#: NED <-> ENU (its own inverse)
+_P = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+_SIGN = np.array([[1.0, 1.0, -1.0], [1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
+#: the Odometry covariances' constant parts: attitude and twist are not in the recording
+_POSE_COV = np.diag([0.0, 0.0, 0.0, 1e6, 1e6, 1e6])
+_TWIST_COV = (np.eye(6) * 1e6).ravel()
+
+
+def _ned_to_enu_cov(c: np.ndarray) -> np.ndarray:
+    """P C Pᵀ for the NED <-> ENU permutation P (its own inverse)."""
+    return np.asarray(c, float)[[1, 0, 2]][:, [1, 0, 2]] * _SIGN
+
+
+def topic_name(vehicle: str, method: str, what: str) -> str:
+    return f"/slcp/{vehicle.replace('-', '_').replace('.', '_')}/{method.replace('-', '_')}/{what}"
+
+
+def _quat_zyx(yaw: float, pitch: float, roll: float) -> tuple[float, float, float, float]:
+    cy, sy, cp, sp = math.cos(yaw / 2), math.sin(yaw / 2), math.cos(pitch / 2), math.sin(pitch / 2)
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)  # x, y, z, w
+
+
+def _rot_zyx(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """The rotation (body -> frame) of ZYX Euler angles."""
+    cy, sy, cp, sp, cr, sr = (math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch), math.cos(roll),
+                              math.sin(roll))
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+def enu_attitude(rpy_ned: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) of a body in x forward, y left, z up, in ENU, from the roll, pitch and
+    yaw of the body in x forward, y right, z down, in NED [rad]."""
+    r, p, y = (float(a) for a in rpy_ned)
+    return r, -p, math.pi / 2 - y
+
+
+class McapSink:
+    """Writes estimates and diagnostics to a ROS 2 bag (MCAP storage) at ``path`` (a new
+    directory). ``origin_llh`` [rad, rad, m] is the origin of the ``map`` frame (default: the
+    first estimate's position). ``counts``: messages written per topic."""
+
+    def __init__(self, path: Path, origin_llh: tuple[float, float, float] | None = None) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = Path(path)
+        self.ts = get_typestore(Stores.ROS2_HUMBLE)
+        self.T = self.ts.types
+        self._w = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self._w.open()
+        self._conns: dict[str, Any] = {}
+        self._claim: dict[str, bool] = {}
+        self.origin: tuple[float, float, float] | None = None
+        self.counts: Counter[str] = Counter()
+        if origin_llh is not None:
+            self._set_origin(origin_llh, 0)
+
+    def _conn(self, topic: str, msgtype: str):
+        c = self._conns.get(topic)
+        if c is None:
+            c = self._conns[topic] = self._w.add_connection(topic, msgtype, typestore=self.ts)
+        return c
+
+    def _put(self, topic: str, msgtype: str, ns: int, msg) -> None:
+        self._w.write(self._conn(topic, msgtype), ns, self.ts.serialize_cdr(msg, msgtype))
+        self.counts[topic] += 1
+
+    def _header(self, ns: int, frame: str):
+        T = self.T
+        return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+            sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=frame)
+
+    def _fix(self, ns: int, frame: str, llh, cov_enu: np.ndarray, cov_type: int):
+        T = self.T
+        return T[FIX](header=self._header(ns, frame), status=T["sensor_msgs/msg/NavSatStatus"](status=0, service=1),
+                      latitude=math.degrees(float(llh[0])), longitude=math.degrees(float(llh[1])),
+                      altitude=float(llh[2]), position_covariance=np.ascontiguousarray(cov_enu, float).ravel(),
+                      position_covariance_type=cov_type)
+
+    def _set_origin(self, llh, ns: int) -> None:
+        self.origin = (float(llh[0]), float(llh[1]), float(llh[2]))
+        self._put("/slcp/map_origin", FIX, ns, self._fix(ns, "map", llh, np.zeros((3, 3)), 0))
+
+    def write(self, m: Message) -> None:
+        """Record one estimate or diagnostics message (others are ignored). A message stamped
+        before sensor time 0 is stamped 0 in the log (MCAP's times are unsigned)."""
+        if isinstance(m, Estimate):
+            self._estimate(m)
+        elif isinstance(m, Diagnostics):
+            self._diagnostics(m)
+
+    def _estimate(self, e: Estimate) -> None:
+        T = self.T
+        ns = max(0, int(round(e.t * 1e9)))
+        if self.origin is None:
+            self._set_origin(e.llh, ns)
+        lat0, lon0, h0 = self.origin  # type: ignore[misc]
+        claim_topic = topic_name(e.vehicle, e.method, "first_stopped")
+        if self._claim.get(claim_topic) != bool(e.first_stopped):
+            self._claim[claim_topic] = bool(e.first_stopped)
+            self._put(claim_topic, BOOL, ns, T[BOOL](data=bool(e.first_stopped)))
+        cov = _ned_to_enu_cov(e.cov_pos)
+        self._put(topic_name(e.vehicle, e.method, "fix"), FIX, ns, self._fix(ns, "map", e.llh, cov, 3))
+        east, north, up = pymap3d.geodetic2enu(float(e.llh[0]), float(e.llh[1]), float(e.llh[2]), lat0, lon0, h0,
+                                               deg=False)
+        roll, pitch, yaw = enu_attitude(e.rpy)
+        qx, qy, qz, qw = _quat_zyx(yaw, pitch, roll)
+        vn, ve, vd = (float(x) for x in e.v_ned)
+        v_body = _rot_zyx(yaw, pitch, roll).T @ np.array([ve, vn, -vd])
+        pcov = _POSE_COV.copy()
+        pcov[:3, :3] = cov
+        V3, P3 = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Point"]
+        pose = T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=T["geometry_msgs/msg/Pose"](position=P3(x=float(east), y=float(north), z=float(up)),
+                                             orientation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
+            covariance=pcov.ravel())
+        twist = T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=T["geometry_msgs/msg/Twist"](linear=V3(x=float(v_body[0]), y=float(v_body[1]), z=float(v_body[2])),
+                                               angular=V3(x=0.0, y=0.0, z=0.0)),
+            covariance=_TWIST_COV)
+        child = f"{e.vehicle}/{e.method}"
+        self._put(topic_name(e.vehicle, e.method, "odom"), ODOM, ns,
+                  T[ODOM](header=self._header(ns, "map"), child_frame_id=child, pose=pose, twist=twist))
+
+    def _diagnostics(self, d: Diagnostics) -> None:
+        T = self.T
+        ns = max(0, int(round(d.t * 1e9)))
+        kv = T["diagnostic_msgs/msg/KeyValue"]
+        status = T["diagnostic_msgs/msg/DiagnosticStatus"](
+            level=0, name=d.source, message=json.dumps(d.status, default=str), hardware_id=d.source,
+            values=[kv(key=k, value=str(v)) for k, v in d.counters.items()])
+        self._put("/slcp/diagnostics", DIAG, ns, T[DIAG](header=self._header(ns, ""), status=[status]))
+
+    def close(self) -> None:
+        self._w.close()
+
+
+def read_recording(path: Path) -> tuple[dict[tuple[str, str], list[dict]], dict[str, dict], Counter[str]]:
+    """The estimates per (vehicle, method) and the last diagnostics counters per source of a bag
+    written by :class:`McapSink`, as the JSON lines recording has them, and the messages per topic."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    est: dict[tuple[str, str], list[dict]] = {}
+    diags: dict[str, dict] = {}
+    counts: Counter[str] = Counter()
+    claims: dict[str, bool] = {}
+    fixes: dict[tuple[str, int], Any] = {}
+    with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        for conn, _, raw in reader.messages():
+            counts[conn.topic] += 1
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.msgtype == DIAG:
+                for s in msg.status:
+                    diags[s.name] = {kv.key: int(kv.value) for kv in s.values}
+                continue
+            if conn.topic == "/slcp/map_origin":
+                continue
+            stem, what = conn.topic.rsplit("/", 1)
+            ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec if what != "first_stopped" else 0
+            if what == "first_stopped":
+                claims[stem] = bool(msg.data)
+            elif what == "fix":
+                fixes[(stem, ns)] = (msg, claims.get(stem, False))
+            elif what == "odom":
+                fix, claim = fixes.pop((stem, ns))
+                vehicle, method = msg.child_frame_id.rsplit("/", 1)
+                est.setdefault((vehicle, method), []).append(_estimate_record(vehicle, method, ns, fix, msg, claim))
+    return est, diags, counts
+
+
+def _estimate_record(vehicle: str, method: str, ns: int, fix, odom, claim: bool) -> dict:
+    q = odom.pose.pose.orientation
+    roll = math.atan2(2 * (q.w * q.x + q.y * q.z), 1 - 2 * (q.x * q.x + q.y * q.y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (q.w * q.y - q.z * q.x))))
+    yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+    v = odom.twist.twist.linear
+    v_ned = _P @ (_rot_zyx(yaw, pitch, roll) @ np.array([v.x, v.y, v.z]))
+    cov = _ned_to_enu_cov(np.asarray(fix.position_covariance, float).reshape(3, 3))
+    return {"type": "Estimate", "vehicle": vehicle, "method": method, "t": ns / 1e9,
+            "llh": [math.radians(fix.latitude), math.radians(fix.longitude), fix.altitude],
+            "v_ned": v_ned.tolist(), "rpy": [roll, -pitch, math.remainder(math.pi / 2 - yaw, 2 * math.pi)],
+            "cov_pos": cov.tolist(),
+            "first_stopped": claim}

@@ -1,0 +1,111 @@
+"""A run's recording as a ROS 2 bag in MCAP storage (#44): the estimates and diagnostics round
+trip exactly through the standard message types, and the bag reads with the MCAP reference
+reader as well as with rosbags."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slcp.deploy.mcap_recording import McapSink, enu_attitude, read_recording, topic_name
+from slcp.transport.messages import Diagnostics, Estimate
+
+
+def _estimates(rng, n: int = 30) -> list[Estimate]:
+    out = []
+    for k in range(n):
+        a = rng.normal(size=(3, 3))
+        out.append(Estimate("V0", "SL-CP" if k % 2 else "SP", 0.1 * k,
+                            np.array([0.6973 + 1e-6 * k, 2.0302 - 2e-6 * k, 51.0 + 0.01 * k]), rng.normal(size=3),
+                            np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi)]),
+                            a @ a.T + np.eye(3) * 0.01, first_stopped=k > 14))
+    return out
+
+
+def test_estimates_and_diagnostics_round_trip_through_the_bag(tmp_path) -> None:
+    rng = np.random.default_rng(4)
+    sent = _estimates(rng)
+    sink = McapSink(tmp_path / "bag", (0.6973, 2.0302, 50.0))
+    for e in sent:
+        sink.write(e)
+    sink.write(Diagnostics("V0", 2.0, {"beacons_rx": 7, "codec_errors": 0}, {"t": 2.0, "lost": {}}))
+    sink.close()
+    est, diags, counts = read_recording(tmp_path / "bag")
+    assert diags == {"V0": {"beacons_rx": 7, "codec_errors": 0}}
+    assert counts[topic_name("V0", "SL-CP", "fix")] == counts[topic_name("V0", "SL-CP", "odom")] == 15
+    assert counts[topic_name("V0", "SL-CP", "first_stopped")] == 2  # written when it changes
+    got = est[("V0", "SL-CP")] + est[("V0", "SP")]
+    by_t = {round(r["t"], 6): r for r in got}
+    for e in sent:
+        r = by_t[round(e.t, 6)]
+        assert r["method"] == e.method and r["first_stopped"] == e.first_stopped
+        np.testing.assert_allclose(r["llh"], e.llh, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(r["cov_pos"], e.cov_pos, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(r["v_ned"], e.v_ned, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(r["rpy"], e.rpy, rtol=0, atol=1e-9)
+
+
+def test_the_bag_reads_with_the_mcap_reference_reader_in_ros_conventions(tmp_path) -> None:
+    """The MCAP library's own reader and ROS 2 decoder see the same topics and counts; a fix is
+    in degrees with an ENU covariance, and the odometry's position is east, north, up of the
+    map origin."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    origin = (0.6973, 2.0302, 50.0)
+    e = Estimate("V2", "CP", 1.5, np.array([origin[0] + 1e-5, origin[1] - 2e-5, 53.0]), np.array([1.0, 2.0, -0.5]),
+                 np.array([0.0, 0.0, math.radians(30.0)]), np.diag([4.0, 1.0, 9.0]))
+    sink = McapSink(tmp_path / "bag", origin)
+    sink.write(e)
+    sink.close()
+    _, _, counts = read_recording(tmp_path / "bag")
+    seen: dict[str, int] = {}
+    msgs = {}
+    with open(next((tmp_path / "bag").glob("*.mcap")), "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for schema, channel, _, decoded in reader.iter_decoded_messages():
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            msgs[channel.topic] = (schema.name, decoded)
+    assert seen == dict(counts)
+    name, fix = msgs[topic_name("V2", "CP", "fix")]
+    assert name == "sensor_msgs/msg/NavSatFix" and fix.latitude == pytest.approx(math.degrees(e.llh[0]), abs=1e-12)
+    assert list(fix.position_covariance) == pytest.approx([1.0, 0, 0, 0, 4.0, 0, 0, 0, 9.0])  # east, north, up
+    name, odom = msgs[topic_name("V2", "CP", "odom")]
+    assert name == "nav_msgs/msg/Odometry" and odom.header.frame_id == "map"
+    north, east = 1e-5 * 6_378_137 * (1 - 0.0066943800) / (1 - 0.0066943800 * math.sin(origin[0]) ** 2) ** 1.5, \
+        -2e-5 * 6_378_137 * math.cos(origin[0]) / math.sqrt(1 - 0.0066943800 * math.sin(origin[0]) ** 2)
+    p = odom.pose.pose.position
+    assert (p.x, p.y, p.z) == pytest.approx((east, north, 3.0), abs=0.05)
+    # heading 30° east of north is 60° north of east; the body's forward speed is along it
+    q = odom.pose.pose.orientation
+    assert 2 * math.atan2(q.z, q.w) == pytest.approx(math.radians(60.0), abs=1e-9)
+    speed_fwd = math.cos(math.radians(30)) * 1.0 + math.sin(math.radians(30)) * 2.0
+    assert odom.twist.twist.linear.x == pytest.approx(speed_fwd, abs=1e-12)
+    assert odom.twist.twist.linear.z == pytest.approx(0.5, abs=1e-12)  # up, the body's z
+
+
+def test_attitude_in_ros_conventions_in_closed_form() -> None:
+    assert enu_attitude(np.array([0.1, 0.2, 0.0])) == pytest.approx((0.1, -0.2, math.pi / 2))
+    assert enu_attitude(np.array([0.0, 0.0, math.pi / 2]))[2] == pytest.approx(0.0)
+
+
+def test_a_failing_bag_never_stops_the_json_lines(tmp_path) -> None:
+    from slcp.deploy.recorder import Recorder
+    from slcp.transport import keys
+    from slcp.transport.codec import encode
+
+    class Broken:
+        def write(self, m) -> None:
+            raise OSError("disk full")
+
+        def close(self) -> None:
+            raise OSError("disk full")
+
+    rec = Recorder(tmp_path / "r.jsonl", sink=Broken())
+    e = _estimates(np.random.default_rng(0), 3)
+    rec.write([(keys.estimate(x.vehicle, x.method), encode(x)) for x in e])
+    rec.close()
+    assert rec.recorded == 3 and rec.sink_errors == 4
+    assert len((tmp_path / "r.jsonl").read_text().splitlines()) == 3
