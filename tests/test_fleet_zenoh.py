@@ -78,6 +78,11 @@ def _the_bag_holds_the_recording(out, m, recs) -> None:
         assert counts[topic_name(v, meth, "fix")] == counts[topic_name(v, meth, "odom")] == len(rows) == n
     assert counts["/slcp/diagnostics"] == sum(n for k, n in by_key.items() if "/diag/" in k)
     assert set(diags) == {"V0", "V1", "V2", "emulator"}
+    from mcap.reader import make_reader
+
+    with open(next(bag.glob("*.mcap")), "rb") as fh:  # the MCAP library's own reader: the same
+        stats = make_reader(fh).get_summary().statistics
+    assert stats.message_count == sum(counts.values())
     jsonl = [r for r in recs if r["type"] == "Estimate" and (r["vehicle"], r["method"]) == ("V1", "SL-CP")]
     for a, b in zip(jsonl, est[("V1", "SL-CP")], strict=True):
         assert b["t"] == pytest.approx(a["t"], abs=1e-9) and b["first_stopped"] == a["first_stopped"]

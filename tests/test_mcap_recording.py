@@ -109,3 +109,11 @@ def test_a_failing_bag_never_stops_the_json_lines(tmp_path) -> None:
     rec.close()
     assert rec.recorded == 3 and rec.sink_errors == 4
     assert len((tmp_path / "r.jsonl").read_text().splitlines()) == 3
+
+
+def test_slcp_record_refuses_a_bag_directory_that_exists(tmp_path, capsys) -> None:
+    from slcp.deploy.cli import main
+
+    (tmp_path / "bag").mkdir()
+    assert main(["record", "--out", str(tmp_path / "r.jsonl"), "--bag", str(tmp_path / "bag")]) == 2
+    assert "exists" in capsys.readouterr().err
