@@ -37,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     fleet.add_router(sub)
     fleet.add_sensors(sub)
     fleet.add_record(sub)
+    fleet.add_view(sub)
     run.add_run(sub)
     lab.add_attack_eval(sub)
     fleet.add_keys(sub)

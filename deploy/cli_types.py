@@ -65,6 +65,14 @@ def seed(text: str) -> int:
     return _integer(text, "a seed of 0 or more (an integer)", 0)
 
 
+def port(text: str) -> int:
+    """A TCP port to listen on: 0 (any free one) to 65535."""
+    v = _integer(text, "a port number from 0 to 65535", 0)
+    if v > 65535:
+        raise argparse.ArgumentTypeError(f"expected a port number from 0 to 65535, got {text!r}")
+    return v
+
+
 def listen_endpoint(text: str) -> str:
     """An endpoint to listen on: as :func:`endpoint`, and port 0 (any free port) is allowed."""
     return _endpoint(text, listen=True)

@@ -77,7 +77,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = DEFAULT_FUSION,
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
               wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True,
-              zenoh_mode: str = "client", secure: bool = True) -> dict:
+              zenoh_mode: str = "client", secure: bool = True, view_port: int | None = None) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called about twice a second with a
@@ -105,7 +105,10 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     its own keys; the recorder then takes a message only on the key of the sender it names
     (:class:`deploy.recorder.Recorder`). Another user of the host can neither join nor forge the
     run's results. Without it the router is plain TCP on loopback, open to any local process;
-    peer mode needs it off (peers link directly, past the router's access control)."""
+    peer mode needs it off (peers link directly, past the router's access control).
+
+    With ``view_port`` the launcher serves the run live to Foxglove on ``ws://127.0.0.1:<port>``
+    (:mod:`deploy.foxglove_view`; 0: any free port, logged)."""
     if zenoh_mode not in ZENOH_MODES:
         raise ValueError(f"zenoh_mode must be one of {', '.join(ZENOH_MODES)}, got {zenoh_mode!r}")
     if secure and zenoh_mode == "peer":
@@ -128,12 +131,17 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     fleet_dir = out / "keys"
     configs = _write_agent_configs(out, vehicles, scenario, methods, fusion, lane_constraint, endpoint, zenoh_mode,
                                    sign, secure)
+    view = None
+    if view_port is not None:
+        from .foxglove_view import FoxgloveSink
+
+        view = FoxgloveSink(port=view_port, name=f"slcp {scn.name}")
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
                                    agent_nice=agent_nice, zenoh_mode=zenoh_mode, end_t=scn.duration,
                                    title=scn.name, fleet_dir=fleet_dir if secure else None,
-                                   origin_llh=scn.origin_llh))
+                                   origin_llh=scn.origin_llh, view=view))
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}

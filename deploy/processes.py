@@ -379,9 +379,11 @@ async def report_reachability(bus, endpoints: tuple[str, ...], who: str, first: 
         log.warning("%s: connected", who)
 
 
-async def recorder_main(zcfg: ZenohConfig, path: Path, bag: Path | None = None) -> int:
-    """Record every estimate and diagnostics message to ``path`` (appending), and with ``bag`` to
-    a ROS 2 bag in MCAP storage, until SIGINT/SIGTERM."""
+async def recorder_main(zcfg: ZenohConfig, path: Path | None, bag: Path | None = None,
+                        view_port: int | None = None) -> int:
+    """Record every estimate and diagnostics message to ``path`` (appending; None: no JSON
+    lines), with ``bag`` to a ROS 2 bag in MCAP storage, and with ``view_port`` serve them live to
+    Foxglove (:mod:`deploy.foxglove_view`), until SIGINT/SIGTERM."""
     from slcp.transport.zenoh_bus import ZenohBus
 
     from .mcap_recording import McapSink
@@ -389,8 +391,13 @@ async def recorder_main(zcfg: ZenohConfig, path: Path, bag: Path | None = None) 
 
     stop = asyncio.Event()
     _install_signals(stop)
+    sinks: list = [McapSink(bag)] if bag is not None else []
+    if view_port is not None:
+        from .foxglove_view import FoxgloveSink
+
+        sinks.append(FoxgloveSink(port=view_port))
     bus = ZenohBus(zcfg)
-    rec = Recorder(path, sink=McapSink(bag) if bag is not None else None)
+    rec = Recorder(path, sinks=sinks)
     tasks = [*rec.start(bus), asyncio.create_task(report_reachability(bus, zcfg.connect, "record"))]
     try:
         await stop.wait()

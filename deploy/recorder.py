@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import IO
 
@@ -66,23 +67,27 @@ class Recorder:
         Source -> (monotonic receipt time [s], counters, status) of its newest diagnostics.
     """
 
-    def __init__(self, path: Path, t_window: tuple[float, float] = (-math.inf, math.inf), sink=None) -> None:
-        """``t_window`` [s, sensor time]: the times a message may carry (a run's scenario, with a
-        margin); the default takes any finite time. ``sink`` (optional, e.g.
-        :class:`deploy.mcap_recording.McapSink`) gets every message recorded too (``write(m)``,
-        ``close()``); its failures are logged and counted (``sink_errors``), and the JSON lines go on."""
-        self.path = Path(path)
+    def __init__(self, path: Path | None, t_window: tuple[float, float] = (-math.inf, math.inf),
+                 sinks: Sequence = ()) -> None:
+        """``path``: the JSON lines file (None: none). ``t_window`` [s, sensor time]: the times a
+        message may carry (a run's scenario, with a margin); the default takes any finite time.
+        ``sinks`` (e.g. :class:`deploy.mcap_recording.McapSink`,
+        :class:`deploy.foxglove_view.FoxgloveSink`) get every message recorded too (``write(m)``,
+        ``close()``); their failures are logged and counted (``sink_errors``), and the JSON lines go on."""
+        self.path = Path(path) if path is not None else None
         self.t_window = t_window
         self.rejected: collections.Counter[str] = collections.Counter()
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: IO[str] = open(self.path, "a")
+        self._file: IO[str] | None = None
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(self.path, "a")
         self.recorded = 0
         self.codec_errors = 0
         self.latest_t: dict[str, float] = {}
         self.last_wall: dict[str, float] = {}  #: vehicle -> monotonic time [s] of its newest estimate
         self.diag: dict[str, tuple[float, dict, dict]] = {}
         self._subs: list[Subscription] = []
-        self.sink = sink
+        self.sinks = list(sinks)
         self.sink_errors = 0
         #: messages recorded per bus key
         self.counts: collections.Counter[str] = collections.Counter()
@@ -99,17 +104,19 @@ class Recorder:
             if why:
                 self.rejected[why] += 1
                 continue
-            self._file.write(json.dumps(to_json(m)) + "\n")
+            if self._file is not None:
+                self._file.write(json.dumps(to_json(m)) + "\n")
             self.recorded += 1
             self.counts[key] += 1
-            if self.sink is not None:
-                self._to_sink(m)
+            for sink in self.sinks:
+                self._to_sink(sink, m)
             if isinstance(m, Estimate):
                 self.latest_t[m.vehicle] = max(self.latest_t.get(m.vehicle, 0.0), m.t)
                 self.last_wall[m.vehicle] = time.monotonic()
             elif isinstance(m, Diagnostics):
                 self.diag[m.source] = (time.monotonic(), m.counters, m.status)
-        self._file.flush()
+        if self._file is not None:
+            self._file.flush()
 
     def _refusal(self, key: str, m: Message) -> str:
         """Why ``m`` may not be recorded from ``key`` ("" if it may)."""
@@ -168,21 +175,22 @@ class Recorder:
                 self.write(batch)
         self._count_queue_losses()
 
-    def _to_sink(self, m: Message) -> None:
+    def _to_sink(self, sink, m: Message) -> None:
         try:
-            self.sink.write(m)
-        except Exception:  # noqa: BLE001 - the JSON lines must go on whatever the sink does
+            sink.write(m)
+        except Exception:  # noqa: BLE001 - the JSON lines must go on whatever a sink does
             self.sink_errors += 1
             if self.sink_errors == 1:
-                log.exception("the recording's second format failed; the JSON lines go on")
+                log.exception("%s failed; the recording goes on", type(sink).__name__)
 
     def close(self) -> None:
-        """Record what is still queued, then close the file (and the sink)."""
+        """Record what is still queued, then close the file (and the sinks)."""
         self.flush()
-        self._file.close()
-        if self.sink is not None:
+        if self._file is not None:
+            self._file.close()
+        for sink in self.sinks:
             try:
-                self.sink.close()
+                sink.close()
             except Exception:  # noqa: BLE001
                 self.sink_errors += 1
-                log.exception("closing the recording's second format failed")
+                log.exception("closing %s failed", type(sink).__name__)

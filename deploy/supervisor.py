@@ -56,7 +56,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                     wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client",
                     end_t: float | None = None, stall_s: float = 30.0, exit_grace_s: float = 15.0,
                     title: str = "", fleet_dir: Path | None = None,
-                    origin_llh: tuple[float, float, float] | None = None) -> dict:
+                    origin_llh: tuple[float, float, float] | None = None, view=None) -> dict:
     """Run the fleet's processes until the emulator has played the scenario; return their statistics.
 
     A process that dies is restarted (at most ``max_restarts`` times each; the emulator resumes
@@ -80,7 +80,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                         else ZenohConfig(mode="router", listen=(endpoint,)))
 
     sup = _Supervisor(vehicles, configs, out, progress, max_restarts, faults or [], monitor, wait_agents,
-                      agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario), origin_llh)
+                      agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario), origin_llh, view)
     sup.open_router(open_router)
     emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint, "--mode", zenoh_mode,
                 "--wait-agents", f"{wait_agents:g}"]
@@ -109,7 +109,8 @@ class _Supervisor:
 
     def __init__(self, vehicles, configs, out: Path, progress, max_restarts: int, faults: list, monitor,
                  wait_agents: float, agent_nice: int, end_t: float | None, stall_s: float,
-                 exit_grace_s: float, title: str, origin_llh: tuple[float, float, float] | None = None) -> None:
+                 exit_grace_s: float, title: str, origin_llh: tuple[float, float, float] | None = None,
+                 view=None) -> None:
         from slcp.transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
 
         self.vehicles, self.configs, self.out = vehicles, configs, out
@@ -128,7 +129,7 @@ class _Supervisor:
         # an estimate's time can set the fleet's clock (faults, resume): only the scenario's, with
         # a margin for the agents' alignment and hold-back
         self.rec = Recorder(rec_path, (-RECORD_MARGIN_S, (end_t if end_t is not None else math.inf) + RECORD_MARGIN_S),
-                            sink=McapSink(bag, origin_llh))
+                            sinks=[McapSink(bag, origin_llh), *([view] if view is not None else [])])
         self.restarts: list[dict] = []
         self.wall0 = time.monotonic()
         self.pending = sorted((f for f in faults if f.kind in PROCESS_FAULTS), key=lambda f: f.start)

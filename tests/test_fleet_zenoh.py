@@ -19,8 +19,18 @@ pytestmark = [pytest.mark.fleet, pytest.mark.slow]
 
 @pytest.mark.timeout(400)
 def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
+    from foxglove_client import FoxgloveClient
+
+    from conftest import free_port
+
     out = tmp_path / "run"
-    m = run_fleet("paper-1", out=out, seed=0)
+    port = free_port()
+    fix_topics = [f"/slcp/{v}/SL_CP/fix" for v in ("V0", "V1", "V2")]
+    client = FoxgloveClient(port, seconds=120.0, until=lambda c: all(
+        len(c.messages.get(t, [])) >= 100 for t in fix_topics) and len(c.messages.get("/slcp/diagnostics", [])) >= 6)
+    client.start()
+    m = run_fleet("paper-1", out=out, seed=0, view_port=port)
+    client.join(10)
     assert m["processes"]["exit_codes"] == {"agent-V0": 0, "agent-V1": 0, "agent-V2": 0, "emulator": 0}
     # the agents are Zenoh clients of the launcher's router (no peer mesh)
     assert 'mode = "client"' in (out / "config" / "agent-V1.toml").read_text()
@@ -55,6 +65,7 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
         m["rmse"]["t_s1-t_e"]["V1"]["SL-SP"]["rmse_m"]
     )
     _the_bag_holds_the_recording(out, m, recs)
+    _foxglove_saw_the_fleet_live(client, recs)
     # no process left behind
     ps = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True)
     assert ps.stdout.strip() == ""
@@ -100,6 +111,32 @@ def _the_bag_holds_the_recording(out, m, recs) -> None:
                 assert after["rmse"][window][v][meth]["rmse_m"] == pytest.approx(cell["rmse_m"], rel=1e-6, abs=1e-6)
     # the claims' times come back to the nanosecond (the bag's stamps)
     assert _flat(after["first_stopped"]) == pytest.approx(_flat(before["first_stopped"]), rel=1e-9, abs=1e-6)
+
+
+def _foxglove_saw_the_fleet_live(client, recs) -> None:
+    """#44 acceptance 3: a Foxglove WebSocket client connected during the run received every
+    vehicle's estimates live, with their schema, moving, and equal to what was recorded."""
+    import math
+
+    from foxglove_client import protobuf_doubles
+
+    assert client.error is None, client.error
+    topics = client.topics()
+    recorded = {(r["vehicle"], round(r["t"], 6)): r for r in recs if r["type"] == "Estimate" and r["method"] == "SL-CP"}
+    for v in ("V0", "V1", "V2"):
+        assert topics[f"/slcp/{v}/SL_CP/fix"]["schemaName"] == "foxglove.LocationFix"
+        got = client.messages[f"/slcp/{v}/SL_CP/fix"]
+        times = [t for t, _ in got]
+        assert times == sorted(times) and len(set(times)) == len(times) >= 100
+        fields = [protobuf_doubles(p) for _, p in got]
+        lat, lon = [f[1][0] for f in fields], [f[2][0] for f in fields]
+        for (t, _), la, lo in zip(got, lat, lon, strict=True):
+            llh = recorded[(v, round(t / 1e9, 6))]["llh"]
+            assert (la, lo) == pytest.approx((math.degrees(llh[0]), math.degrees(llh[1])), abs=1e-12)
+        if v == "V0":  # driving through the junction while the client watched
+            moved = math.hypot(lat[-1] - lat[0], (lon[-1] - lon[0]) * math.cos(math.radians(lat[0]))) * 111_000
+            assert moved > 20.0
+    assert topics["/slcp/diagnostics"]["schemaName"] == "slcp.Diagnostics"
 
 
 def _flat(d, prefix: str = "") -> dict:

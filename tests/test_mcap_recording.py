@@ -103,7 +103,7 @@ def test_a_failing_bag_never_stops_the_json_lines(tmp_path) -> None:
         def close(self) -> None:
             raise OSError("disk full")
 
-    rec = Recorder(tmp_path / "r.jsonl", sink=Broken())
+    rec = Recorder(tmp_path / "r.jsonl", sinks=[Broken()])
     e = _estimates(np.random.default_rng(0), 3)
     rec.write([(keys.estimate(x.vehicle, x.method), encode(x)) for x in e])
     rec.close()

@@ -104,6 +104,15 @@ def add_record(sub) -> None:
                          "message types; the map frame's origin is the first estimate's position)")
 
 
+def add_view(sub) -> None:
+    """The ``view`` command's parser."""
+    vw = sub.add_parser("view", help="serve a running fleet live to Foxglove (a WebSocket server on this host)")
+    vw.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
+    vw.add_argument("--fleet", type=Path, default=None, help="fleet directory: mutual TLS as identity 'recorder'")
+    vw.add_argument("--port", type=T.port, default=8765,
+                    help="port of the Foxglove WebSocket server on 127.0.0.1 (default 8765; 0: any free port)")
+
+
 def add_keys(sub) -> None:
     """The ``keys`` command's parser."""
     ky = sub.add_parser("keys", help="create or list a fleet's CA, vehicle keys and certificates")
@@ -196,12 +205,14 @@ def _cmd_infrastructure(args: argparse.Namespace) -> int:
 
     from ..processes import recorder_main, router_main
 
-    if args.command == "record":
+    if args.command in ("record", "view"):
         z = ZenohConfig(mode="client" if args.fleet else "peer", connect=tuple(args.connect))
         if args.fleet:
             from ..zenoh_security import client_config
 
             z = client_config(args.fleet, "recorder", tuple(args.connect))
+        if args.command == "view":
+            return asyncio.run(recorder_main(z, None, view_port=args.port))
         if args.bag is not None and args.bag.exists():
             raise ValueError(f"--bag {args.bag}: exists; a bag is written to a new directory")
         return asyncio.run(recorder_main(z, args.out, args.bag))
@@ -248,5 +259,6 @@ HANDLERS = {
     "router": _cmd_infrastructure,
     "sensors": _cmd_sensors,
     "record": _cmd_infrastructure,
+    "view": _cmd_infrastructure,
     "keys": _cmd_keys,
 }

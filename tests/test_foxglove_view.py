@@ -1,0 +1,52 @@
+"""#44: a fleet live in Foxglove. The view's WebSocket server speaks Foxglove's protocol: a
+client sees every topic advertised with its schema and receives the estimates and diagnostics
+as they are written, in the units and frames the schemas say."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import time
+
+import numpy as np
+from foxglove_client import FoxgloveClient
+
+from slcp.deploy.foxglove_view import FoxgloveSink
+from slcp.transport.messages import Diagnostics, Estimate
+
+
+def test_a_foxglove_client_receives_the_topics_with_their_schemas() -> None:
+    sink = FoxgloveSink(port=0)
+    client = FoxgloveClient(sink.port, seconds=5.0,
+                            until=lambda c: len(c.messages.get("/slcp/V1/SL_CP/fix", [])) == 5
+                            and "/slcp/diagnostics" in c.messages)
+    try:
+        e = Estimate("V1", "SL-CP", 2.0, np.array([0.6973, 2.0302, 53.0]), np.array([1.0, 2.0, -0.5]),
+                     np.array([0.0, 0.0, math.radians(30.0)]), np.diag([4.0, 1.0, 9.0]), True)
+        sink.write(e)  # the channel exists (and is advertised) from the first estimate
+        client.start()
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and len(client.channels) < 2:
+            time.sleep(0.05)
+        time.sleep(0.3)  # the subscriptions reach the server
+        for k in range(5):
+            sink.write(Estimate(e.vehicle, e.method, 2.1 + 0.1 * k, e.llh, e.v_ned, e.rpy, e.cov_pos, True))
+        sink.write(Diagnostics("V1", 2.5, {"beacons_rx": 12}, {"t": 2.5}))
+        client.join()
+    finally:
+        sink.close()
+    assert client.error is None, client.error
+    topics = client.topics()
+    fix = topics["/slcp/V1/SL_CP/fix"]
+    assert fix["schemaName"] == "foxglove.LocationFix" and fix["encoding"] == "protobuf" and fix["schema"]
+    diag = topics["/slcp/diagnostics"]
+    assert diag["schemaName"] == "slcp.Diagnostics" and diag["encoding"] == "json"
+    assert json.loads(diag["schema"])["properties"]["counters"]["type"] == "object"
+    got = client.messages["/slcp/V1/SL_CP/fix"]
+    assert [t for t, _ in got] == [int(round((2.1 + 0.1 * k) * 1e9)) for k in range(5)]
+    # protobuf's doubles are little-endian in the payload: degrees, and the ENU covariance
+    payload = got[0][1]
+    assert struct.pack("<d", math.degrees(0.6973)) in payload and struct.pack("<d", 4.0) in payload
+    (t, body), = client.messages["/slcp/diagnostics"]
+    assert t == 2_500_000_000 and json.loads(body)["counters"] == {"beacons_rx": 12}
