@@ -73,6 +73,19 @@ def _write_agent_configs(out: Path, vehicles: list[str], scenario: str, methods:
     return configs
 
 
+def _prepare_run_dir(out: Path, scenario: str, faults: Path | None, started: dict) -> str:
+    """The run directory's folders, its copy of the fault schedule, and ``config/run.json``: what
+    ``slcp report`` needs to evaluate the recording of a run that never got to its evaluation.
+    Returns the scenario's source (its file's absolute path, or the shipped name)."""
+    for sub in ("config", "logs", "recorded", "estimates"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    if faults is not None:  # the run keeps its own copy of the schedule
+        (out / "config" / "faults.toml").write_text(Path(faults).read_text())
+    source = str(Path(scenario).resolve()) if Path(scenario).is_file() else str(scenario)
+    (out / "config" / "run.json").write_text(json.dumps({"scenario": source, **started}, indent=2))
+    return source
+
+
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = DEFAULT_FUSION,
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
@@ -117,15 +130,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     scn = load_scenario(scenario)
     schedule = load_faults(faults, {v.id for v in scn.vehicles}) if faults is not None else []
     out = Path(out)
-    for sub in ("config", "logs", "recorded", "estimates"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    if faults is not None:  # the run keeps its own copy of the schedule
-        (out / "config" / "faults.toml").write_text(Path(faults).read_text())
-    # what `slcp report` needs to evaluate the recording of a run that never got to its evaluation
-    source = str(Path(scenario).resolve()) if Path(scenario).is_file() else str(scenario)
-    (out / "config" / "run.json").write_text(json.dumps({
-        "scenario": source, "seed": seed, "methods": list(methods), "fusion": fusion,
-        "lane_constraint": lane_constraint}, indent=2))
+    source = _prepare_run_dir(out, scenario, faults, {"seed": seed, "methods": list(methods), "fusion": fusion,
+                                                      "lane_constraint": lane_constraint})
     endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{free_port()}"
     vehicles = [v.id for v in scn.vehicles]
     fleet_dir = out / "keys"
