@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import shutil
 import socket
 import time
 from pathlib import Path
@@ -36,6 +37,7 @@ from slcp.hw_emulation.scenario import load_scenario
 from slcp.hw_emulation.truth import build_truth
 from slcp.transport.security import create_fleet
 
+from .mcap_recording import McapSink
 from .progress import FleetProgress
 from .run_report import evaluate_recording, report_markdown
 from .supervisor import supervise as _supervise
@@ -84,6 +86,18 @@ def _prepare_run_dir(out: Path, scenario: str, faults: Path | None, started: dic
     source = str(Path(scenario).resolve()) if Path(scenario).is_file() else str(scenario)
     (out / "config" / "run.json").write_text(json.dumps({"scenario": source, **started}, indent=2))
     return source
+
+
+def _bag(out: Path, scn, truth) -> McapSink:
+    """The run's ROS 2 bag (``recorded/bag``), new, with the site and, given, the truth."""
+    bag = out / "recorded" / "bag"
+    shutil.rmtree(bag, ignore_errors=True)
+    sink = McapSink(bag, scn.origin_llh)
+    sink.write_site(list(scn.lanes.values()))
+    for vid, vt in (truth.vehicles.items() if truth is not None else ()):
+        tr = vt.truth
+        sink.write_truth(vid, tr.t, tr.llh, tr.v_ned, tr.euler, vt.first_stopped)
+    return sink
 
 
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
@@ -137,24 +151,27 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     fleet_dir = out / "keys"
     configs = _write_agent_configs(out, vehicles, scenario, methods, fusion, lane_constraint, endpoint, zenoh_mode,
                                    sign, secure)
-    view = None
+    # the truth first (the evaluation needs it anyway): the bag shows it beside the estimates
+    truth = build_truth(scn, stop_seed=seed) if evaluate else None
+    sinks: list = [_bag(out, scn, truth)]
     if view_port is not None:
         from .foxglove_view import FoxgloveSink
 
-        view = FoxgloveSink(port=view_port, name=f"slcp {scn.name}")
+        sinks.append(FoxgloveSink(port=view_port, name=f"slcp {scn.name}"))
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
                                    agent_nice=agent_nice, zenoh_mode=zenoh_mode, end_t=scn.duration,
                                    title=scn.name, fleet_dir=fleet_dir if secure else None,
-                                   origin_llh=scn.origin_llh, view=view))
+                                   sinks=sinks))
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}
     if progress:
         progress(FleetProgress(scn.name, "evaluating", scn.duration, scn.duration, 0, len(vehicles),
                                stats["recorded"], wall))
-    truth = build_truth(scn, stop_seed=seed)
+    if truth is None:
+        truth = build_truth(scn, stop_seed=seed)
     metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods, schedule,
                                  lane_constraint)
     metrics["wall_s"] = wall

@@ -18,6 +18,11 @@ take letters, digits and ``_``):
                                        message, its name the source, its values the counters,
                                        its message the status as JSON
 ``/slcp/map_origin``                   ``sensor_msgs/msg/NavSatFix``: the origin of ``map``, once
+``/slcp/site``                         ``visualization_msgs/msg/MarkerArray``, once: the lanes'
+                                       centre lines and the stop lines in ``map`` (Foxglove's
+                                       3D panel draws them)
+``/slcp/V/truth/{fix,odom,...}``       in emulated runs, the vehicle's true trajectory at 10 Hz
+                                       (as an estimate's topics, with a zero covariance)
 =====================================  ====================================================
 
 Every message is stamped, in its header and its log time, with the sensor time of the run [s]
@@ -171,6 +176,50 @@ class McapSink:
         self._put(topic_name(e.vehicle, e.method, "odom"), ODOM, ns,
                   T[ODOM](header=self._header(ns, "map"), child_frame_id=child, pose=pose, twist=twist))
 
+    def write_site(self, lanes) -> None:
+        """The site's lanes (``centerline``: north, east [m] in ``map``; ``width`` [m];
+        ``stop_line``: whether it ends at one) as markers, stamped 0."""
+        T = self.T
+        P3 = T["geometry_msgs/msg/Point"]
+        markers = []
+        for k, ln in enumerate(lanes):
+            c = np.asarray(ln.centerline, float)
+            markers.append(self._marker(k, "lanes", 4, 0.15, (0.6, 0.6, 0.6),
+                                        [P3(x=float(e), y=float(n), z=0.0) for n, e in c]))
+            if ln.stop_line:
+                d = (c[-1] - c[-2]) / np.hypot(*(c[-1] - c[-2]))
+                r = np.array([-d[1], d[0]]) * ln.width / 2
+                a, b = c[-1] - r, c[-1] + r
+                markers.append(self._marker(k, "stop_lines", 5, 0.4, (1.0, 1.0, 1.0),
+                                            [P3(x=float(a[1]), y=float(a[0]), z=0.0),
+                                             P3(x=float(b[1]), y=float(b[0]), z=0.0)]))
+        self._put("/slcp/site", "visualization_msgs/msg/MarkerArray", 0,
+                  T["visualization_msgs/msg/MarkerArray"](markers=markers))
+
+    def _marker(self, k: int, ns: str, kind: int, width: float, rgb, points):
+        T = self.T
+        V3 = T["geometry_msgs/msg/Vector3"]
+        return T["visualization_msgs/msg/Marker"](
+            header=self._header(0, "map"), ns=ns, id=k, type=kind, action=0,
+            pose=T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                                             orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)),
+            scale=V3(x=width, y=0.0, z=0.0), color=T["std_msgs/msg/ColorRGBA"](r=rgb[0], g=rgb[1], b=rgb[2], a=1.0),
+            lifetime=T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0), frame_locked=False, points=points,
+            colors=[], texture_resource="", texture=T["sensor_msgs/msg/CompressedImage"](
+                header=self._header(0, ""), format="", data=np.zeros(0, np.uint8)),
+            uv_coordinates=[], text="", mesh_resource="",
+            mesh_file=T["visualization_msgs/msg/MeshFile"](filename="", data=np.zeros(0, np.uint8)),
+            mesh_use_embedded_materials=False)
+
+    def write_truth(self, vehicle: str, t: np.ndarray, llh: np.ndarray, v_ned: np.ndarray, rpy: np.ndarray,
+                    first_stopped: np.ndarray, rate: float = 10.0) -> None:
+        """A vehicle's true trajectory (arrays over ``t`` [s]), ``rate`` samples a second."""
+        step = max(1, int(round(1.0 / (rate * float(np.median(np.diff(t)))))))
+        zero = np.zeros((3, 3))
+        for k in range(0, len(t), step):
+            self._estimate(Estimate(vehicle, "truth", float(t[k]), llh[k], v_ned[k], rpy[k], zero,
+                                    bool(first_stopped[k])))
+
     def _diagnostics(self, d: Diagnostics) -> None:
         T = self.T
         ns = max(0, int(round(d.t * 1e9)))
@@ -203,7 +252,7 @@ def read_recording(path: Path) -> tuple[dict[tuple[str, str], list[dict]], dict[
                 for s in msg.status:
                     diags[s.name] = {kv.key: int(kv.value) for kv in s.values}
                 continue
-            if conn.topic == "/slcp/map_origin":
+            if conn.topic in ("/slcp/map_origin", "/slcp/site") or "/truth/" in conn.topic:
                 continue
             stem, what = conn.topic.rsplit("/", 1)
             ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec if what != "first_stopped" else 0

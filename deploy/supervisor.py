@@ -12,7 +12,6 @@ import contextlib
 import logging
 import math
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -23,7 +22,6 @@ from pathlib import Path
 from slcp.agent.methods import METHODS
 from slcp.hw_emulation.faults import PROCESS_FAULTS
 
-from .mcap_recording import McapSink
 from .processes import SUPERVISOR_ENV
 from .progress import FleetProgress
 from .recorder import Recorder
@@ -56,7 +54,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                     wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client",
                     end_t: float | None = None, stall_s: float = 30.0, exit_grace_s: float = 15.0,
                     title: str = "", fleet_dir: Path | None = None,
-                    origin_llh: tuple[float, float, float] | None = None, view=None) -> dict:
+                    sinks: list | tuple = ()) -> dict:
     """Run the fleet's processes until the emulator has played the scenario; return their statistics.
 
     A process that dies is restarted (at most ``max_restarts`` times each; the emulator resumes
@@ -80,7 +78,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                         else ZenohConfig(mode="router", listen=(endpoint,)))
 
     sup = _Supervisor(vehicles, configs, out, progress, max_restarts, faults or [], monitor, wait_agents,
-                      agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario), origin_llh, view)
+                      agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario), sinks)
     sup.open_router(open_router)
     emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint, "--mode", zenoh_mode,
                 "--wait-agents", f"{wait_agents:g}"]
@@ -109,8 +107,7 @@ class _Supervisor:
 
     def __init__(self, vehicles, configs, out: Path, progress, max_restarts: int, faults: list, monitor,
                  wait_agents: float, agent_nice: int, end_t: float | None, stall_s: float,
-                 exit_grace_s: float, title: str, origin_llh: tuple[float, float, float] | None = None,
-                 view=None) -> None:
+                 exit_grace_s: float, title: str, sinks: list | tuple = ()) -> None:
         from slcp.transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
 
         self.vehicles, self.configs, self.out = vehicles, configs, out
@@ -124,12 +121,10 @@ class _Supervisor:
                             "emulator_killed_at_end": False}
         rec_path = out / "recorded" / "messages.jsonl"
         rec_path.unlink(missing_ok=True)  # a new run starts a new recording
-        bag = out / "recorded" / "bag"
-        shutil.rmtree(bag, ignore_errors=True)
         # an estimate's time can set the fleet's clock (faults, resume): only the scenario's, with
         # a margin for the agents' alignment and hold-back
         self.rec = Recorder(rec_path, (-RECORD_MARGIN_S, (end_t if end_t is not None else math.inf) + RECORD_MARGIN_S),
-                            sinks=[McapSink(bag, origin_llh), *([view] if view is not None else [])])
+                            sinks=sinks)
         self.restarts: list[dict] = []
         self.wall0 = time.monotonic()
         self.pending = sorted((f for f in faults if f.kind in PROCESS_FAULTS), key=lambda f: f.start)

@@ -89,6 +89,9 @@ def _the_bag_holds_the_recording(out, m, recs) -> None:
         assert counts[topic_name(v, meth, "fix")] == counts[topic_name(v, meth, "odom")] == len(rows) == n
     assert counts["/slcp/diagnostics"] == sum(n for k, n in by_key.items() if "/diag/" in k)
     assert set(diags) == {"V0", "V1", "V2", "emulator"}
+    # the truth at 10 Hz over the 50 s scenario, and the site once
+    assert all(counts[f"/slcp/{v}/truth/fix"] == counts[f"/slcp/{v}/truth/odom"] == 501 for v in ("V0", "V1", "V2"))
+    assert counts["/slcp/site"] == 1
     from mcap.reader import make_reader
 
     with open(next(bag.glob("*.mcap")), "rb") as fh:  # the MCAP library's own reader: the same

@@ -117,3 +117,34 @@ def test_slcp_record_refuses_a_bag_directory_that_exists(tmp_path, capsys) -> No
     (tmp_path / "bag").mkdir()
     assert main(["record", "--out", str(tmp_path / "r.jsonl"), "--bag", str(tmp_path / "bag")]) == 2
     assert "exists" in capsys.readouterr().err
+
+
+def test_the_site_and_the_truth_go_into_the_bag_and_not_among_the_estimates(tmp_path) -> None:
+    """The lanes and stop lines as markers in the map frame (east, north), and a vehicle's true
+    trajectory at 10 Hz on topics of its own, which the recording's estimates leave out."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from slcp.hw_emulation.scenario import load_scenario
+
+    scn = load_scenario("paper-1")
+    sink = McapSink(tmp_path / "bag", scn.origin_llh)
+    lanes = list(scn.lanes.values())
+    sink.write_site(lanes)
+    t = np.arange(0.0, 2.0, 0.01)
+    llh = np.tile(np.array(scn.origin_llh), (len(t), 1))
+    sink.write_truth("V0", t, llh, np.zeros((len(t), 3)), np.zeros((len(t), 3)), t > 1.0)
+    sink.close()
+    est, _, counts = read_recording(tmp_path / "bag")
+    assert est == {} and counts["/slcp/V0/truth/fix"] == 20 and counts["/slcp/V0/truth/first_stopped"] == 2
+    with AnyReader([tmp_path / "bag"], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        (conn,) = [c for c in reader.connections if c.topic == "/slcp/site"]
+        (_, _, raw), = list(reader.messages(connections=[conn]))
+        markers = reader.deserialize(raw, conn.msgtype).markers
+    strips = [m for m in markers if m.ns == "lanes"]
+    stops = [m for m in markers if m.ns == "stop_lines"]
+    assert len(strips) == len(lanes) and len(stops) == sum(1 for ln in lanes if ln.stop_line) > 0
+    first = strips[0]
+    assert first.header.frame_id == "map" and first.type == 4
+    c = np.asarray(lanes[0].centerline)
+    np.testing.assert_allclose([(p.x, p.y) for p in first.points], c[:, ::-1])  # east, north
