@@ -170,16 +170,10 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     if progress:
         progress(FleetProgress(scn.name, "evaluating", scn.duration, scn.duration, 0, len(vehicles),
                                stats["recorded"], wall))
-    if truth is None:
-        truth = build_truth(scn, stop_seed=seed)
-    metrics = evaluate_recording(truth, out / "recorded" / "messages.jsonl", out, methods, schedule,
-                                 lane_constraint)
-    metrics["wall_s"] = wall
-    metrics["seed"] = seed
-    metrics["scenario_source"] = source
-    metrics["fusion"] = fusion
-    metrics["lane_constraint"] = lane_constraint
-    metrics["processes"] = stats
+    metrics = evaluate_recording(truth if truth is not None else build_truth(scn, stop_seed=seed),
+                                 out / "recorded" / "messages.jsonl", out, methods, schedule, lane_constraint)
+    metrics.update({"wall_s": wall, "seed": seed, "scenario_source": source, "fusion": fusion,
+                    "lane_constraint": lane_constraint, "processes": stats})
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "report.md").write_text(report_markdown(scn, metrics))
     return metrics
