@@ -102,6 +102,10 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
         self.departures: deque = deque(maxlen=20)
         #: verified, fresh beacons received / excluded as misbehaving, per sender
         self.beacons_from: dict[str, int] = {}
+        #: (sender, method) -> time of its newest verified beacon: the replay check's memory,
+        #: kept when the sender leaves the tables (gone silent, its token gone), so that its
+        #: last beacons replayed within the time window are still refused
+        self._newest_verified: dict[tuple[str, str], float] = {}
         self.excluded_from: dict[str, int] = {}
         self.misbehaviour = (MisbehaviourDetector(nlos_bias=cfg.nlos_bias_max)
                              if cfg.misbehaviour_detection else None)
@@ -257,7 +261,7 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
         if refused:
             self._count(f"beacon_{refused}")
             return
-        newest = tab.newest_time(msg.vehicle)
+        newest = self._newest_verified.get((msg.vehicle, msg.method), tab.newest_time(msg.vehicle))
         if newest is not None and msg.t <= newest:  # a duplicate or replay: not newer than the last
             tab.counters["duplicate_or_old"] += 1
             return
@@ -274,6 +278,7 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
             g.pop(msg.vehicle, None)
         if msg.vehicle in self.beacons_from or len(self.beacons_from) < self.MAX_SENDERS:
             self.beacons_from[msg.vehicle] = self.beacons_from.get(msg.vehicle, 0) + 1
+            self._newest_verified[(msg.vehicle, msg.method)] = msg.t
         if self._untrusted(msg):
             self.excluded_from[msg.vehicle] = self.excluded_from.get(msg.vehicle, 0) + 1
             return

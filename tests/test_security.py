@@ -442,3 +442,26 @@ def test_a_flood_in_one_vehicles_name_costs_a_bounded_number_of_verifications(fl
     assert eng.counters["beacon_verify_budget"] == 10_000 - eng.counters["beacon_bad_signature"]
     assert calls["n"] == eng.counters["beacon_bad_signature"] + 5
     assert eng.beacons_from.get("V2") == 5 and "V0" not in eng.beacons_from
+
+
+def test_a_replay_is_refused_after_its_sender_left_the_tables(fleet) -> None:
+    """The replay check remembers a sender's newest verified beacon after the sender leaves the
+    tables (its liveliness token gone, or silent past the table timeout): its last beacons,
+    replayed within the time window, are still refused."""
+    import dataclasses as dc
+
+    from slcp.agent.engine import VehicleEngine
+
+    trust = TrustStore.from_dir(fleet)
+    eng = VehicleEngine(dc.replace(agent_config(load_scenario("paper-1"), "V1", ("CP",)), trust=trust))
+    eng.seq.t = 100.0
+    v0 = BeaconSigner.from_file("V0", fleet / "V0.key")
+    genuine = v0.sign(beacon("V0", seq=3, t=99.9))
+    eng.handle(genuine)
+    assert eng.beacons_from == {"V0": 1} and eng.tables["CP"].newest_time("V0") == 99.9
+    eng.neighbour_alive("V0", False)  # its agent stopped: the tables forget it
+    assert eng.tables["CP"].newest_time("V0") is None
+    eng.handle(genuine)  # replayed, still inside the 1 s window
+    assert eng.beacons_from == {"V0": 1} and eng.tables["CP"].counters["duplicate_or_old"] == 1
+    eng.handle(v0.sign(beacon("V0", seq=4, t=100.1)))  # a newer one is taken
+    assert eng.beacons_from == {"V0": 2}
