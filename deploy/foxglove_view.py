@@ -48,7 +48,10 @@ class FoxgloveSink:
 
         self._fg = foxglove
         self.ctx = foxglove.Context()
-        self.server = foxglove.start_server(name=name, host=host, port=port, context=self.ctx)
+        try:
+            self.server = foxglove.start_server(name=name, host=host, port=port, context=self.ctx)
+        except RuntimeError as exc:  # the SDK's FoxgloveError, e.g. the port taken
+            raise OSError(f"cannot serve the Foxglove view on {host}:{port}: {exc}") from None
         self.port: int = self.server.port
         self._fix: dict[str, Any] = {}
         self._diag = foxglove.Channel("/slcp/diagnostics", context=self.ctx, message_encoding="json",

@@ -151,13 +151,14 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     fleet_dir = out / "keys"
     configs = _write_agent_configs(out, vehicles, scenario, methods, fusion, lane_constraint, endpoint, zenoh_mode,
                                    sign, secure)
-    # the truth first (the evaluation needs it anyway): the bag shows it beside the estimates
-    truth = build_truth(scn, stop_seed=seed) if evaluate else None
-    sinks: list = [_bag(out, scn, truth)]
-    if view_port is not None:
+    sinks: list = []
+    if view_port is not None:  # first: a port that is taken stops the run before it starts
         from .foxglove_view import FoxgloveSink
 
         sinks.append(FoxgloveSink(port=view_port, name=f"slcp {scn.name}"))
+    # the truth first (the evaluation needs it anyway): the bag shows it beside the estimates
+    truth = build_truth(scn, stop_seed=seed) if evaluate else None
+    sinks.insert(0, _bag(out, scn, truth))
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,

@@ -50,3 +50,17 @@ def test_a_foxglove_client_receives_the_topics_with_their_schemas() -> None:
     assert struct.pack("<d", math.degrees(0.6973)) in payload and struct.pack("<d", 4.0) in payload
     (t, body), = client.messages["/slcp/diagnostics"]
     assert t == 2_500_000_000 and json.loads(body)["counters"] == {"beacons_rx": 12}
+
+
+def test_a_taken_port_is_a_one_line_error(tmp_path, capsys) -> None:
+    import socket
+
+    from slcp.deploy.cli import main
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        assert main(["run", "paper-1", "--out", str(tmp_path / "run"), "--view", str(port)]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot serve the Foxglove view on 127.0.0.1:{port}" in err and "Traceback" not in err
