@@ -90,13 +90,10 @@ class Agent:
         if trust is not None:
             subs["beacon"].prefilter = _beacon_prefilter(trust)
         self.bus.declare_alive(keys.alive("agent", v))
-        if trust is not None:
-            # the fleet's vehicles only: a stranger's tokens never reach this process
-            for other in trust.identities("vehicle"):
-                if other != v:
-                    self.bus.watch_alive(keys.alive("agent", other), self._on_alive)
-        else:
-            self.bus.watch_alive(keys.ROOT + "/alive/agent/*", self._on_alive)
+        # with a trust store, the fleet's vehicles only: a stranger's tokens are dropped in the
+        # transport's thread (one subscriber, not one per vehicle: each has a thread of its own)
+        fleet = frozenset(trust.identities("vehicle")) - {v} if trust is not None else None
+        self.bus.watch_alive(keys.ROOT + "/alive/agent/*", self._on_alive, names=fleet)
         consumer = asyncio.create_task(self._consume(waker, subs), name=f"{v}-consume")
         stopped = asyncio.create_task(stop.wait())
         try:  # until the stop, or until the consumer fails (its exception is raised here)

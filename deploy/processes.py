@@ -450,8 +450,8 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
                 emu.forget_agent(v)
                 log.warning("agent %s left", v)
 
-        for v in sorted(truth.vehicles):  # the scenario's agents only: a stranger's tokens never arrive
-            bus.watch_alive(keys.alive("agent", v), on_alive)
+        # the scenario's agents only: a stranger's tokens are dropped in Zenoh's thread
+        bus.watch_alive(keys.ROOT + "/alive/agent/*", on_alive, names=frozenset(truth.vehicles))
         loop = asyncio.get_running_loop()
         deadline = loop.time() + wait_for_agents
         while not stop.is_set() and not set(truth.vehicles) <= alive and loop.time() < deadline:

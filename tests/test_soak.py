@@ -120,19 +120,23 @@ def test_a_withdrawn_liveliness_token_is_seen_gone_across_zenoh() -> None:
         b = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
         seen: list = []
         try:
-            b.watch_alive(keys.alive("agent", "H1"), lambda k, up: seen.append(up))
+            # one subscriber on every agent's token, H1's kept by name in Zenoh's thread
+            b.watch_alive(keys.ROOT + "/alive/agent/*", lambda k, up: seen.append((k, up)), names=frozenset({"H1"}))
             a.declare_alive(keys.alive("agent", "H1"))
             a.declare_alive(keys.alive("agent", "H1"))  # one token per key
             a.declare_alive(keys.alive("agent", "H2"))  # not watched
             loop = asyncio.get_running_loop()
             deadline = loop.time() + 10
-            while seen != [True] and loop.time() < deadline:
+            h1 = keys.alive("agent", "H1")
+            while seen != [(h1, True)] and loop.time() < deadline:
                 await asyncio.sleep(0.05)
             a.withdraw_alive(keys.alive("agent", "H1"))
             a.withdraw_alive(keys.alive("agent", "H1"))  # already gone: nothing
-            while seen != [True, False] and loop.time() < deadline:
+            a.withdraw_alive(keys.alive("agent", "H2"))  # gone, and not watched
+            while seen != [(h1, True), (h1, False)] and loop.time() < deadline:
                 await asyncio.sleep(0.05)
-            assert seen == [True, False]
+            await asyncio.sleep(0.3)
+            assert seen == [(h1, True), (h1, False)]
         finally:
             await b.close()
             await a.close()

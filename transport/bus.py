@@ -199,7 +199,10 @@ class Bus(Protocol):
         """``callback(key, payload)`` at arrival, on the transport's own thread (for measurements:
         it must be quick and thread-safe)."""
 
-    def watch_alive(self, expr: str, callback: AliveCallback) -> None: ...
+    def watch_alive(self, expr: str, callback: AliveCallback, names: frozenset[str] | None = None) -> None:
+        """``callback(key, alive)`` for the liveliness tokens matching ``expr``; with ``names``,
+        only for keys whose last chunk is one of them (the others are dropped where they
+        arrive: a stranger churning thousands of tokens costs no wake-up of the consumer)."""
 
     async def close(self) -> None: ...
 
@@ -264,7 +267,13 @@ class InMemoryBus:
             if matches(expr, key):
                 cb(key, False)
 
-    def watch_alive(self, expr: str, callback: AliveCallback) -> None:
+    def watch_alive(self, expr: str, callback: AliveCallback, names: frozenset[str] | None = None) -> None:
+        if names is not None:
+            inner = callback
+
+            def callback(key: str, alive: bool) -> object:
+                return inner(key, alive) if key.rsplit("/", 1)[-1] in names else None
+
         self.network.watchers.append((expr, callback))
         for key in sorted(self.network.alive):
             if matches(expr, key):

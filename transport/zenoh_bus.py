@@ -205,14 +205,18 @@ class ZenohBus:
         if token is not None:
             token.undeclare()  # type: ignore[no-untyped-call]  # zenoh's stub leaves it unannotated
 
-    def watch_alive(self, expr: str, callback: AliveCallback) -> None:
-        """``callback(key, alive: bool)`` on the event loop for tokens matching ``expr``."""
+    def watch_alive(self, expr: str, callback: AliveCallback, names: frozenset[str] | None = None) -> None:
+        """``callback(key, alive: bool)`` on the event loop for tokens matching ``expr`` (with
+        ``names``, only those whose last chunk is one of them: filtered in Zenoh's thread)."""
         loop = self.loop
 
         def on_sample(sample: zenoh.Sample) -> None:
             alive = sample.kind == zenoh.SampleKind.PUT
+            key = str(sample.key_expr)
+            if names is not None and key.rsplit("/", 1)[-1] not in names:
+                return
             try:
-                loop.call_soon_threadsafe(callback, str(sample.key_expr), alive)
+                loop.call_soon_threadsafe(callback, key, alive)
             except RuntimeError:
                 pass
 
