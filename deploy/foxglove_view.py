@@ -25,11 +25,9 @@ import logging
 import math
 from typing import Any
 
-import numpy as np
-
 from slcp.transport.messages import Diagnostics, Estimate, Message
 
-from .mcap_recording import topic_name
+from .mcap_recording import log_time_ns, ned_to_enu_cov, topic_name
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +59,7 @@ class FoxgloveSink:
         log.warning("Foxglove view: connect Foxglove to ws://%s:%d", host, self.port)
 
     def write(self, m: Message) -> None:
-        ns = max(0, int(round(m.t * 1e9))) if math.isfinite(m.t) else 0
+        ns = log_time_ns(m.t)
         if isinstance(m, Estimate):
             self._estimate(m, ns)
         elif isinstance(m, Diagnostics):
@@ -76,7 +74,7 @@ class FoxgloveSink:
         ch = self._fix.get(topic)
         if ch is None:
             ch = self._fix[topic] = LocationFixChannel(topic, context=self.ctx)
-        c = np.asarray(e.cov_pos, float)[[1, 0, 2]][:, [1, 0, 2]] * np.array([[1, 1, -1], [1, 1, -1], [-1, -1, 1]])
+        c = ned_to_enu_cov(e.cov_pos)
         vn, ve, vd = (float(x) for x in e.v_ned)
         ch.log(LocationFix(timestamp=Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000),
                            frame_id=f"{e.vehicle}/{e.method}", latitude=math.degrees(float(e.llh[0])),

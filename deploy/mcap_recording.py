@@ -56,9 +56,15 @@ _POSE_COV = np.diag([0.0, 0.0, 0.0, 1e6, 1e6, 1e6])
 _TWIST_COV = (np.eye(6) * 1e6).ravel()
 
 
-def _ned_to_enu_cov(c: np.ndarray) -> np.ndarray:
+def ned_to_enu_cov(c: np.ndarray) -> np.ndarray:
     """P C Pᵀ for the NED <-> ENU permutation P (its own inverse)."""
     return np.asarray(c, float)[[1, 0, 2]][:, [1, 0, 2]] * _SIGN
+
+
+def log_time_ns(t: float) -> int:
+    """A sensor time [s] as a log time [ns]: whole nanoseconds, 0 for a time before 0 or not
+    finite (the log times of MCAP and of Foxglove's protocol are unsigned)."""
+    return max(0, int(round(t * 1e9))) if math.isfinite(t) else 0
 
 
 def topic_name(vehicle: str, method: str, what: str) -> str:
@@ -145,7 +151,7 @@ class McapSink:
 
     def _estimate(self, e: Estimate) -> None:
         T = self.T
-        ns = max(0, int(round(e.t * 1e9)))
+        ns = log_time_ns(e.t)
         if self.origin is None:
             self._set_origin(e.llh, ns)
         lat0, lon0, h0 = self.origin  # type: ignore[misc]
@@ -153,7 +159,7 @@ class McapSink:
         if self._claim.get(claim_topic) != bool(e.first_stopped):
             self._claim[claim_topic] = bool(e.first_stopped)
             self._put(claim_topic, BOOL, ns, T[BOOL](data=bool(e.first_stopped)))
-        cov = _ned_to_enu_cov(e.cov_pos)
+        cov = ned_to_enu_cov(e.cov_pos)
         self._put(topic_name(e.vehicle, e.method, "fix"), FIX, ns, self._fix(ns, "map", e.llh, cov, 3))
         east, north, up = pymap3d.geodetic2enu(float(e.llh[0]), float(e.llh[1]), float(e.llh[2]), lat0, lon0, h0,
                                                deg=False)
@@ -222,7 +228,7 @@ class McapSink:
 
     def _diagnostics(self, d: Diagnostics) -> None:
         T = self.T
-        ns = max(0, int(round(d.t * 1e9)))
+        ns = log_time_ns(d.t)
         kv = T["diagnostic_msgs/msg/KeyValue"]
         status = T["diagnostic_msgs/msg/DiagnosticStatus"](
             level=0, name=d.source, message=json.dumps(d.status, default=str), hardware_id=d.source,
@@ -274,7 +280,7 @@ def _estimate_record(vehicle: str, method: str, ns: int, fix, odom, claim: bool)
     yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
     v = odom.twist.twist.linear
     v_ned = _P @ (_rot_zyx(yaw, pitch, roll) @ np.array([v.x, v.y, v.z]))
-    cov = _ned_to_enu_cov(np.asarray(fix.position_covariance, float).reshape(3, 3))
+    cov = ned_to_enu_cov(np.asarray(fix.position_covariance, float).reshape(3, 3))
     return {"type": "Estimate", "vehicle": vehicle, "method": method, "t": ns / 1e9,
             "llh": [math.radians(fix.latitude), math.radians(fix.longitude), fix.altitude],
             "v_ned": v_ned.tolist(), "rpy": [roll, -pitch, math.remainder(math.pi / 2 - yaw, 2 * math.pi)],
