@@ -41,6 +41,7 @@ from .mcap_recording import McapSink
 from .progress import FleetProgress
 from .run_report import evaluate_recording, report_markdown
 from .supervisor import supervise as _supervise
+from .viewers import viewer_sinks
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = DEFAULT_FUSION,
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
               wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True,
-              zenoh_mode: str = "client", secure: bool = True, view_port: int | None = None) -> dict:
+              zenoh_mode: str = "client", secure: bool = True, view_port: int | None = None,
+              foxglove_port: int | None = None) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called about twice a second with a
@@ -134,8 +136,9 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     run's results. Without it the router is plain TCP on loopback, open to any local process;
     peer mode needs it off (peers link directly, past the router's access control).
 
-    With ``view_port`` the launcher serves the run live to Foxglove on ``ws://127.0.0.1:<port>``
-    (:mod:`deploy.foxglove_view`; 0: any free port, logged)."""
+    With ``view_port`` the launcher shows the run live on a map in the browser at
+    ``http://127.0.0.1:<port>/`` (:mod:`deploy.live_map`), with ``foxglove_port`` it serves it to
+    Foxglove on ``ws://127.0.0.1:<port>`` (:mod:`deploy.foxglove_view`); 0: any free port, logged."""
     if zenoh_mode not in ZENOH_MODES:
         raise ValueError(f"zenoh_mode must be one of {', '.join(ZENOH_MODES)}, got {zenoh_mode!r}")
     if secure and zenoh_mode == "peer":
@@ -151,14 +154,10 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     fleet_dir = out / "keys"
     configs = _write_agent_configs(out, vehicles, scenario, methods, fusion, lane_constraint, endpoint, zenoh_mode,
                                    sign, secure)
-    sinks: list = []
-    if view_port is not None:  # first: a port that is taken stops the run before it starts
-        from .foxglove_view import FoxgloveSink
-
-        sinks.append(FoxgloveSink(port=view_port, name=f"slcp {scn.name}"))
-    # the truth first (the evaluation needs it anyway): the bag shows it beside the estimates
+    # the truth first (the evaluation needs it anyway): the bag and the map show it beside the estimates
     truth = build_truth(scn, stop_seed=seed) if evaluate else None
-    sinks.insert(0, _bag(out, scn, truth))
+    # then the viewers: a port that is taken stops the run before it starts
+    sinks: list = [*viewer_sinks(view_port, foxglove_port, scn, truth), _bag(out, scn, truth)]
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,

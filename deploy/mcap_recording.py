@@ -44,6 +44,8 @@ import pymap3d
 
 from slcp.transport.messages import Diagnostics, Estimate, Message
 
+from .site_shapes import lane_shapes
+
 log = logging.getLogger(__name__)
 
 FIX, ODOM, BOOL, DIAG = ("sensor_msgs/msg/NavSatFix", "nav_msgs/msg/Odometry", "std_msgs/msg/Bool",
@@ -188,17 +190,12 @@ class McapSink:
         T = self.T
         P3 = T["geometry_msgs/msg/Point"]
         markers = []
-        for k, ln in enumerate(lanes):
-            c = np.asarray(ln.centerline, float)
+        for k, ln in enumerate(lane_shapes(lanes)):
             markers.append(self._marker(k, "lanes", 4, 0.15, (0.6, 0.6, 0.6),
-                                        [P3(x=float(e), y=float(n), z=0.0) for n, e in c]))
-            if ln.stop_line:
-                d = (c[-1] - c[-2]) / np.hypot(*(c[-1] - c[-2]))
-                r = np.array([-d[1], d[0]]) * ln.width / 2
-                a, b = c[-1] - r, c[-1] + r
+                                        [P3(x=float(e), y=float(n), z=0.0) for n, e in ln.centre]))
+            if ln.stop_line is not None:
                 markers.append(self._marker(k, "stop_lines", 5, 0.4, (1.0, 1.0, 1.0),
-                                            [P3(x=float(a[1]), y=float(a[0]), z=0.0),
-                                             P3(x=float(b[1]), y=float(b[0]), z=0.0)]))
+                                            [P3(x=float(e), y=float(n), z=0.0) for n, e in ln.stop_line]))
         self._put("/slcp/site", "visualization_msgs/msg/MarkerArray", 0,
                   T["visualization_msgs/msg/MarkerArray"](markers=markers))
 

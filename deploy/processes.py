@@ -380,22 +380,28 @@ async def report_reachability(bus, endpoints: tuple[str, ...], who: str, first: 
 
 
 async def recorder_main(zcfg: ZenohConfig, path: Path | None, bag: Path | None = None,
-                        view_port: int | None = None) -> int:
+                        view_port: int | None = None, foxglove_port: int | None = None,
+                        scenario: str | None = None) -> int:
     """Record every estimate and diagnostics message to ``path`` (appending; None: no JSON
-    lines), with ``bag`` to a ROS 2 bag in MCAP storage, and with ``view_port`` serve them live to
-    Foxglove (:mod:`deploy.foxglove_view`), until SIGINT/SIGTERM."""
+    lines), with ``bag`` to a ROS 2 bag in MCAP storage, until SIGINT/SIGTERM. With ``view_port``
+    show them live on a map in the browser (:mod:`deploy.live_map`; the site of ``scenario`` if
+    given), with ``foxglove_port`` serve them to Foxglove (:mod:`deploy.foxglove_view`)."""
     from slcp.transport.zenoh_bus import ZenohBus
 
     from .mcap_recording import McapSink
     from .recorder import Recorder
+    from .viewers import viewer_sinks
 
+    site = None
+    if scenario is not None:
+        from slcp.hw_emulation.scenario import load_scenario
+
+        site = load_scenario(scenario)
+    sinks: list = viewer_sinks(view_port, foxglove_port, site)  # first: a port that is taken stops here
     stop = asyncio.Event()
     _install_signals(stop)
-    sinks: list = [McapSink(bag)] if bag is not None else []
-    if view_port is not None:
-        from .foxglove_view import FoxgloveSink
-
-        sinks.append(FoxgloveSink(port=view_port))
+    if bag is not None:
+        sinks.append(McapSink(bag))
     bus = ZenohBus(zcfg)
     rec = Recorder(path, sinks=sinks)
     tasks = [*rec.start(bus), asyncio.create_task(report_reachability(bus, zcfg.connect, "record"))]

@@ -161,11 +161,34 @@ class Recorder:
 
     def start(self, bus) -> list:
         """Subscribe on ``bus`` to every estimate and diagnostics message and record them; returns
-        the two recording tasks (cancel them, then :meth:`close`)."""
-        return [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000, wake=False,
-                                                           maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD))),
-                asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False,
-                                                           maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD)))]
+        the recording tasks (cancel them, then :meth:`close`). A sink with ``observe_keys`` (key
+        expressions) is also given, unrecorded, what is published under them (its ``observe(m)``)."""
+        tasks = [asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/estimate/**", 1_000_000, wake=False,
+                                                            maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD))),
+                 asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False,
+                                                            maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD)))]
+        for sink in self.sinks:
+            for expr in getattr(sink, "observe_keys", ()):
+                sub = bus.subscribe(expr, 100_000, wake=False, maxbytes=QUEUE_BYTES // 8, max_payload=MAX_PAYLOAD)
+                tasks.append(asyncio.create_task(self._observe(sub, sink)))
+        return tasks
+
+    async def _observe(self, sub: Subscription, sink, poll_s: float = 0.1) -> None:
+        """Give ``sink`` (its ``observe(m)``) what ``sub`` delivers, unrecorded, until cancelled."""
+        while True:
+            await asyncio.sleep(poll_s)
+            for _, p in sub.drain():
+                try:
+                    m = decode(p)
+                except CodecError:
+                    self.codec_errors += 1
+                    continue
+                try:
+                    sink.observe(m)
+                except Exception:  # noqa: BLE001 - as in _to_sink
+                    self.sink_errors += 1
+                    if self.sink_errors == 1:
+                        log.exception("%s failed; the recording goes on", type(sink).__name__)
 
     def flush(self) -> None:
         """Record what is still queued (the recording tasks cancelled, or their bus closing)."""

@@ -127,8 +127,7 @@ def _score_method(vt, m: str, recs: list[dict], w) -> _Scored:
     tr = vt.truth
     ts, eh, nees, claim, truth_first, stands = [], [], [], [], [], []
     for r in recs:
-        k = min(int(np.searchsorted(tr.t, r["t"] - 1e-9)), len(tr.t) - 1)
-        e = earth.ned_offset(*r["llh"], *tr.llh[k])
+        e, k = vt.error_of(r["t"], r["llh"])
         yaw = tr.euler[k, 2]
         along = e[0] * math.cos(yaw) + e[1] * math.sin(yaw)
         cross = -e[0] * math.sin(yaw) + e[1] * math.cos(yaw)

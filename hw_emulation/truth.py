@@ -15,6 +15,8 @@ import numpy as np
 import pymap3d
 from scipy.interpolate import PchipInterpolator
 
+from slcp.geo import earth
+
 from .geometry import Path
 from .kinematics import Truth, generate
 from .scenario import Scenario
@@ -76,6 +78,17 @@ class VehicleTruth:
         each), shape of ``t``."""
         k = np.clip(np.searchsorted(self.truth.t, np.asarray(t, float) - 1e-9), 0, len(self.truth.t) - 1)
         return self.stopped[k]
+
+    def sample_at(self, t: float) -> int:
+        """The index of the truth sample an estimate of time ``t`` [s] is scored against: the first
+        IMU sample not before ``t`` (the last one after the end)."""
+        return min(int(np.searchsorted(self.truth.t, t - 1e-9)), len(self.truth.t) - 1)
+
+    def error_of(self, t: float, llh) -> tuple[np.ndarray, int]:
+        """An estimate's position error: its NED offset [m] from the truth at ``t`` [s] (``llh``
+        [rad, rad, m]), and the truth sample's index (:meth:`sample_at`)."""
+        k = self.sample_at(t)
+        return earth.ned_offset(*(float(x) for x in llh), *self.truth.llh[k]), k
 
 
 @dataclass(frozen=True)

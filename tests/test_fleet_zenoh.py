@@ -29,7 +29,7 @@ def test_slcp_run_paper_1_over_zenoh(tmp_path) -> None:
     client = FoxgloveClient(port, seconds=120.0, until=lambda c: all(
         len(c.messages.get(t, [])) >= 100 for t in fix_topics) and len(c.messages.get("/slcp/diagnostics", [])) >= 6)
     client.start()
-    m = run_fleet("paper-1", out=out, seed=0, view_port=port)
+    m = run_fleet("paper-1", out=out, seed=0, foxglove_port=port)
     client.join(10)
     assert m["processes"]["exit_codes"] == {"agent-V0": 0, "agent-V1": 0, "agent-V2": 0, "emulator": 0}
     # the agents are Zenoh clients of the launcher's router (no peer mesh)

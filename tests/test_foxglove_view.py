@@ -61,6 +61,6 @@ def test_a_taken_port_is_a_one_line_error(tmp_path, capsys) -> None:
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        assert main(["run", "paper-1", "--out", str(tmp_path / "run"), "--view", str(port)]) == 2
+        assert main(["run", "paper-1", "--out", str(tmp_path / "run"), "--foxglove", str(port)]) == 2
     err = capsys.readouterr().err
     assert f"cannot serve the Foxglove view on 127.0.0.1:{port}" in err and "Traceback" not in err

@@ -106,11 +106,15 @@ def add_record(sub) -> None:
 
 def add_view(sub) -> None:
     """The ``view`` command's parser."""
-    vw = sub.add_parser("view", help="serve a running fleet live to Foxglove (a WebSocket server on this host)")
+    vw = sub.add_parser("view", help="show a running fleet live: a map in the browser, and Foxglove")
     vw.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
     vw.add_argument("--fleet", type=Path, default=None, help="fleet directory: mutual TLS as identity 'recorder'")
-    vw.add_argument("--port", type=T.port, default=8765,
-                    help="port of the Foxglove WebSocket server on 127.0.0.1 (default 8765; 0: any free port)")
+    vw.add_argument("--scenario", default=None,
+                    help="draw this scenario's lanes and stop lines (shipped name or TOML file; default: no site)")
+    vw.add_argument("--port", type=T.port, default=8780,
+                    help="port of the map page, http://127.0.0.1:PORT/ (default 8780; 0: any free port)")
+    vw.add_argument("--foxglove", type=T.port, default=None, metavar="PORT",
+                    help="also serve Foxglove's WebSocket protocol on ws://127.0.0.1:PORT (default: not)")
 
 
 def add_keys(sub) -> None:
@@ -212,7 +216,8 @@ def _cmd_infrastructure(args: argparse.Namespace) -> int:
 
             z = client_config(args.fleet, "recorder", tuple(args.connect))
         if args.command == "view":
-            return asyncio.run(recorder_main(z, None, view_port=args.port))
+            return asyncio.run(recorder_main(z, None, view_port=args.port, foxglove_port=args.foxglove,
+                                             scenario=args.scenario))
         if args.bag is not None and args.bag.exists():
             raise ValueError(f"--bag {args.bag}: exists; a bag is written to a new directory")
         return asyncio.run(recorder_main(z, args.out, args.bag))

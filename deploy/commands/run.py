@@ -54,7 +54,10 @@ def add_run(sub) -> None:
     )
     rn.add_argument("--no-sign", action="store_true",
                     help="neither sign nor verify beacons (default: a fleet CA and keys per run, every beacon signed)")
-    rn.add_argument("--view", nargs="?", type=T.port, const=8765, default=None, metavar="PORT",
+    rn.add_argument("--view", nargs="?", type=T.port, const=8780, default=None, metavar="PORT",
+                    help="show the run live on a map in the browser at http://127.0.0.1:PORT/ (default 8780; "
+                         "0: any free port)")
+    rn.add_argument("--foxglove", nargs="?", type=T.port, const=8765, default=None, metavar="PORT",
                     help="serve the run live to Foxglove on ws://127.0.0.1:PORT (default 8765; 0: any free port)")
     rn.add_argument("--insecure", action="store_true",
                     help="a plain TCP router open to every process of the host (default: mutual TLS with the run's "
@@ -86,8 +89,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.out is not None:
         prepare_out(args.out, args.force)
     stem = folder_stem(scn.name)
-    if args.seeds and args.view is not None:
-        raise ValueError("--view shows one run: leave out --seeds, or --view")
+    if args.seeds and (args.view is not None or args.foxglove is not None):
+        raise ValueError("--view and --foxglove show one run: leave out --seeds, or them")
     if args.seeds:
         from ..study import StudyError, run_study, study_markdown
 
@@ -130,7 +133,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
             m = run_fleet(args.scenario, methods, args.speed, args.seed, out, progress=view, fusion=args.fusion,
                           sign=not args.no_sign, faults=args.faults, agent_nice=args.agent_nice,
                           lane_constraint=not args.no_lane_constraint, zenoh_mode=args.zenoh_mode,
-                          secure=not args.insecure, view_port=args.view)
+                          secure=not args.insecure, view_port=args.view,
+                          foxglove_port=args.foxglove)
     except KeyboardInterrupt:
         print("\nslcp run: interrupted; the fleet's processes are stopped", file=sys.stderr)
         _report_partial_run(out)
