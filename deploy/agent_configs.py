@@ -13,6 +13,7 @@ from slcp.agent.nav.error_model import ImuNoise
 from slcp.agent.nav.measurements.stop_line import Line2D, StopGapModel, StopLineApproach
 from slcp.agent.own_sensors import IMU_MEMORY
 from slcp.agent.range_gate import NlosModel
+from slcp.geo.site import Site
 from slcp.hw_emulation.scenario import Scenario
 from slcp.hw_emulation.sensors import params
 from slcp.hw_emulation.sensors.imu import ImuModel
@@ -126,10 +127,10 @@ def imu_noise_of(model: ImuModel) -> ImuNoise:
                     accel_bias_sigma=model.accel_in_run, accel_bias_tau=model.bias_tau)
 
 
-def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:
+def approach_lanes(site: Site | Scenario) -> dict[str, ApproachLane]:
     """Stop line (perpendicular, at the centre-line end) and left lane line of every approach."""
     out = {}
-    for lane in scn.lanes.values():
+    for lane in site.lanes.values():
         if not lane.stop_line:
             continue
         left, d = lane.end_left_line()
@@ -138,9 +139,16 @@ def approach_lanes(scn: Scenario) -> dict[str, ApproachLane]:
     return out
 
 
-def lane_map(scn: Scenario) -> LaneMap:
+def lane_map(site: Site | Scenario) -> LaneMap:
     """Every lane of the site (centre lines and widths) for the lane-keeping row."""
-    return LaneMap({lane.id: (lane.centerline, lane.width) for lane in scn.lanes.values()})
+    return LaneMap({lane.id: (lane.centerline, lane.width) for lane in site.lanes.values()})
+
+
+def with_site(cfg: AgentConfig, site: Site) -> AgentConfig:
+    """``cfg`` at ``site`` (e.g. a Lanelet2 map's, :mod:`geo.lanelet2_site`): its stop lines, its
+    lanes for the lane constraint, and its origin."""
+    return dataclasses.replace(cfg, lanes=approach_lanes(site), origin_llh=site.origin_llh,
+                               lane_map=lane_map(site))
 
 
 def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS,

@@ -59,7 +59,7 @@ def plot_scenario(truth, path: Path, events: dict[str, float] | None = None, est
     import numpy as np
 
     from slcp.geo import earth
-    from slcp.hw_emulation.geometry import offset_polyline
+    from slcp.geo.site import offset_polyline
 
     scn = truth.scenario
     fig, ax = plt.subplots(figsize=(8, 8))

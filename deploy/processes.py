@@ -41,6 +41,7 @@ import asyncio
 import dataclasses
 import gc
 import logging
+import math
 import os
 import signal
 import tomllib
@@ -150,8 +151,8 @@ def _agent_section(a: dict, path: Path, vehicle: str | None) -> dict:
                                   or not 0.0 <= integrity < 1.0):
         raise ConfigError(f"{path}: agent.integrity_false_alarm: must be a probability in [0, 1) "
                           f"(0 switches the test off), got {integrity!r}")
-    unknown = set(a) - {"vehicle", "scenario", "profile", "methods", "fusion", "lane_constraint",
-                        "integrity_false_alarm"}
+    unknown = set(a) - {"vehicle", "scenario", "site", "site_origin", "profile", "methods", "fusion",
+                        "lane_constraint", "integrity_false_alarm"}
     if unknown:
         raise ConfigError(f"{path}: agent.{sorted(unknown)[0]}: unknown field")
     scenario = a.get("scenario")
@@ -162,7 +163,25 @@ def _agent_section(a: dict, path: Path, vehicle: str | None) -> dict:
         raise ConfigError(f"{path}: agent.profile: must be the path of a vehicle profile, got {profile!r}")
     return {"vehicle": vid, "methods": tuple(methods), "fusion": fusion, "lane_constraint": lane,
             "integrity_false_alarm": integrity, "scenario": a.get("scenario"),
-            "profile": None if profile is None else Path(path).parent / profile}
+            "profile": None if profile is None else Path(path).parent / profile, **_site_fields(a, path)}
+
+
+def _site_fields(a: dict, path: Path) -> dict:
+    """``agent.site`` (a Lanelet2 map, relative to the file) and ``agent.site_origin`` (latitude,
+    longitude [deg], height [m]; default: the map's map_projector_info.yaml), checked."""
+    site, origin = a.get("site"), a.get("site_origin")
+    if site is not None and (not isinstance(site, str) or not site):
+        raise ConfigError(f"{path}: agent.site: must be the path of a Lanelet2 map (.osm), got {site!r}")
+    if origin is not None:
+        if site is None:
+            raise ConfigError(f"{path}: agent.site_origin: only with agent.site")
+        if (not isinstance(origin, list) or len(origin) != 3
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in origin)
+                or not (-90 <= origin[0] <= 90 and -180 <= origin[1] <= 180)):
+            raise ConfigError(f"{path}: agent.site_origin: must be [latitude, longitude] in degrees and a height "
+                              f"in metres, got {origin!r}")
+        origin = (math.radians(origin[0]), math.radians(origin[1]), float(origin[2]))
+    return {"site": None if site is None else Path(path).parent / site, "site_origin": origin}
 
 
 def _filter_config(a: dict, data: dict, path: Path):
@@ -180,6 +199,7 @@ def _filter_config(a: dict, data: dict, path: Path):
         with_gnss,
         with_imu,
         with_profile,
+        with_site,
     )
 
     vid, methods, fusion = a["vehicle"], a["methods"], a["fusion"]
@@ -191,6 +211,10 @@ def _filter_config(a: dict, data: dict, path: Path):
             cfg = agent_config(load_scenario(a["scenario"]), vid, methods, fusion, a["lane_constraint"])
         else:
             cfg = siteless_agent_config(vid, methods, fusion)
+        if a["site"] is not None:
+            from slcp.geo.lanelet2_site import read_lanelet2
+
+            cfg = with_site(cfg, read_lanelet2(a["site"], a["site_origin"]))
         if a["profile"] is not None:
             cfg = with_profile(cfg, load_profile(a["profile"]))
         if "imu" in data:

@@ -18,18 +18,6 @@ def polyline_length(points: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(points, axis=0), axis=1)))
 
 
-def offset_polyline(points: np.ndarray, offset: float) -> np.ndarray:
-    """Polyline shifted ``offset`` metres to the right of its direction of travel (NE frame)."""
-    p = np.asarray(points, float)
-    d = np.diff(p, axis=0)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    right = np.column_stack([-d[:, 1], d[:, 0]])
-    # per-vertex normal: average of adjacent segment normals
-    nrm = np.vstack([right[:1], 0.5 * (right[:-1] + right[1:]), right[-1:]])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    return p + offset * nrm
-
-
 def bezier_turn(p0: np.ndarray, h0: float, p1: np.ndarray, h1: float, n: int = 40) -> np.ndarray:
     """Cubic Bézier from ``p0`` heading ``h0`` to ``p1`` heading ``h1`` [rad], shape (n, 2)."""
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)

@@ -20,7 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from .geometry import offset_polyline, polyline_length
+from slcp.geo.site import Lane, Site
+
+from .geometry import polyline_length
 from .sensors.camera import LaneCameraModel
 from .sensors.gnss import GnssModel
 from .sensors.imu import ImuModel, imu_model_of
@@ -36,31 +38,6 @@ STANDING_WINDOW = "standing"
 
 class ScenarioError(ValueError):
     """A scenario file is invalid; the message names the file, the field and the reason."""
-
-
-@dataclass(frozen=True)
-class Lane:
-    id: str
-    centerline: np.ndarray  #: (n, 2) north, east [m]
-    width: float
-    stop_line: bool  #: a stop line across the lane at the end of its centre-line
-
-    @property
-    def end_heading(self) -> float:
-        d = self.centerline[-1] - self.centerline[-2]
-        return math.atan2(d[1], d[0])
-
-    @property
-    def start_heading(self) -> float:
-        d = self.centerline[1] - self.centerline[0]
-        return math.atan2(d[1], d[0])
-
-    def end_left_line(self) -> tuple[np.ndarray, np.ndarray]:
-        """The left lane line at the lane's end: its end point (north, east) [m], (2,), and the
-        unit direction of travel of the last centre-line segment, (2,)."""
-        c = self.centerline[-2:]
-        d = (c[1] - c[0]) / np.hypot(*(c[1] - c[0]))
-        return offset_polyline(c, -self.width / 2)[-1], d
 
 
 @dataclass(frozen=True)
@@ -152,6 +129,11 @@ class Scenario:
     #: IMU samples per message (an IMU driver's batch): 10 at 100 Hz is a message every 0.1 s
     imu_batch: int = 10
     camera: LaneCameraModel = field(default_factory=LaneCameraModel)  #: every vehicle's lane camera
+
+    @property
+    def site(self) -> Site:
+        """The scenario's lanes and stop lines, the site an agent deployed there would carry."""
+        return Site(self.origin_llh, self.lanes)
 
 
 # --------------------------------------------------------------------------- parsing helpers

@@ -15,7 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import Path, bezier_turn, offset_polyline
+from slcp.geo.site import offset_polyline
+
+from .geometry import Path, bezier_turn
 from .scenario import Scenario, VehicleSpec
 
 STEP = 0.1  #: traffic time step [s]

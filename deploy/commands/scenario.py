@@ -19,6 +19,11 @@ def add_scenario(sub) -> None:
     ex.add_argument("--out", type=Path, default=None, metavar="FILE.toml",
                     help="write here (default: print to the terminal); an existing file is kept unless --force")
     ex.add_argument("--force", action="store_true", help="replace an existing --out file")
+    l2 = ssub.add_parser("to-lanelet2", help="write a scenario's site (lanes, stop lines) as a Lanelet2 map, "
+                                             "with Autoware's map_projector_info.yaml beside it")
+    l2.add_argument("name", help="shipped scenario name or path to a .toml file")
+    l2.add_argument("out", type=Path, metavar="MAP.osm", help="the map to write")
+    l2.add_argument("--force", action="store_true", help="replace an existing map")
     show = ssub.add_parser("show", help="summarise a scenario (name or TOML file)")
     show.add_argument("name", help="shipped scenario name or path to a .toml file")
     show.add_argument("--plot", type=Path, metavar="FILE.png", help="write a map with trajectories")
@@ -62,6 +67,14 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
                                f"scenario {args.name}; run it with: slcp run {args.out}")
     if args.scenario_command == "chaos":
         return _chaos(args)
+    if args.scenario_command == "to-lanelet2":
+        from slcp.geo.lanelet2_site import write_lanelet2
+
+        if args.out.exists() and not args.force:
+            raise FileExistsError(f"{args.out}: exists (use --force to replace it)")
+        write_lanelet2(load_scenario(args.name).site, args.out)
+        print(f"wrote {args.out} and its map_projector_info.yaml (the site of {args.name}: lanes and stop lines)")
+        return 0
     from slcp.hw_emulation.events import event_times, window_bounds
     from slcp.hw_emulation.truth import build_truth
 
