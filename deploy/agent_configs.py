@@ -17,6 +17,7 @@ from slcp.geo.site import Site
 from slcp.hw_emulation.scenario import Scenario
 from slcp.hw_emulation.sensors import params
 from slcp.hw_emulation.sensors.imu import ImuModel
+from slcp.hw_emulation.sensors.uwb import UwbModel
 from slcp.vehicles.profile import VehicleProfile
 
 
@@ -160,29 +161,36 @@ def agent_config(scn: Scenario, vehicle: str, methods: tuple[str, ...] = METHODS
         raise ValueError(f"vehicle {vehicle!r} not in scenario {scn.name!r}")
     sp = specs[vehicle]
     gm = sp.gnss
-    settings = FilterSettings(imu_noise_of(sp.imu), sigma_uwb=max(scn.uwb.sigma_los, 0.05),
-                              init_gyro_bias_sigma=sp.imu.gyro_turn_on, init_accel_bias_sigma=sp.imu.accel_turn_on,
+    settings = FilterSettings(imu_noise_of(sp.imu), init_gyro_bias_sigma=sp.imu.gyro_turn_on,
+                              init_accel_bias_sigma=sp.imu.accel_turn_on,
                               gnss_multipath_sigma=gm.multipath_h, gnss_multipath_tau=gm.multipath_tau_moving,
                               gnss_multipath_tau_static=gm.multipath_tau_static,
                               gnss_common_sigma=scn.common_mode_sigma, gnss_common_tau=scn.common_mode_tau,
                               gnss_white_sigma=max(gm.white_h, 0.1),
                               fusion=fusion, lane_constraint=lane_constraint)
-    u = scn.uwb
+    gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
+    return with_uwb(AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh,
+                                lane_map=lane_map(scn)), scn.uwb)
+
+
+def with_uwb(cfg: AgentConfig, u: UwbModel) -> AgentConfig:
+    """``cfg`` with the range model of UWB radios that behave as ``u`` (the emulator's model):
+    the line-of-sight σ (at least 5 cm), the NLOS bias as an extra σ and as the range gate's
+    two-state model, and the largest range."""
     nlos = (NlosModel(u.nlos_enter, u.nlos_exit, u.nlos_bias_min, u.nlos_bias_max,
                       u.outlier_prob, u.outlier_min, u.outlier_max)
             if u.nlos_enter > 0 and u.nlos_exit > 0 and u.nlos_bias_max > u.nlos_bias_min else None)
     p_nlos = u.nlos_enter / (u.nlos_enter + u.nlos_exit) if u.nlos_enter > 0 else 0.0
     nlos_ms = (u.nlos_bias_min**2 + u.nlos_bias_min * u.nlos_bias_max + u.nlos_bias_max**2) / 3.0
-    settings = dataclasses.replace(settings, uwb_nlos_sigma=math.sqrt(p_nlos * nlos_ms), uwb_nlos=nlos,
-                                   max_range=u.max_range)
-    gap = StopGapModel(sp.stop_gap[0], sp.stop_gap[1], sp.lateral[0], sp.lateral[1], sp.l0)
-    return AgentConfig(vehicle, tuple(methods), settings, gap, approach_lanes(scn), scn.origin_llh,
-                       nlos_bias_max=u.nlos_bias_max, lane_map=lane_map(scn))
+    settings = dataclasses.replace(cfg.settings, sigma_uwb=max(u.sigma_los, 0.05),
+                                   uwb_nlos_sigma=math.sqrt(p_nlos * nlos_ms), uwb_nlos=nlos, max_range=u.max_range)
+    return dataclasses.replace(cfg, settings=settings, nlos_bias_max=u.nlos_bias_max)
 
 
 #: ``[gnss]`` fields of an agent configuration -> :class:`FilterSettings` fields
 GNSS_FIELDS = {"multipath_sigma": "gnss_multipath_sigma", "multipath_tau": "gnss_multipath_tau",
                "multipath_tau_static": "gnss_multipath_tau_static", "white_sigma": "gnss_white_sigma",
+               "common_sigma": "gnss_common_sigma", "common_tau": "gnss_common_tau",
                "gate": "gnss_gate", "reset_after": "gnss_reset_after"}
 
 
