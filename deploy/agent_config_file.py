@@ -210,6 +210,8 @@ def _filter_config(a: dict, data: dict, path: Path):
             cfg = agent_config(load_scenario(a["scenario"]), vid, methods, fusion, a["lane_constraint"])
         else:
             cfg = siteless_agent_config(vid, methods, fusion)
+            cfg = dataclasses.replace(cfg, settings=dataclasses.replace(cfg.settings,
+                                                                        lane_constraint=a["lane_constraint"]))
         if a["site"] is not None:
             from slcp.geo.lanelet2_site import read_lanelet2
 

@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 from slcp.agent.methods import DEFAULT_FUSION, METHODS
+from slcp.geo.lanelet2_site import write_lanelet2
 from slcp.hw_emulation.faults import load_faults
 from slcp.hw_emulation.scenario import load_scenario
 from slcp.hw_emulation.truth import build_truth
@@ -41,6 +42,7 @@ from .mcap_recording import McapSink
 from .progress import FleetProgress
 from .run_report import evaluate_recording, report_markdown
 from .supervisor import supervise as _supervise
+from .vehicle_agent_file import standalone_agent_toml
 from .viewers import viewer_sinks
 
 log = logging.getLogger(__name__)
@@ -57,20 +59,27 @@ def free_port() -> int:
 
 def _write_agent_configs(out: Path, vehicles: list[str], scenario: str, methods: tuple[str, ...], fusion: str,
                          lane_constraint: bool, endpoint: str, zenoh_mode: str, sign: bool,
-                         secure: bool) -> dict[str, Path]:
-    """The agents' files under ``out/config`` (and, for ``sign`` or ``secure``, the run's keys)."""
+                         secure: bool, lanelet2: bool = False) -> dict[str, Path]:
+    """The agents' files under ``out/config`` (and, for ``sign`` or ``secure``, the run's keys).
+    With ``lanelet2`` they name no scenario, as a deployed vehicle's: the site is a Lanelet2 map
+    of the scenario's (``config/site.osm``), the sensors' models are written out
+    (:mod:`deploy.vehicle_agent_file`)."""
     security = ""
     if sign or secure:
         # a new CA for every run: the certificates of an earlier run in this directory, or of
         # another run on the host, must not admit anyone to this one
         create_fleet(out / "keys", vehicles, new_ca=True)
         security = '[security]\ntrust_dir = "../keys"\n' + ('' if sign else 'sign_beacons = false\n') + '\n'
+    scn = load_scenario(scenario) if lanelet2 else None
+    if scn is not None:
+        write_lanelet2(scn.site, out / "config" / "site.osm")
     configs = {}
     for vid in vehicles:
         p = out / "config" / f"agent-{vid}.toml"
-        p.write_text(f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
-                     f'fusion = "{fusion}"\nlane_constraint = {str(lane_constraint).lower()}\n\n{security}'
-                     f'[zenoh]\nmode = "{zenoh_mode}"\nconnect = ["{endpoint}"]\n'
+        agent = (standalone_agent_toml(scn, vid, "site.osm", methods, fusion, lane_constraint) if scn is not None else
+                 f'[agent]\nvehicle = "{vid}"\nscenario = "{scenario}"\nmethods = {json.dumps(list(methods))}\n'
+                 f'fusion = "{fusion}"\nlane_constraint = {str(lane_constraint).lower()}\n')
+        p.write_text(f'{agent}\n{security}[zenoh]\nmode = "{zenoh_mode}"\nconnect = ["{endpoint}"]\n'
                      + ('tls = true\n' if secure else ''))
         configs[vid] = p
     return configs
@@ -106,7 +115,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
               wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True,
               zenoh_mode: str = "client", secure: bool = True, view_port: int | None = None,
-              foxglove_port: int | None = None) -> dict:
+              foxglove_port: int | None = None, lanelet2: bool = False) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called about twice a second with a
@@ -138,7 +147,9 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
 
     With ``view_port`` the launcher shows the run live on a map in the browser at
     ``http://127.0.0.1:<port>/`` (:mod:`deploy.live_map`), with ``foxglove_port`` it serves it to
-    Foxglove on ``ws://127.0.0.1:<port>`` (:mod:`deploy.foxglove_view`); 0: any free port, logged."""
+    Foxglove on ``ws://127.0.0.1:<port>`` (:mod:`deploy.foxglove_view`); 0: any free port, logged.
+    With ``lanelet2`` the agents are configured as deployed vehicles, without the scenario: their
+    site is a Lanelet2 map of the scenario's, their sensor models written out in their files."""
     if zenoh_mode not in ZENOH_MODES:
         raise ValueError(f"zenoh_mode must be one of {', '.join(ZENOH_MODES)}, got {zenoh_mode!r}")
     if secure and zenoh_mode == "peer":
@@ -148,12 +159,12 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     schedule = load_faults(faults, {v.id for v in scn.vehicles}) if faults is not None else []
     out = Path(out)
     source = _prepare_run_dir(out, scenario, faults, {"seed": seed, "methods": list(methods), "fusion": fusion,
-                                                      "lane_constraint": lane_constraint})
+                                                      "lane_constraint": lane_constraint, "lanelet2": lanelet2})
     endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{free_port()}"
     vehicles = [v.id for v in scn.vehicles]
     fleet_dir = out / "keys"
     configs = _write_agent_configs(out, vehicles, scenario, methods, fusion, lane_constraint, endpoint, zenoh_mode,
-                                   sign, secure)
+                                   sign, secure, lanelet2)
     # the truth first (the evaluation needs it anyway): the bag and the map show it beside the estimates
     truth = build_truth(scn, stop_seed=seed) if evaluate else None
     # then the viewers: a port that is taken stops the run before it starts

@@ -113,11 +113,12 @@ def paired_difference(a: np.ndarray, b: np.ndarray, probability: float = 0.95) -
 
 
 def _one(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
-         agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client", secure: bool = True) -> dict:
+         agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client", secure: bool = True,
+         lanelet2: bool = False) -> dict:
     from .launcher import run_fleet
 
     return run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice,
-                     lane_constraint=lane_constraint, zenoh_mode=zenoh_mode, secure=secure)
+                     lane_constraint=lane_constraint, zenoh_mode=zenoh_mode, secure=secure, lanelet2=lanelet2)
 
 
 def _interruptible(fn, *args):
@@ -162,7 +163,7 @@ class StudyError(RuntimeError):
 def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHODS, out: Path = Path("runs/study"),
               fusion: str = DEFAULT_FUSION, jobs: int | None = None, progress=None, sign: bool = True,
               agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client",
-              runner=None, retries: int = 1, secure: bool = True) -> dict:
+              runner=None, retries: int = 1, secure: bool = True, lanelet2: bool = False) -> dict:
     """Run the seeds and aggregate; ``progress(done, total, seed)`` after each finished seed.
 
     A seed whose run fails is run again (``retries`` times, into a fresh folder); one that still
@@ -190,7 +191,7 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
         tries[s] += 1
         seed_dir = out / f"seed-{s}"
         return pool.submit(_interruptible, runner or _one, scenario, methods, s, str(seed_dir), fusion, sign,
-                           agent_nice, lane_constraint, zenoh_mode, secure)
+                           agent_nice, lane_constraint, zenoh_mode, secure, lanelet2)
 
     try:
         futs = {submit(s): s for s in seeds}

@@ -116,7 +116,7 @@ def read_lanelet2(path: Path, origin_llh: tuple[float, float, float] | None = No
     for e in errors[:5]:
         log.warning("%s: %s", path, e)
     lanes: dict[str, Lane] = {}
-    for ll in lmap.laneletLayer:
+    for ll in sorted(lmap.laneletLayer, key=lambda x: x.id):  # in the order written
         a = ll.attributes
         if (a["subtype"] if "subtype" in a else "") not in ROAD_SUBTYPES:
             continue

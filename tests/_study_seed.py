@@ -17,7 +17,8 @@ TRIES_FILE = "tries.txt"  #: each try of the bad seed appends a line here (in th
 
 
 def runner(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion: str, sign: bool,
-           agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client", secure: bool = True) -> dict:
+           agent_nice: int = 5, lane_constraint: bool = True, zenoh_mode: str = "client", secure: bool = True,
+           lanelet2: bool = False) -> dict:
     from slcp.deploy import launcher, supervisor
 
     if seed == BAD_SEED:
@@ -30,4 +31,4 @@ def runner(scenario: str, methods: tuple[str, ...], seed: int, out: str, fusion:
     # the bad seed's watchdog fires after wait_agents + stall_s without a report: kept short
     return launcher.run_fleet(scenario, methods, None, seed, Path(out), None, fusion, sign, agent_nice=agent_nice,
                               lane_constraint=lane_constraint, zenoh_mode=zenoh_mode, secure=secure,
-                              wait_agents=1.0 if seed == BAD_SEED else 3.0)
+                              lanelet2=lanelet2, wait_agents=1.0 if seed == BAD_SEED else 3.0)

@@ -218,3 +218,40 @@ def test_the_centre_line_lies_midway_between_bounds_of_different_point_counts() 
     mid = _midline(left, right)
     assert np.allclose(mid[:, 1], -0.5) and mid[0, 0] == 0.0 and mid[-1, 0] == 100.0
     assert np.allclose(mid[:, 0], [0.0, 30.0, 55.0, 100.0])  # a point at every vertex of either
+
+
+@pytest.mark.parametrize("name", ["paper-1", "paper-2", "rush-hour"])
+def test_a_vehicle_without_its_scenario_gets_the_configuration_the_scenario_gives(tmp_path, name) -> None:
+    """#45 acceptance 4, the configuration: the standalone file of every vehicle of a shipped
+    scenario (its site from a Lanelet2 map, its sensors written out, no scenario) loads into the
+    engine configuration that the scenario gives, field by field."""
+    import dataclasses
+
+    from slcp.deploy.agent_configs import agent_config
+    from slcp.deploy.processes import load_agent_config
+    from slcp.deploy.vehicle_agent_file import standalone_agent_toml
+    from slcp.hw_emulation.scenario import load_scenario
+
+    scn = load_scenario(name)
+    write_lanelet2(scn.site, tmp_path / "site.osm")
+    for spec in scn.vehicles:
+        p = tmp_path / f"agent-{spec.id}.toml"
+        p.write_text(standalone_agent_toml(scn, spec.id, "site.osm", ("SP", "SL-CP"), "split-ci", False))
+        cfg, _ = load_agent_config(p, None)
+        own = agent_config(scn, spec.id, ("SP", "SL-CP"), "split-ci", False)
+        assert "scenario" not in p.read_text()
+        for f in dataclasses.fields(own):
+            a, b = getattr(own, f.name), getattr(cfg, f.name)
+            if f.name == "lanes":
+                assert sorted(a) == sorted(b)
+                for lid in a:
+                    for x, y in ((a[lid].approach.stop_line, b[lid].approach.stop_line),
+                                 (a[lid].approach.left_lane_line, b[lid].approach.left_lane_line)):
+                        assert np.allclose(x.point, y.point, atol=1e-5) and np.allclose(x.direction, y.direction)
+            elif f.name == "lane_map":
+                assert [s.lane for s in a.segments] == [s.lane for s in b.segments]
+                assert [s.width for s in a.segments] == pytest.approx([s.width for s in b.segments], abs=1e-5)
+            elif f.name == "origin_llh":
+                assert b == pytest.approx(a, abs=1e-12)
+            else:
+                assert a == b, f.name

@@ -59,6 +59,9 @@ def add_run(sub) -> None:
                          "0: any free port)")
     rn.add_argument("--foxglove", nargs="?", type=T.port, const=8765, default=None, metavar="PORT",
                     help="serve the run live to Foxglove on ws://127.0.0.1:PORT (default 8765; 0: any free port)")
+    rn.add_argument("--lanelet2", action="store_true",
+                    help="configure the agents as deployed vehicles, without the scenario: their site from a Lanelet2 "
+                         "map of the scenario's (config/site.osm), their sensor models written out in their files")
     rn.add_argument("--insecure", action="store_true",
                     help="a plain TCP router open to every process of the host (default: mutual TLS with the run's "
                          "own keys, and each process may publish only under its own keys); --zenoh-mode peer needs it")
@@ -107,7 +110,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         try:
             study = run_study(args.scenario, seeds, methods, out, args.fusion, args.jobs, bar, sign=not args.no_sign,
                               agent_nice=args.agent_nice, lane_constraint=not args.no_lane_constraint,
-                              zenoh_mode=args.zenoh_mode, secure=not args.insecure)
+                              zenoh_mode=args.zenoh_mode, secure=not args.insecure, lanelet2=args.lanelet2)
         except StudyError as exc:
             print(f"slcp run: {exc}", file=sys.stderr)
             return 1
@@ -134,7 +137,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                           sign=not args.no_sign, faults=args.faults, agent_nice=args.agent_nice,
                           lane_constraint=not args.no_lane_constraint, zenoh_mode=args.zenoh_mode,
                           secure=not args.insecure, view_port=args.view,
-                          foxglove_port=args.foxglove)
+                          foxglove_port=args.foxglove, lanelet2=args.lanelet2)
     except KeyboardInterrupt:
         print("\nslcp run: interrupted; the fleet's processes are stopped", file=sys.stderr)
         _report_partial_run(out)
