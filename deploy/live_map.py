@@ -36,7 +36,7 @@ import numpy as np
 
 from slcp.geo import earth
 from slcp.transport import keys
-from slcp.transport.messages import Estimate, Message, UwbRound
+from slcp.transport.messages import Estimate, Message, UwbRange, UwbRound
 
 from .site_shapes import lane_shapes
 
@@ -75,11 +75,17 @@ class LiveMapState:
                 self.origin = tuple(float(x) for x in m.llh)
 
     def observe(self, m: Message) -> None:
+        """A UWB round (or a single range): its pairs were measured at its time."""
         if isinstance(m, UwbRound):
-            with self._lock:
-                for p in m.peers:
-                    pair = (m.vehicle, p) if m.vehicle < p else (p, m.vehicle)
-                    self._links[pair] = max(self._links.get(pair, -math.inf), float(m.t))
+            pairs = [(m.vehicle, p) for p in m.peers]
+        elif isinstance(m, UwbRange):
+            pairs = [(m.a, m.b)]
+        else:
+            return
+        with self._lock:
+            for a, b in pairs:
+                pair = (a, b) if a < b else (b, a)
+                self._links[pair] = max(self._links.get(pair, -math.inf), float(m.t))
 
     def _ne(self, llh) -> np.ndarray:
         assert self.origin is not None

@@ -18,7 +18,7 @@ import pytest
 
 from slcp.deploy.live_map import LINK_TTL_S, LiveMapSink, LiveMapState
 from slcp.hw_emulation.scenario import load_scenario
-from slcp.transport.messages import Diagnostics, Estimate, UwbRound
+from slcp.transport.messages import Diagnostics, Estimate, UwbRange, UwbRound
 
 from conftest import free_port, short_scenario, wait_for_port
 
@@ -49,7 +49,7 @@ def test_the_state_puts_each_vehicle_where_pymap3d_does_with_its_covariance_east
 def test_uwb_links_are_shown_for_a_second_after_their_last_range() -> None:
     s = LiveMapState(origin_llh=ORIGIN)
     s.observe(UwbRound("V2", 1, 5.0, ("V0", "V1"), np.array([10.0, 12.0])))
-    s.observe(UwbRound("V1", 1, 5.2, ("V0",), np.array([8.0])))
+    s.observe(UwbRange("V1", "V0", 1, 5.2, 8.0))
     s.write(_estimate("V0", 5.0 + LINK_TTL_S - 0.1, 0.0, 0.0))
     assert s.snapshot()["links"] == [["V0", "V1"], ["V0", "V2"], ["V1", "V2"]]
     s.write(_estimate("V0", 5.0 + LINK_TTL_S + 0.1, 0.0, 0.0))
