@@ -40,10 +40,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pymap3d
 
 from slcp.transport.messages import Diagnostics, Estimate, Message
 
+from . import ros2_cdr
 from .site_shapes import lane_shapes
 
 log = logging.getLogger(__name__)
@@ -54,8 +54,8 @@ FIX, ODOM, BOOL, DIAG = ("sensor_msgs/msg/NavSatFix", "nav_msgs/msg/Odometry", "
 _P = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 _SIGN = np.array([[1.0, 1.0, -1.0], [1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
 #: the Odometry covariances' constant parts: attitude and twist are not in the recording
-_POSE_COV = np.diag([0.0, 0.0, 0.0, 1e6, 1e6, 1e6])
-_TWIST_COV = (np.eye(6) * 1e6).ravel()
+_POSE_COV_REST = np.diag([0.0, 0.0, 0.0, 1e6, 1e6, 1e6]).ravel()[18:].tolist()  #: its last three rows
+_TWIST_COV = (np.eye(6) * 1e6).ravel().tolist()
 
 
 def ned_to_enu_cov(c: np.ndarray) -> np.ndarray:
@@ -124,7 +124,10 @@ class McapSink:
         return c
 
     def _put(self, topic: str, msgtype: str, ns: int, msg) -> None:
-        self._w.write(self._conn(topic, msgtype), ns, self.ts.serialize_cdr(msg, msgtype))
+        self._raw(topic, msgtype, ns, self.ts.serialize_cdr(msg, msgtype))
+
+    def _raw(self, topic: str, msgtype: str, ns: int, data) -> None:
+        self._w.write(self._conn(topic, msgtype), ns, data)
         self.counts[topic] += 1
 
     def _header(self, ns: int, frame: str):
@@ -141,6 +144,7 @@ class McapSink:
 
     def _set_origin(self, llh, ns: int) -> None:
         self.origin = (float(llh[0]), float(llh[1]), float(llh[2]))
+        self._enu = ros2_cdr.LocalEnu(self.origin)
         self._put("/slcp/map_origin", FIX, ns, self._fix(ns, "map", llh, np.zeros((3, 3)), 0))
 
     def write(self, m: Message) -> None:
@@ -156,33 +160,24 @@ class McapSink:
         ns = log_time_ns(e.t)
         if self.origin is None:
             self._set_origin(e.llh, ns)
-        lat0, lon0, h0 = self.origin  # type: ignore[misc]
         claim_topic = topic_name(e.vehicle, e.method, "first_stopped")
         if self._claim.get(claim_topic) != bool(e.first_stopped):
             self._claim[claim_topic] = bool(e.first_stopped)
             self._put(claim_topic, BOOL, ns, T[BOOL](data=bool(e.first_stopped)))
-        cov = ned_to_enu_cov(e.cov_pos)
-        self._put(topic_name(e.vehicle, e.method, "fix"), FIX, ns, self._fix(ns, "map", e.llh, cov, 3))
-        east, north, up = pymap3d.geodetic2enu(float(e.llh[0]), float(e.llh[1]), float(e.llh[2]), lat0, lon0, h0,
-                                               deg=False)
+        # the two messages of every estimate, laid out by hand (ros2_cdr): a fleet's recorder
+        # writes thousands a second, and rosbags' generic serialiser costs several times more
+        lat, lon, h = (float(x) for x in e.llh)
+        c = e.cov_pos.tolist()
+        cov = [c[1][1], c[1][0], -c[1][2], c[0][1], c[0][0], -c[0][2], -c[2][1], -c[2][0], c[2][2]]  # ENU
+        self._raw(topic_name(e.vehicle, e.method, "fix"), FIX, ns,
+                  ros2_cdr.nav_sat_fix(ns, "map", math.degrees(lat), math.degrees(lon), h, cov, 3))
         roll, pitch, yaw = enu_attitude(e.rpy)
-        qx, qy, qz, qw = _quat_zyx(yaw, pitch, roll)
         vn, ve, vd = (float(x) for x in e.v_ned)
         v_body = _rot_zyx(yaw, pitch, roll).T @ np.array([ve, vn, -vd])
-        pcov = _POSE_COV.copy()
-        pcov[:3, :3] = cov
-        V3, P3 = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Point"]
-        pose = T["geometry_msgs/msg/PoseWithCovariance"](
-            pose=T["geometry_msgs/msg/Pose"](position=P3(x=float(east), y=float(north), z=float(up)),
-                                             orientation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
-            covariance=pcov.ravel())
-        twist = T["geometry_msgs/msg/TwistWithCovariance"](
-            twist=T["geometry_msgs/msg/Twist"](linear=V3(x=float(v_body[0]), y=float(v_body[1]), z=float(v_body[2])),
-                                               angular=V3(x=0.0, y=0.0, z=0.0)),
-            covariance=_TWIST_COV)
-        child = f"{e.vehicle}/{e.method}"
-        self._put(topic_name(e.vehicle, e.method, "odom"), ODOM, ns,
-                  T[ODOM](header=self._header(ns, "map"), child_frame_id=child, pose=pose, twist=twist))
+        pcov = [*cov[0:3], 0.0, 0.0, 0.0, *cov[3:6], 0.0, 0.0, 0.0, *cov[6:9], 0.0, 0.0, 0.0, *_POSE_COV_REST]
+        self._raw(topic_name(e.vehicle, e.method, "odom"), ODOM, ns, ros2_cdr.odometry(
+            ns, "map", f"{e.vehicle}/{e.method}", self._enu(lat, lon, h), _quat_zyx(yaw, pitch, roll), pcov,
+            (float(v_body[0]), float(v_body[1]), float(v_body[2])), (0.0, 0.0, 0.0), _TWIST_COV))
 
     def write_site(self, lanes) -> None:
         """The site's lanes (``centerline``: north, east [m] in ``map``; ``width`` [m];

@@ -121,12 +121,14 @@ def _browser():
 @pytest.mark.timeout(300)
 def test_chromium_sees_every_vehicle_of_paper_1_moving_with_the_recorded_error(tmp_path) -> None:
     """#44 acceptance 2: during `slcp run paper-1 --view`, headless Chromium shows every vehicle
-    moving, and the error it displays for a vehicle is the one the run's report records."""
+    moving, and the error it displays for a vehicle is the one the run's report records. The
+    agents of this run are configured as deployed vehicles (`--lanelet2`: no scenario, the site
+    from a Lanelet2 map), which the page does not see."""
     exe, pw = _browser()
     scn = short_scenario(tmp_path, "paper-1", 25.0)
     port, out = free_port(), tmp_path / "run"
     run = subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "run", str(scn), "--out", str(out),
-                            "--methods", "SP", "SL-CP", "--view", str(port)],
+                            "--methods", "SP", "SL-CP", "--view", str(port), "--lanelet2"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     seen: dict[str, list[tuple[float, float, float, str]]] = {}  # vehicle -> (t, e, n, error shown)
     try:
@@ -160,6 +162,8 @@ def test_chromium_sees_every_vehicle_of_paper_1_moving_with_the_recorded_error(t
             run.kill()
         _, stderr = run.communicate(timeout=60)
     assert run.returncode == 0, stderr[-3000:]
+    agent_file = (out / "config" / "agent-V1.toml").read_text()
+    assert 'site = "site.osm"' in agent_file and "scenario" not in agent_file
     assert sorted(seen) == ["V0", "V1", "V2"]
     for v, samples in seen.items():
         ts = [s[0] for s in samples]

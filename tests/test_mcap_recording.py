@@ -148,3 +148,49 @@ def test_the_site_and_the_truth_go_into_the_bag_and_not_among_the_estimates(tmp_
     assert first.header.frame_id == "map" and first.type == 4
     c = np.asarray(lanes[0].centerline)
     np.testing.assert_allclose([(p.x, p.y) for p in first.points], c[:, ::-1])  # east, north
+
+
+@pytest.mark.parametrize("frame, child", [("map", "V1/SL-CP"), ("", "x"), ("odom_frame", "vehicle-007/SL-SP")])
+def test_the_hand_laid_messages_are_rosbags_bytes(frame, child) -> None:
+    """ros2_cdr lays out NavSatFix and Odometry as rosbags' serialiser does, byte for byte, for
+    frame names of every length modulo 4 (the CDR padding moves with them)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from slcp.deploy import ros2_cdr
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    rng = np.random.default_rng(len(frame) + 7 * len(child))
+    for ns in (0, 1_234_567_890_123, 49_999_999_999):
+        header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+            sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=frame)
+        cov9, cov36, tw36 = rng.normal(size=9), rng.normal(size=36), rng.normal(size=36)
+        lat, lon, alt = rng.uniform(-90, 90), rng.uniform(-180, 180), rng.normal(0, 100)
+        fix = T["sensor_msgs/msg/NavSatFix"](header=header, status=T["sensor_msgs/msg/NavSatStatus"](
+            status=0, service=1), latitude=lat, longitude=lon, altitude=alt, position_covariance=cov9,
+            position_covariance_type=3)
+        assert ros2_cdr.nav_sat_fix(ns, frame, lat, lon, alt, cov9.tolist(), 3) == bytes(
+            ts.serialize_cdr(fix, "sensor_msgs/msg/NavSatFix"))
+        p, q, v, w = rng.normal(size=3), rng.normal(size=4), rng.normal(size=3), rng.normal(size=3)
+        V3 = T["geometry_msgs/msg/Vector3"]
+        odom = T["nav_msgs/msg/Odometry"](header=header, child_frame_id=child, pose=T[
+            "geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2]),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])), covariance=cov36),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=T["geometry_msgs/msg/Twist"](
+                linear=V3(x=v[0], y=v[1], z=v[2]), angular=V3(x=w[0], y=w[1], z=w[2])), covariance=tw36))
+        assert ros2_cdr.odometry(ns, frame, child, tuple(p), tuple(q), cov36.tolist(), tuple(v), tuple(w),
+                                 tw36.tolist()) == bytes(ts.serialize_cdr(odom, "nav_msgs/msg/Odometry"))
+
+
+def test_the_local_enu_frame_is_pymap3ds() -> None:
+    import pymap3d
+
+    from slcp.deploy.ros2_cdr import LocalEnu
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        origin = (rng.uniform(-1.4, 1.4), rng.uniform(-3.1, 3.1), rng.uniform(-100, 3000))
+        enu = LocalEnu(origin)
+        p = (origin[0] + rng.normal(0, 1e-3), origin[1] + rng.normal(0, 1e-3), origin[2] + rng.normal(0, 50))
+        assert enu(*p) == pytest.approx(pymap3d.geodetic2enu(*p, *origin, deg=False), abs=1e-6)
