@@ -32,6 +32,7 @@ JSON lines recording has them, so a run's report can be made from either.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -71,6 +72,12 @@ def log_time_ns(t: float) -> int:
 
 def topic_name(vehicle: str, method: str, what: str) -> str:
     return f"/slcp/{vehicle.replace('-', '_').replace('.', '_')}/{method.replace('-', '_')}/{what}"
+
+
+@functools.lru_cache(maxsize=4096)
+def _topics(vehicle: str, method: str) -> tuple[str, str, str]:
+    """The fix, odometry and first-stopped topics of a vehicle's method."""
+    return tuple(topic_name(vehicle, method, w) for w in ("fix", "odom", "first_stopped"))  # type: ignore[return-value]
 
 
 def _quat_zyx(yaw: float, pitch: float, roll: float) -> tuple[float, float, float, float]:
@@ -160,7 +167,7 @@ class McapSink:
         ns = log_time_ns(e.t)
         if self.origin is None:
             self._set_origin(e.llh, ns)
-        claim_topic = topic_name(e.vehicle, e.method, "first_stopped")
+        fix_topic, odom_topic, claim_topic = _topics(e.vehicle, e.method)
         if self._claim.get(claim_topic) != bool(e.first_stopped):
             self._claim[claim_topic] = bool(e.first_stopped)
             self._put(claim_topic, BOOL, ns, T[BOOL](data=bool(e.first_stopped)))
@@ -169,13 +176,13 @@ class McapSink:
         lat, lon, h = (float(x) for x in e.llh)
         c = e.cov_pos.tolist()
         cov = [c[1][1], c[1][0], -c[1][2], c[0][1], c[0][0], -c[0][2], -c[2][1], -c[2][0], c[2][2]]  # ENU
-        self._raw(topic_name(e.vehicle, e.method, "fix"), FIX, ns,
+        self._raw(fix_topic, FIX, ns,
                   ros2_cdr.nav_sat_fix(ns, "map", math.degrees(lat), math.degrees(lon), h, cov, 3))
         roll, pitch, yaw = enu_attitude(e.rpy)
         vn, ve, vd = (float(x) for x in e.v_ned)
         v_body = _rot_zyx(yaw, pitch, roll).T @ np.array([ve, vn, -vd])
         pcov = [*cov[0:3], 0.0, 0.0, 0.0, *cov[3:6], 0.0, 0.0, 0.0, *cov[6:9], 0.0, 0.0, 0.0, *_POSE_COV_REST]
-        self._raw(topic_name(e.vehicle, e.method, "odom"), ODOM, ns, ros2_cdr.odometry(
+        self._raw(odom_topic, ODOM, ns, ros2_cdr.odometry(
             ns, "map", f"{e.vehicle}/{e.method}", self._enu(lat, lon, h), _quat_zyx(yaw, pitch, roll), pcov,
             (float(v_body[0]), float(v_body[1]), float(v_body[2])), (0.0, 0.0, 0.0), _TWIST_COV))
 
