@@ -256,14 +256,53 @@ class FleetMonitor:
         return out
 
 
+class MapWatcher(threading.Thread):
+    """A client of the live map (:mod:`deploy.live_map`) on 127.0.0.1:``port`` that takes every
+    frame until :meth:`stop`, as an open page does; it waits for the server to come up."""
+
+    def __init__(self, port: int) -> None:
+        super().__init__(daemon=True, name="map-watcher")
+        self.port, self.frames, self.vehicles = port, 0, 0
+        self._stop_event = threading.Event()
+        self.start()
+
+    def run(self) -> None:
+        import json
+
+        from websockets.exceptions import ConnectionClosed
+        from websockets.sync.client import connect
+
+        while not self._stop_event.is_set():
+            try:
+                with connect(f"ws://127.0.0.1:{self.port}/ws", open_timeout=2) as ws:
+                    while not self._stop_event.is_set():
+                        try:
+                            m = json.loads(ws.recv(timeout=0.5))
+                        except TimeoutError:
+                            continue
+                        if m.get("type") == "state":
+                            self.frames += 1
+                            self.vehicles = max(self.vehicles, len({e["vehicle"] for e in m["estimates"]}))
+            except (OSError, ConnectionClosed, TimeoutError):
+                self._stop_event.wait(0.2)
+
+    def stop(self) -> tuple[int, int]:
+        self._stop_event.set()
+        self.join(5)
+        return self.frames, self.vehicles
+
+
 def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign: bool = True,
                     out: Path | None = None, agent_nice: int = 5, zenoh_mode: str = "client",
-                    imu_batch: int = 20, fusion: str = DEFAULT_FUSION) -> dict:
+                    imu_batch: int = 20, fusion: str = DEFAULT_FUSION, view: bool = False) -> dict:
     """One benchmark point: ``n`` agents on the grid at 1× with ``imu_batch`` IMU samples per
     message (20: 5 messages a second at 100 Hz), CP methods fusing by ``fusion``; returns
     :meth:`FleetMonitor.result`. A client-mode fleet is secured as ``slcp run``'s is (mutual
-    TLS, the access control list); a peer-mode one cannot be, and runs on plain TCP."""
-    from .launcher import run_fleet
+    TLS, the access control list); a peer-mode one cannot be, and runs on plain TCP. With
+    ``view`` the live map is served and watched the whole run by a client that takes every
+    frame, as an open page does (``view_frames``: the frames it took; ``view_vehicles``: the
+    most vehicles one frame showed)."""
+    from .launcher import free_port, run_fleet
 
     with tempfile.TemporaryDirectory(prefix=f"slcp-bench-{n}-") as tmp:
         base = Path(out) if out is not None else Path(tmp)
@@ -271,11 +310,15 @@ def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign:
         scn = base / f"grid-{n}.toml"
         scn.write_text(grid_scenario_toml(n, duration, imu_batch=imu_batch))
         mon = FleetMonitor([f"G{i}" for i in range(n)])
+        port = free_port() if view else None
+        watcher = MapWatcher(port) if port is not None else None
         wall0 = time.monotonic()
         stats = run_fleet(str(scn), methods=(method,), speed=1.0, seed=0, out=base / "run", sign=sign,
                           monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n), agent_nice=agent_nice,
-                          zenoh_mode=zenoh_mode, fusion=fusion, secure=zenoh_mode == "client")
+                          zenoh_mode=zenoh_mode, fusion=fusion, secure=zenoh_mode == "client", view_port=port)
         res = mon.result()
+        if watcher is not None:
+            res["view_frames"], res["view_vehicles"] = watcher.stop()
         res["method"] = method
         res["fusion"] = fusion
         res["agent_nice"] = agent_nice

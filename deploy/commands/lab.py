@@ -68,6 +68,8 @@ def add_bench(sub) -> None:
                     help="how the fleet's processes join the router (as slcp run --zenoh-mode; default client)")
     bn.add_argument("--fleet-imu-batch", type=int, choices=range(1, 101), default=20, metavar="1-100",
                     help="IMU samples per message in the fleet's grid (default 20: 5 messages a second at 100 Hz)")
+    bn.add_argument("--fleet-view", action="store_true",
+                    help="serve the live map during each fleet point, watched by a client that takes every frame")
 
 
 def add_soak(sub) -> None:
@@ -236,7 +238,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
             out["fleet"].append(run_fleet_point(n, args.fleet_duration, args.fleet_method,
                                                     zenoh_mode=args.fleet_zenoh_mode,
-                                                    imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion))
+                                                    imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion,
+                                                    view=args.fleet_view))
     if args.json:
         print(json.dumps(out))
         return 0
@@ -266,6 +269,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             f"machine {f['machine_cpu_pct']:.0f} %, "
             f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "
             f"beacon latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms, sensor drops {f['sensor_dropped']}"
+            + (f", live map {f['view_frames']} frames of up to {f['view_vehicles']} vehicles" if "view_frames" in f
+               else "")
         )
         if f.get("windows"):
             worst = f["beacon_p99_ms_worst_window"]
