@@ -217,7 +217,9 @@ def _cut_at(centre: np.ndarray, stop: np.ndarray) -> np.ndarray | None:
     n /= np.linalg.norm(n)
     side = (centre - s0) @ n
     for k in range(len(centre) - 1):
-        if side[k] != 0.0 and np.sign(side[k]) != np.sign(side[k + 1]) or side[k + 1] == 0.0:
+        if side[k + 1] == 0.0:  # a vertex on the line
+            return centre[: k + 2]
+        if side[k] != 0.0 and np.sign(side[k]) != np.sign(side[k + 1]):
             f = side[k] / (side[k] - side[k + 1])
             return np.vstack([centre[: k + 1], centre[k] + f * (centre[k + 1] - centre[k])])
     d = centre[-1] - centre[-2]
