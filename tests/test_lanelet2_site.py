@@ -255,3 +255,18 @@ def test_a_vehicle_without_its_scenario_gets_the_configuration_the_scenario_give
                 assert b == pytest.approx(a, abs=1e-12)
             else:
                 assert a == b, f.name
+
+
+def test_slcp_scenario_to_lanelet2_writes_the_map_and_keeps_an_existing_one(tmp_path, capsys) -> None:
+    from slcp.deploy.cli import main
+    from slcp.hw_emulation.scenario import load_scenario
+
+    out = tmp_path / "maps" / "paper-2.osm"
+    assert main(["scenario", "to-lanelet2", "paper-2", str(out)]) == 0
+    site = read_lanelet2(out)
+    assert sorted(site.lanes) == sorted(load_scenario("paper-2").lanes)
+    assert main(["scenario", "to-lanelet2", "paper-2", str(out)]) == 2
+    assert "exists (use --force to replace it)" in capsys.readouterr().err
+    assert main(["scenario", "to-lanelet2", "paper-2", str(out), "--force"]) == 0
+    assert main(["scenario", "to-lanelet2", "no-such-scenario", str(tmp_path / "x.osm")]) == 2
+    assert "unknown scenario 'no-such-scenario'" in capsys.readouterr().err
