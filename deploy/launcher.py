@@ -98,11 +98,12 @@ def _prepare_run_dir(out: Path, scenario: str, faults: Path | None, started: dic
     return source
 
 
-def _bag(out: Path, scn, truth) -> McapSink:
-    """The run's ROS 2 bag (``recorded/bag``), new, with the site and, given, the truth."""
+def _bag(out: Path, scn, truth, inputs: bool = False) -> McapSink:
+    """The run's ROS 2 bag (``recorded/bag``), new, with the site and, given, the truth (and with
+    ``inputs``, the vehicles' inputs)."""
     bag = out / "recorded" / "bag"
     shutil.rmtree(bag, ignore_errors=True)
-    sink = McapSink(bag, scn.origin_llh)
+    sink = McapSink(bag, scn.origin_llh, inputs=inputs)
     sink.write_site(list(scn.lanes.values()))
     for vid, vt in (truth.vehicles.items() if truth is not None else ()):
         tr = vt.truth
@@ -115,7 +116,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
               wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True,
               zenoh_mode: str = "client", secure: bool = True, view_port: int | None = None,
-              foxglove_port: int | None = None, lanelet2: bool = False) -> dict:
+              foxglove_port: int | None = None, lanelet2: bool = False, bag_inputs: bool = False) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called about twice a second with a
@@ -149,7 +150,8 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     ``http://127.0.0.1:<port>/`` (:mod:`deploy.live_map`), with ``foxglove_port`` it serves it to
     Foxglove on ``ws://127.0.0.1:<port>`` (:mod:`deploy.foxglove_view`); 0: any free port, logged.
     With ``lanelet2`` the agents are configured as deployed vehicles, without the scenario: their
-    site is a Lanelet2 map of the scenario's, their sensor models written out in their files."""
+    site is a Lanelet2 map of the scenario's, their sensor models written out in their files.
+    With ``bag_inputs`` the run's bag also holds the vehicles' inputs (:mod:`deploy.mcap_inputs`)."""
     if zenoh_mode not in ZENOH_MODES:
         raise ValueError(f"zenoh_mode must be one of {', '.join(ZENOH_MODES)}, got {zenoh_mode!r}")
     if secure and zenoh_mode == "peer":
@@ -168,7 +170,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     # the truth first (the evaluation needs it anyway): the bag and the map show it beside the estimates
     truth = build_truth(scn, stop_seed=seed) if evaluate else None
     # then the viewers: a port that is taken stops the run before it starts
-    sinks: list = [*viewer_sinks(view_port, foxglove_port, scn, truth), _bag(out, scn, truth)]
+    sinks: list = [*viewer_sinks(view_port, foxglove_port, scn, truth), _bag(out, scn, truth, bag_inputs)]
     wall0 = time.monotonic()
     stats = asyncio.run(_supervise(scenario, vehicles, configs, endpoint, speed, seed, out, progress,
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,

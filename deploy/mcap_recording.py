@@ -106,15 +106,25 @@ def enu_attitude(rpy_ned: np.ndarray) -> tuple[float, float, float]:
 class McapSink:
     """Writes estimates and diagnostics to a ROS 2 bag (MCAP storage) at ``path`` (a new
     directory). ``origin_llh`` [rad, rad, m] is the origin of the ``map`` frame (default: the
-    first estimate's position). ``counts``: messages written per topic."""
+    first estimate's position). ``counts``: messages written per topic. With ``inputs`` it also
+    records the vehicles' inputs (:mod:`deploy.mcap_inputs`), which a recorder gives it through
+    :attr:`observe_keys` and :meth:`observe`."""
 
-    def __init__(self, path: Path, origin_llh: tuple[float, float, float] | None = None) -> None:
+    def __init__(self, path: Path, origin_llh: tuple[float, float, float] | None = None,
+                 inputs: bool = False) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
+
+        from .mcap_inputs import INPUT_KEYS, InputWriter, register_types
 
         self.path = Path(path)
         self.ts = get_typestore(Stores.ROS2_HUMBLE)
         self.T = self.ts.types
+        self.observe_keys: tuple[str, ...] = ()
+        self._inputs: InputWriter | None = None
+        if inputs:
+            register_types(self.ts)
+            self.observe_keys, self._inputs = INPUT_KEYS, InputWriter(self)
         self._w = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         self._w.open()
         self._conns: dict[str, Any] = {}
@@ -234,6 +244,11 @@ class McapSink:
             values=[kv(key=k, value=str(v)) for k, v in d.counters.items()])
         self._put("/slcp/diagnostics", DIAG, ns, T[DIAG](header=self._header(ns, ""), status=[status]))
 
+    def observe(self, m: Message) -> None:
+        """Record one of the vehicles' inputs (with ``inputs``; others are ignored)."""
+        if self._inputs is not None:
+            self._inputs.write(m)
+
     def close(self) -> None:
         self._w.close()
 
@@ -250,14 +265,17 @@ def read_recording(path: Path) -> tuple[dict[tuple[str, str], list[dict]], dict[
     claims: dict[str, bool] = {}
     fixes: dict[tuple[str, int], Any] = {}
     with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
-        for conn, _, raw in reader.messages():
-            counts[conn.topic] += 1
+        for conn in reader.connections:
+            counts[conn.topic] += conn.msgcount
+        # the estimates, claims and diagnostics: not the inputs, the site, the origin or the truth
+        wanted = [c for c in reader.connections if c.msgtype == DIAG or (
+            c.topic.count("/") == 4 and c.topic.rsplit("/", 1)[1] in ("fix", "odom", "first_stopped")
+            and "/truth/" not in c.topic)]
+        for conn, _, raw in reader.messages(connections=wanted) if wanted else ():  # none: rosbags reads all
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.msgtype == DIAG:
                 for s in msg.status:
                     diags[s.name] = {kv.key: int(kv.value) for kv in s.values}
-                continue
-            if conn.topic in ("/slcp/map_origin", "/slcp/site") or "/truth/" in conn.topic:
                 continue
             stem, what = conn.topic.rsplit("/", 1)
             ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec if what != "first_stopped" else 0

@@ -124,9 +124,10 @@ async def report_reachability(bus, endpoints: tuple[str, ...], who: str, first: 
 
 async def recorder_main(zcfg: ZenohConfig, path: Path | None, bag: Path | None = None,
                         view_port: int | None = None, foxglove_port: int | None = None,
-                        scenario: str | None = None) -> int:
+                        scenario: str | None = None, bag_inputs: bool = False) -> int:
     """Record every estimate and diagnostics message to ``path`` (appending; None: no JSON
-    lines), with ``bag`` to a ROS 2 bag in MCAP storage, until SIGINT/SIGTERM. With ``view_port``
+    lines), with ``bag`` to a ROS 2 bag in MCAP storage (with ``bag_inputs``, the vehicles' inputs
+    too), until SIGINT/SIGTERM. With ``view_port``
     show them live on a map in the browser (:mod:`deploy.live_map`; the site of ``scenario`` if
     given), with ``foxglove_port`` serve them to Foxglove (:mod:`deploy.foxglove_view`)."""
     from slcp.transport.zenoh_bus import ZenohBus
@@ -144,7 +145,7 @@ async def recorder_main(zcfg: ZenohConfig, path: Path | None, bag: Path | None =
     stop = asyncio.Event()
     _install_signals(stop)
     if bag is not None:
-        sinks.append(McapSink(bag))
+        sinks.append(McapSink(bag, inputs=bag_inputs))
     bus = ZenohBus(zcfg)
     rec = Recorder(path, sinks=sinks)
     tasks = [*rec.start(bus), asyncio.create_task(report_reachability(bus, zcfg.connect, "record"))]

@@ -1,6 +1,6 @@
-"""The two ROS 2 messages a recording writes for every estimate, ``sensor_msgs/msg/NavSatFix``
-and ``nav_msgs/msg/Odometry``, serialised in CDR (little-endian, as ``ros2 bag`` stores them)
-with one :func:`struct.pack` each.
+"""The ROS 2 messages a recording writes for every estimate, ``sensor_msgs/msg/NavSatFix``
+and ``nav_msgs/msg/Odometry``, and for every IMU sample, ``sensor_msgs/msg/Imu``, serialised
+in CDR (little-endian, as ``ros2 bag`` stores them) with one :func:`struct.pack` each.
 
 rosbags' generic serialiser builds a Python object per field and takes about 60 µs a message,
 and a 50-vehicle fleet's recorder writes a few thousand a second. The layouts here are the same
@@ -50,6 +50,17 @@ def _odom_layout(frame: str, child: str) -> tuple[struct.Struct, bytes, bytes]:
     return _layout([("i", 1), ("I", 1), *sf, *sc, ("d", 3), ("d", 4), ("d", 36), ("d", 3), ("d", 3), ("d", 36)]), fb, cb
 
 
+@functools.lru_cache(maxsize=4096)
+def _imu_layout(frame: str) -> tuple[struct.Struct, bytes]:
+    sf, fb = _string(frame)
+    return _layout([("i", 1), ("I", 1), *sf, ("d", 4), ("d", 9), ("d", 3), ("d", 9), ("d", 3), ("d", 9)]), fb
+
+
+#: an IMU without an orientation (ROS: element 0 of its covariance -1), its other covariances unknown (zeros)
+_NO_ORIENTATION = (0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_UNKNOWN9 = (0.0,) * 9
+
+
 def _stamp(ns: int) -> tuple[int, int]:
     return ns // 1_000_000_000, ns % 1_000_000_000
 
@@ -69,6 +80,14 @@ def odometry(ns: int, frame: str, child: str, position: tuple[float, float, floa
     st, fb, cb = _odom_layout(frame, child)
     return ENCAPSULATION + st.pack(*_stamp(ns), len(fb), fb, len(cb), cb, *position, *quaternion_xyzw, *pose_cov36,
                                    *linear, *angular, *twist_cov36)
+
+
+def imu(ns: int, frame: str, angular_velocity: tuple[float, float, float],
+        linear_acceleration: tuple[float, float, float]) -> bytes:
+    """A ``sensor_msgs/msg/Imu`` stamped ``ns`` [ns] without an orientation."""
+    st, fb = _imu_layout(frame)
+    return ENCAPSULATION + st.pack(*_stamp(ns), len(fb), fb, *_NO_ORIENTATION, *angular_velocity, *_UNKNOWN9,
+                                   *linear_acceleration, *_UNKNOWN9)
 
 
 class LocalEnu:

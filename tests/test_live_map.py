@@ -123,12 +123,12 @@ def test_chromium_sees_every_vehicle_of_paper_1_moving_with_the_recorded_error(t
     """#44 acceptance 2: during `slcp run paper-1 --view`, headless Chromium shows every vehicle
     moving, and the error it displays for a vehicle is the one the run's report records. The
     agents of this run are configured as deployed vehicles (`--lanelet2`: no scenario, the site
-    from a Lanelet2 map), which the page does not see."""
+    from a Lanelet2 map), which the page does not see, and its bag holds the inputs too."""
     exe, pw = _browser()
     scn = short_scenario(tmp_path, "paper-1", 25.0)
     port, out = free_port(), tmp_path / "run"
     run = subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "run", str(scn), "--out", str(out),
-                            "--methods", "SP", "SL-CP", "--view", str(port), "--lanelet2"],
+                            "--methods", "SP", "SL-CP", "--view", str(port), "--lanelet2", "--bag-inputs"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     seen: dict[str, list[tuple[float, float, float, str]]] = {}  # vehicle -> (t, e, n, error shown)
     try:
@@ -164,6 +164,13 @@ def test_chromium_sees_every_vehicle_of_paper_1_moving_with_the_recorded_error(t
     assert run.returncode == 0, stderr[-3000:]
     agent_file = (out / "config" / "agent-V1.toml").read_text()
     assert 'site = "site.osm"' in agent_file and "scenario" not in agent_file
+    from slcp.deploy.mcap_recording import read_recording
+
+    est, _, counts = read_recording(out / "recorded" / "bag")
+    for v in ("V0", "V1", "V2"):  # 25 s of IMU at 100 Hz, fixes, UWB rounds and beacons of every vehicle
+        assert counts[f"/slcp/{v}/imu"] >= 2400 and counts[f"/slcp/{v}/gnss"] >= 20, v
+        assert counts[f"/slcp/{v}/uwb"] >= 100 and counts[f"/slcp/{v}/beacon"] >= 100, v
+        assert len(est[(v, "SL-CP")]) == counts[f"/slcp/{v}/SL_CP/fix"] > 100
     assert sorted(seen) == ["V0", "V1", "V2"]
     for v, samples in seen.items():
         ts = [s[0] for s in samples]

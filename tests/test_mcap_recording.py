@@ -194,3 +194,54 @@ def test_the_local_enu_frame_is_pymap3ds() -> None:
         enu = LocalEnu(origin)
         p = (origin[0] + rng.normal(0, 1e-3), origin[1] + rng.normal(0, 1e-3), origin[2] + rng.normal(0, 50))
         assert enu(*p) == pytest.approx(pymap3d.geodetic2enu(*p, *origin, deg=False), abs=1e-6)
+
+
+def test_the_inputs_go_into_the_bag_and_decode_with_the_mcap_reader(tmp_path) -> None:
+    """`--bag-inputs`: IMU samples (ROS's body axes), GNSS fixes with their σ and velocity, UWB
+    rounds and beacons, the two slcp_msgs types decoded from the schemas the bag carries."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from slcp.transport.messages import Beacon, GnssFix, ImuBatch, UwbRound
+
+    sink = McapSink(tmp_path / "bag", (0.6973, 2.0302, 50.0), inputs=True)
+    assert any("/sensor/*/imu" in k for k in sink.observe_keys)
+    t = np.array([1.01, 1.02, 1.03])
+    sink.observe(ImuBatch("V-1", 3, t, np.full(3, 0.01), np.array([[1e-3, 2e-3, 3e-3]] * 3),
+                          np.array([[0.01, 0.02, -0.0981]] * 3)))
+    sink.observe(GnssFix("V-1", 1, 1.0, np.array([0.6973, 2.0302, 52.0]), np.array([1.0, -2.0, 0.5]),
+                         np.array([0.3, 0.4, 0.9]), 0.05, 4))
+    sink.observe(UwbRound("V-1", 7, 1.05, ("V2", "V3"), np.array([12.5, 40.25])))
+    sink.observe(Beacon("V-1", 9, "SL-CP", 1.1, np.array([0.6973, 2.0302, 52.0]), np.array([1.0, -2.0, 0.5]),
+                        np.diag([0.25, 0.36, 1.0]), auth=b"x" * 10, first_stopped=True))
+    sink.observe(Diagnostics("V-1", 1.0, {}))  # not an input: ignored
+    sink.close()
+    got: dict[str, list] = {}
+    with open(next((tmp_path / "bag").glob("*.mcap")), "rb") as fh:
+        for schema, channel, message, decoded in make_reader(
+                fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            got.setdefault(channel.topic, []).append((schema.name, message.log_time, decoded))
+    assert sorted(got) == ["/slcp/V_1/beacon", "/slcp/V_1/gnss", "/slcp/V_1/gnss_velocity", "/slcp/V_1/imu",
+                           "/slcp/V_1/uwb", "/slcp/map_origin"]
+    imu = got["/slcp/V_1/imu"]
+    assert [x[1] for x in imu] == [1_010_000_000, 1_020_000_000, 1_030_000_000]
+    name, _, m = imu[0]
+    assert name == "sensor_msgs/msg/Imu" and m.header.frame_id == "V-1/imu" and m.orientation_covariance[0] == -1
+    assert (m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z) == pytest.approx((0.1, -0.2, -0.3))
+    assert (m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z) == pytest.approx(
+        (1.0, -2.0, 9.81))  # forward, left, up: the reaction to gravity points up
+    _, _, fix = got["/slcp/V_1/gnss"][0]
+    assert fix.latitude == pytest.approx(math.degrees(0.6973)) and fix.position_covariance_type == 2
+    assert list(fix.position_covariance) == pytest.approx([0.16, 0, 0, 0, 0.09, 0, 0, 0, 0.81])
+    _, _, vel = got["/slcp/V_1/gnss_velocity"][0]
+    assert (vel.twist.twist.linear.x, vel.twist.twist.linear.y, vel.twist.twist.linear.z) == pytest.approx(
+        (-2.0, 1.0, -0.5))
+    name, _, uwb = got["/slcp/V_1/uwb"][0]
+    assert name == "slcp_msgs/msg/UwbRound" and list(uwb.peers) == ["V2", "V3"]
+    assert list(uwb.ranges) == [12.5, 40.25] and uwb.seq == 7
+    name, _, b = got["/slcp/V_1/beacon"][0]
+    assert name == "slcp_msgs/msg/Beacon" and b.method == "SL-CP" and b.first_stopped and b.signed
+    assert list(b.position_covariance_ned) == pytest.approx([0.25, 0, 0, 0, 0.36, 0, 0, 0, 1.0])
+    # the estimates' reader passes over the inputs
+    est, _, counts = read_recording(tmp_path / "bag")
+    assert est == {} and counts["/slcp/V_1/imu"] == 3

@@ -102,6 +102,8 @@ def add_record(sub) -> None:
     rc.add_argument("--bag", type=Path, default=None,
                     help="also write a ROS 2 bag in MCAP storage to this new directory (standard ROS 2 "
                          "message types; the map frame's origin is the first estimate's position)")
+    rc.add_argument("--bag-inputs", action="store_true",
+                    help="the bag also holds the vehicles' inputs: IMU samples, GNSS fixes, UWB rounds and beacons")
 
 
 def add_view(sub) -> None:
@@ -220,7 +222,9 @@ def _cmd_infrastructure(args: argparse.Namespace) -> int:
                                              scenario=args.scenario))
         if args.bag is not None and args.bag.exists():
             raise ValueError(f"--bag {args.bag}: exists; a bag is written to a new directory")
-        return asyncio.run(recorder_main(z, args.out, args.bag))
+        if args.bag_inputs and args.bag is None:
+            raise ValueError("--bag-inputs: give the bag's directory with --bag")
+        return asyncio.run(recorder_main(z, args.out, args.bag, bag_inputs=args.bag_inputs))
     if args.fleet:
         from ..zenoh_security import as_json5, router_config
 

@@ -59,6 +59,9 @@ def add_run(sub) -> None:
                          "0: any free port)")
     rn.add_argument("--foxglove", nargs="?", type=T.port, const=8765, default=None, metavar="PORT",
                     help="serve the run live to Foxglove on ws://127.0.0.1:PORT (default 8765; 0: any free port)")
+    rn.add_argument("--bag-inputs", action="store_true",
+                    help="the run's ROS 2 bag also holds the vehicles' inputs: IMU samples, GNSS fixes, UWB rounds and "
+                         "beacons (several times the size)")
     rn.add_argument("--lanelet2", action="store_true",
                     help="configure the agents as deployed vehicles, without the scenario: their site from a Lanelet2 "
                          "map of the scenario's (config/site.osm), their sensor models written out in their files")
@@ -137,7 +140,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                           sign=not args.no_sign, faults=args.faults, agent_nice=args.agent_nice,
                           lane_constraint=not args.no_lane_constraint, zenoh_mode=args.zenoh_mode,
                           secure=not args.insecure, view_port=args.view,
-                          foxglove_port=args.foxglove, lanelet2=args.lanelet2)
+                          foxglove_port=args.foxglove, lanelet2=args.lanelet2, bag_inputs=args.bag_inputs)
     except KeyboardInterrupt:
         print("\nslcp run: interrupted; the fleet's processes are stopped", file=sys.stderr)
         _report_partial_run(out)
