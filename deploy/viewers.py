@@ -20,7 +20,9 @@ def viewer_sinks(view_port: int | None, foxglove_port: int | None, scenario=None
             from .foxglove_view import FoxgloveSink
 
             sinks.append(FoxgloveSink(port=foxglove_port,
-                                      name=f"slcp {scenario.name}" if scenario is not None else "slcp"))
+                                      name=f"slcp {scenario.name}" if scenario is not None else "slcp",
+                                      lanes=scenario.lanes.values() if scenario is not None else (),
+                                      origin_llh=scenario.origin_llh if scenario is not None else None))
     except BaseException:
         for s in sinks:
             s.close()

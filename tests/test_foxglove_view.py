@@ -64,3 +64,50 @@ def test_a_taken_port_is_a_one_line_error(tmp_path, capsys) -> None:
         assert main(["run", "paper-1", "--out", str(tmp_path / "run"), "--foxglove", str(port)]) == 2
     err = capsys.readouterr().err
     assert f"cannot serve the Foxglove view on 127.0.0.1:{port}" in err and "Traceback" not in err
+
+
+def test_the_scene_holds_the_site_the_vehicles_with_their_ellipses_and_the_uwb_links() -> None:
+    """/slcp/scene (foxglove.SceneUpdate, map = east, north of the site's origin): the stop lines
+    where the site has them, each vehicle's 95 % ellipse and the link measured between them."""
+    import pymap3d
+
+    from slcp.deploy.foxglove_view import K95
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.transport.messages import UwbRound
+
+    scn = load_scenario("paper-1")
+    sink = FoxgloveSink(port=0, lanes=scn.lanes.values(), origin_llh=scn.origin_llh)
+    # the site is sent again every second: a client that joined late sees it
+    client = FoxgloveClient(sink.port, seconds=6.0, until=lambda c: len(c.messages.get("/slcp/scene", [])) >= 3
+                            and any(b"site" in p for _, p in c.messages["/slcp/scene"]))
+    positions = {"V1": (-20.0, 1.75), "V2": (-27.0, 1.75)}  # north, east [m]
+    try:
+        def estimates(t: float) -> None:
+            for v, (n, e) in positions.items():
+                llh = np.array(pymap3d.ned2geodetic(n, e, 0.0, *scn.origin_llh, deg=False))
+                sink.write(Estimate(v, "SL-CP", t, llh, np.zeros(3), np.zeros(3), np.diag([0.25, 0.04, 1.0]), v == "V1"))
+
+        estimates(1.0)
+        client.start()
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and not any(ch["topic"] == "/slcp/scene" for ch in client.channels.values()):
+            time.sleep(0.05)
+        time.sleep(0.3)
+        sink.observe(UwbRound("V1", 1, 1.5, ("V2",), np.array([7.0])))
+        for k in range(12):
+            estimates(1.6 + 0.1 * k)
+            time.sleep(0.21)
+        client.join()
+    finally:
+        sink.close()
+    assert client.error is None, client.error
+    assert client.topics()["/slcp/scene"]["schemaName"] == "foxglove.SceneUpdate"
+    scenes = b"".join(p for _, p in client.messages["/slcp/scene"])
+    stop = next(ln for ln in scn.lanes.values() if ln.stop_line).stop_line_ends()
+    for x in stop.ravel():  # the site's stop line, east and north, as the scene's doubles (proto3 leaves out 0)
+        assert x == 0.0 or struct.pack("<d", float(x)) in scenes
+    # V1's ellipse: 2.45 σ north of it at its northernmost point (σ_n 0.5 m)
+    north_tip = -20.0 + K95 * 0.5
+    doubles = [struct.unpack_from("<d", scenes, i)[0] for i in range(len(scenes) - 7)]
+    assert any(abs(x - north_tip) < 1e-6 for x in doubles)
+    assert b"uwb_links" in scenes and b"V2" in scenes
