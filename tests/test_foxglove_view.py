@@ -85,7 +85,8 @@ def test_the_scene_holds_the_site_the_vehicles_with_their_ellipses_and_the_uwb_l
         def estimates(t: float) -> None:
             for v, (n, e) in positions.items():
                 llh = np.array(pymap3d.ned2geodetic(n, e, 0.0, *scn.origin_llh, deg=False))
-                sink.write(Estimate(v, "SL-CP", t, llh, np.zeros(3), np.zeros(3), np.diag([0.25, 0.04, 1.0]), v == "V1"))
+                sink.write(Estimate(v, "SL-CP", t, llh, np.zeros(3), np.zeros(3), np.diag([0.25, 0.04, 1.0]),
+                                    v == "V1"))
 
         estimates(1.0)
         client.start()
