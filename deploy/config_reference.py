@@ -23,6 +23,7 @@ faults and misbehaviour](security.md) (fault schedules) explain them with exampl
 
 
 def _tables():
+    from slcp.agent.nav.measurements.stop_line import StopGapModel
     from slcp.hw_emulation.faults import Fault
     from slcp.hw_emulation.sensors.camera import LaneCameraModel
     from slcp.hw_emulation.sensors.gnss import GnssModel
@@ -43,9 +44,11 @@ def _tables():
         ("Scenario file", "[sensors.imu]; a vehicle's imu = {...}; an agent configuration's [imu]", ImuModel),
         ("Scenario file", "[sensors.gnss]; a vehicle's gnss = {...}", GnssModel),
         ("Scenario file", "[sensors.camera]", LaneCameraModel),
-        ("Scenario file", "[uwb]", UwbModel),
+        ("Scenario file", "[uwb]; an agent configuration's [uwb]", UwbModel),
         ("Scenario file", "[radio]", RadioModel),
         ("Agent configuration", "[filter]", FilterOptions),
+        ("Agent configuration", "[stop_gap] (a field left out keeps the scenario's, without one 1.5, 0.3, 1.75, 0.3, "
+         "2.5 m in this order)", StopGapModel),
         ("Agent configuration", "[zenoh] (with tls = true/false besides)", ZenohConfig),
         ("Fault schedule", "[[fault]]", Fault),
     ]
