@@ -129,13 +129,15 @@ def imu_noise_of(model: ImuModel) -> ImuNoise:
 
 
 def approach_lanes(site: Site | Scenario) -> dict[str, ApproachLane]:
-    """Stop line (perpendicular, at the centre-line end) and left lane line of every approach."""
+    """Stop line (at the centre-line end, at right angles to the lane or along its slant) and left
+    lane line of every approach."""
     out = {}
     for lane in site.lanes.values():
         if not lane.stop_line:
             continue
         left, d = lane.end_left_line()
-        approach = StopLineApproach(Line2D(tuple(lane.centerline[-1]), (-d[1], d[0])), Line2D(tuple(left), tuple(d)))
+        across = lane.stop_slant if lane.stop_slant is not None else (-d[1], d[0])
+        approach = StopLineApproach(Line2D(tuple(lane.centerline[-1]), tuple(across)), Line2D(tuple(left), tuple(d)))
         out[lane.id] = ApproachLane(lane.id, approach, lane.width)
     return out
 

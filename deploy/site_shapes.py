@@ -18,15 +18,10 @@ class LaneShape:
 
 
 def lane_shapes(lanes) -> list[LaneShape]:
-    """The shapes of ``lanes`` (``id``, ``centerline`` (n, 2) north, east [m], ``width`` [m],
-    ``stop_line``: whether the lane ends at one, across its last centre-line segment)."""
+    """The shapes of ``lanes`` (:class:`geo.site.Lane`)."""
     out = []
     for ln in lanes:
         c = np.asarray(ln.centerline, float)
-        stop = None
-        if ln.stop_line:
-            d = (c[-1] - c[-2]) / np.hypot(*(c[-1] - c[-2]))
-            r = np.array([-d[1], d[0]]) * ln.width / 2
-            stop = np.array([c[-1] - r, c[-1] + r])
+        stop = ln.stop_line_ends() if ln.stop_line else None
         out.append(LaneShape(str(ln.id), c, float(ln.width), stop))
     return out

@@ -19,8 +19,8 @@ What is read:
   element of the lanelet (Autoware's ``stop_line``). The lane is cut where its centre line
   crosses the stop line, which then lies across its last segment at its end; a stop line that
   the centre line (or its last segment prolonged by up to :data:`STOP_LINE_REACH` m) does not
-  cross is left out with a warning. slcp's stop-line fix takes the line at right angles to the
-  lane: a slanted stop line keeps its crossing with the centre line, not its slant.
+  cross is left out with a warning. A stop line more than half a degree off the lane's normal
+  keeps its slant (``Lane.stop_slant``), which the stop-line fix takes.
 
 What is written: each lane as a lanelet (``subtype road``, one way) with its own left and right
 bounds (``line_thin``, ``solid`` unless the lane's markings say otherwise), its id in
@@ -150,7 +150,26 @@ def _lane(ll: Any, path: Path) -> Lane:
     if stop is not None and cut is None:
         log.warning("%s: lanelet %s (lane %s): its stop line does not cross its centre line; left out",
                     path, ll.id, lid)
-    return Lane(lid, centre if cut is None else _distinct(cut), width, cut is not None, (markings[0], markings[1]))
+    if cut is None or stop is None:
+        return Lane(lid, centre, width, False, (markings[0], markings[1]))
+    cut = _distinct(cut)
+    return Lane(lid, cut, width, True, (markings[0], markings[1]), _slant(cut, stop))
+
+
+#: a stop line within this angle of the lane's normal is taken at right angles [rad]
+RIGHT_ANGLE_TOL = math.radians(0.5)
+
+
+def _slant(centre: np.ndarray, stop: np.ndarray) -> tuple[float, float] | None:
+    """The stop line's unit direction (north, east) where it is slanted by more than
+    :data:`RIGHT_ANGLE_TOL` from the normal of the lane's last segment, else None."""
+    d = centre[-1] - centre[-2]
+    d = d / np.linalg.norm(d)
+    s = stop[1] - stop[0]
+    s = s / np.linalg.norm(s)
+    if abs(float(d @ s)) <= math.sin(RIGHT_ANGLE_TOL):
+        return None
+    return float(s[0]), float(s[1])
 
 
 def _distinct(p: np.ndarray, tol: float = 1e-4) -> np.ndarray:

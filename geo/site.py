@@ -35,6 +35,9 @@ class Lane:
     #: the painted lines on its left and right, as a map names them (e.g. ``"line_thin:dashed"``;
     #: "" when not known)
     markings: tuple[str, str] = ("", "")
+    #: the stop line's direction (north, east; unit) where it is not at right angles to the lane
+    #: (None: at right angles); it crosses the centre line at the lane's end either way
+    stop_slant: tuple[float, float] | None = None
 
     @property
     def end_heading(self) -> float:
@@ -54,10 +57,17 @@ class Lane:
         return offset_polyline(c, -self.width / 2)[-1], d
 
     def stop_line_ends(self) -> np.ndarray:
-        """The stop line's two ends, left then right (north, east) [m], (2, 2): across the
-        lane's last centre-line segment at its end, a lane width long."""
+        """The stop line's two ends, left then right (north, east) [m], (2, 2): where it meets the
+        lines a half lane width either side of the last centre-line segment, through the
+        centre line's end (at right angles to it, or along :attr:`stop_slant`)."""
         left, d = self.end_left_line()
-        return np.array([left, 2 * np.asarray(self.centerline[-1], float) - left])
+        end = np.asarray(self.centerline[-1], float)
+        if self.stop_slant is None:
+            return np.array([left, 2 * end - left])
+        s = np.asarray(self.stop_slant, float)
+        s = s if float(s @ (left - end)) >= 0.0 else -s  # pointing to the left of travel
+        half = (self.width / 2) / abs(float(d[0] * s[1] - d[1] * s[0]))
+        return np.array([end + half * s, end - half * s])
 
 
 @dataclass(frozen=True)

@@ -126,6 +126,17 @@ def test_a_stop_line_short_of_the_lanelets_end_or_just_past_it_cuts_or_prolongs_
     assert sorted(site.lanes) == ["far", "past", "short"]  # not the crosswalk
     # the lane is cut where its centre line crosses the slanted line: 40.25 m
     assert site.lanes["short"].stop_line and site.lanes["short"].centerline[-1, 0] == pytest.approx(40.25, abs=1e-3)
+    # the slant (8°) kept: the line meets the lane's bounds where it was drawn, and the agent measures along it
+    short = site.lanes["short"]
+    assert short.stop_slant == pytest.approx(tuple(np.array([0.5, 3.5]) / math.hypot(0.5, 3.5)), abs=1e-6)
+    e = short.centerline[0, 1]
+    assert np.abs(short.stop_line_ends() - [[40.0, e - 1.75], [40.5, e + 1.75]]).max() < TOL
+    from slcp.deploy.agent_configs import approach_lanes
+
+    stop = approach_lanes(site)["short"].approach.stop_line
+    (a, b), (c, d) = stop.direction, short.stop_slant
+    assert abs(a * d - b * c) < 1e-9  # parallel
+    assert site.lanes["past"].stop_slant is not None and site.lanes["far"].stop_slant is None
     assert site.lanes["past"].stop_line and site.lanes["past"].centerline[-1, 0] == pytest.approx(51.75, abs=1e-3)
     assert not site.lanes["far"].stop_line and site.lanes["far"].centerline[-1, 0] == pytest.approx(50.0, abs=1e-3)
 
