@@ -44,6 +44,9 @@ log = logging.getLogger(__name__)
 
 #: [s] a UWB link is drawn this long after its last range
 LINK_TTL_S = 1.0
+#: at most this many (vehicle, method) estimates and UWB pairs are kept: on an open bus anyone
+#: can invent names (the ones beyond are counted in ``LiveMapState.refused``)
+MAX_ROWS, MAX_LINKS = 1024, 8192
 
 
 def _en(p_ne) -> list[float]:
@@ -63,12 +66,16 @@ class LiveMapState:
         self._truth = dict(truth.vehicles) if truth is not None else {}
         self._est: dict[tuple[str, str], Estimate] = {}
         self._links: dict[tuple[str, str], float] = {}
+        self.refused = 0
 
     def write(self, m: Message) -> None:
         if not isinstance(m, Estimate):
             return
         with self._lock:
             old = self._est.get((m.vehicle, m.method))
+            if old is None and len(self._est) >= MAX_ROWS:
+                self.refused += 1
+                return
             if old is None or m.t >= old.t:
                 self._est[(m.vehicle, m.method)] = m
             if self.origin is None:
@@ -85,6 +92,9 @@ class LiveMapState:
         with self._lock:
             for a, b in pairs:
                 pair = (a, b) if a < b else (b, a)
+                if pair not in self._links and len(self._links) >= MAX_LINKS:
+                    self.refused += 1
+                    continue
                 self._links[pair] = max(self._links.get(pair, -math.inf), float(m.t))
 
     def _ne(self, llh) -> np.ndarray:

@@ -265,3 +265,18 @@ def _latest_state(ws) -> dict | None:
                 latest = m
     except (TimeoutError, ConnectionClosed):
         return latest
+
+
+def test_invented_names_cannot_grow_the_map_without_bound(monkeypatch) -> None:
+    from slcp.deploy import live_map
+
+    monkeypatch.setattr(live_map, "MAX_ROWS", 5)
+    monkeypatch.setattr(live_map, "MAX_LINKS", 3)
+    s = LiveMapState(origin_llh=ORIGIN)
+    for k in range(8):
+        s.write(_estimate(f"X{k}", 1.0, 0.0, 0.0))
+        s.observe(UwbRange(f"X{k}", "V0", k, 1.0, 5.0))
+    s.write(_estimate("X0", 2.0, 1.0, 0.0))  # a known row still updates
+    rows = s.snapshot()["estimates"]
+    assert len(rows) == 5 and s.refused == 3 + 5
+    assert next(r for r in rows if r["vehicle"] == "X0")["t"] == 2.0
