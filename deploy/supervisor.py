@@ -128,6 +128,7 @@ class _Supervisor:
         self.restarts: list[dict] = []
         self.wall0 = time.monotonic()
         self.pending = sorted((f for f in faults if f.kind in PROCESS_FAULTS), key=lambda f: f.start)
+        self.missed: list = []  #: process faults that came due with their process not running
         self.frozen: list[tuple[float, str]] = []  # (wall time to resume, process)
         self.last = self.last_table = 0.0
         self.table = ""
@@ -255,6 +256,7 @@ class _Supervisor:
                 continue
             p = self.procs.get("emulator" if f.kind == "emulator_kill" else f"agent-{f.vehicles[0]}")
             if p is None or p.poll() is not None:
+                self.missed.append(f)
                 continue
             log.warning("fault %s on %s at t=%.1f s", f.kind, ",".join(f.vehicles) or "emulator", now_s)
             os.kill(p.pid, signal.SIGSTOP if f.kind == "agent_freeze" else signal.SIGKILL)
@@ -331,6 +333,10 @@ class _Supervisor:
         stats = self.stats
         stats["exit_codes"] = {n: p.returncode for n, p in self.procs.items()}
         stats["restarts"] = [{k: v for k, v in r.items() if not k.startswith("_")} for r in self.restarts]
+        # process faults the run never applied: the fleet's clock stopped short of them, or their
+        # process was not running (the run then did not test what its schedule says)
+        stats["faults_not_applied"] = [{"kind": f.kind, "start_s": f.start, "vehicles": list(f.vehicles)}
+                                       for f in [*self.missed, *self.pending]]
         stats["recorded"], stats["codec_errors"] = self.rec.recorded, self.rec.codec_errors
         stats["rejected"] = dict(self.rec.rejected)
         stats["recorded_by_key"] = dict(sorted(self.rec.counts.items()))

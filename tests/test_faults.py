@@ -125,6 +125,22 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
 
 
 @pytest.mark.timeout(120)
+def test_a_run_whose_scheduled_faults_were_not_applied_says_so_and_fails(tmp_path) -> None:
+    """A process fault the fleet's clock never reaches (here: after the scenario's end) leaves
+    the run untested as scheduled: named in metrics.json and on stderr, exit code 1."""
+    scn = short_scenario(tmp_path, "paper-1", 12.0)
+    schedule = tmp_path / "late.toml"
+    schedule.write_text('[[fault]]\nkind = "agent_kill"\nstart = 30.0\nvehicles = ["V1"]\n')
+    out = tmp_path / "run"
+    r = run_group([sys.executable, "-m", "slcp.deploy.cli", "run", str(scn), "--methods", "SP", "--faults",
+                   str(schedule), "--out", str(out)], timeout=100)
+    assert r.returncode == 1, r.stderr[-2000:]
+    assert "scheduled faults not applied" in r.stderr and "agent_kill at 30 s" in r.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["processes"]["faults_not_applied"] == [{"kind": "agent_kill", "start_s": 30.0, "vehicles": ["V1"]}]
+
+
+@pytest.mark.timeout(120)
 def test_a_killed_recorder_keeps_what_it_wrote_and_a_restarted_one_continues(tmp_path) -> None:
     """`slcp record` behind `slcp router` (loopback): SIGKILL mid-stream, restart, stream again.
     Everything published well before the kill is on disk, the file is appended to (never

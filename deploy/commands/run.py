@@ -148,8 +148,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from ..summary import terminal_summary
 
     print(f"done in {m['wall_s']:.1f} s; processes exited {m['processes']['exit_codes']}\n")
+    missed = m["processes"].get("faults_not_applied", [])
+    if missed:
+        print("slcp run: scheduled faults not applied (the fleet's clock stopped short of them, or their process "
+              "was not running): " + ", ".join(f"{f['kind']} at {f['start_s']:g} s" for f in missed), file=sys.stderr)
     print(terminal_summary(scn, m, out / "report.md"))
-    return 0
+    return 1 if missed else 0
 
 
 def _report_partial_run(out: Path) -> None:
