@@ -37,11 +37,10 @@ from typing import Any
 import numpy as np
 
 from slcp.transport import keys
-from slcp.transport.messages import Diagnostics, Estimate, Message, UwbRound
+from slcp.transport.messages import Diagnostics, Estimate, Message
 
+from .live_map import LiveMapState
 from .mcap_recording import log_time_ns, ned_to_enu_cov, topic_name
-from .ros2_cdr import LocalEnu
-from .site_shapes import lane_shapes
 
 log = logging.getLogger(__name__)
 
@@ -74,10 +73,7 @@ class FoxgloveSink:
                                       schema=foxglove.Schema(name="slcp.Diagnostics", encoding="jsonschema",
                                                              data=json.dumps(DIAG_SCHEMA).encode()))
         self._scene = SceneUpdateChannel("/slcp/scene", context=self.ctx)
-        self._lanes = lane_shapes(lanes)
-        self._enu = LocalEnu(origin_llh) if origin_llh is not None else None
-        self._latest: dict[tuple[str, str], Estimate] = {}
-        self._links: dict[tuple[str, str], float] = {}
+        self.state = LiveMapState(lanes, origin_llh)  #: the scene's estimates, links and site
         self._next_scene = self._next_site = 0.0
         # the one line a user needs to connect (the port may have been picked here)
         log.warning("Foxglove view: connect Foxglove to ws://%s:%d", host, self.port)
@@ -86,7 +82,7 @@ class FoxgloveSink:
         ns = log_time_ns(m.t)
         if isinstance(m, Estimate):
             self._estimate(m, ns)
-            self._latest[(m.vehicle, m.method)] = m
+            self.state.write(m)
             now = time.monotonic()
             if now >= self._next_scene:
                 self._next_scene = now + SCENE_PERIOD_S
@@ -116,18 +112,12 @@ class FoxgloveSink:
                log_time=ns)
 
     def observe(self, m: Message) -> None:
-        """A UWB round: its pairs were measured at its time."""
-        if isinstance(m, UwbRound):
-            for p in m.peers:
-                pair = (m.vehicle, p) if m.vehicle < p else (p, m.vehicle)
-                self._links[pair] = max(self._links.get(pair, -math.inf), float(m.t))
+        """A UWB round or range (for the scene's links)."""
+        self.state.observe(m)
 
     def _send_scene(self, t: float, ns: int, site: bool) -> None:
-        if self._enu is None:  # a deployed fleet without a site: the map frame at its first estimate
-            first = next(iter(self._latest.values()))
-            self._enu = LocalEnu(tuple(float(x) for x in first.llh))
-        shown = next((m for m in SCENE_METHODS if any(k[1] == m for k in self._latest)), None)
-        rows = {v: e for (v, m), e in self._latest.items() if m == shown}
+        shown = self.state.shown_method()
+        rows = self.state.latest(shown) if shown is not None else {}
         entities = [self._vehicles(ns, rows), self._uwb_links(t, ns, rows)]
         if site:
             entities.append(self._site(ns))
@@ -135,7 +125,7 @@ class FoxgloveSink:
 
     def _site(self, ns: int):
         lines = []
-        for ln in self._lanes:
+        for ln in self.state.lanes:
             lines.append(_line([(e, n) for n, e in ln.centre], 0.15, (0.6, 0.6, 0.6, 1.0)))
             if ln.stop_line is not None:
                 lines.append(_line([(e, n) for n, e in ln.stop_line], 0.4, (1.0, 1.0, 1.0, 1.0)))
@@ -146,7 +136,7 @@ class FoxgloveSink:
 
         lines, arrows, texts = [], [], []
         for v, e in sorted(rows.items()):
-            east, north, _ = self._enu(*(float(x) for x in e.llh))  # type: ignore[misc]
+            east, north = self.state.enu(e.llh)  # the map frame: the site's, or the first estimate's
             rgb = (0.85, 0.1, 0.1, 1.0) if e.first_stopped else (0.1, 0.45, 0.85, 1.0)
             c = np.asarray(e.cov_pos, float)
             lines.append(_line(_ellipse(east, north, c[1, 1], c[0, 1], c[0, 0]), 0.08, rgb))
@@ -159,10 +149,10 @@ class FoxgloveSink:
 
     def _uwb_links(self, t: float, ns: int, rows: dict[str, Estimate]):
         lines = []
-        for (a, b), seen in sorted(self._links.items()):
-            if t - seen <= 1.0 and a in rows and b in rows:
-                pa, pb = (self._enu(*(float(x) for x in rows[v].llh))[:2] for v in (a, b))  # type: ignore[misc]
-                lines.append(_line([pa, pb], 0.1, (0.96, 0.49, 0.0, 1.0)))
+        for a, b in self.state.links_at(t):
+            if a in rows and b in rows:
+                lines.append(_line([self.state.enu(rows[a].llh), self.state.enu(rows[b].llh)], 0.1,
+                                   (0.96, 0.49, 0.0, 1.0)))
         return _entity("uwb_links", ns, lines=lines)
 
     def close(self) -> None:
@@ -171,8 +161,6 @@ class FoxgloveSink:
 
 #: [s] of wall time between scenes, and between sends of the site
 SCENE_PERIOD_S, SITE_PERIOD_S = 0.2, 1.0
-#: the method the scene shows: the first of these the fleet runs
-SCENE_METHODS = ("SL-CP", "CP", "SL-SP", "SP")
 #: 95 % of a 2-D Gaussian lies within this many σ (the square root of χ²₂'s 95 % quantile)
 K95 = math.sqrt(5.991464547107979)
 

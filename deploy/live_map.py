@@ -34,10 +34,10 @@ from typing import Any
 
 import numpy as np
 
-from slcp.geo import earth
 from slcp.transport import keys
 from slcp.transport.messages import Estimate, Message, UwbRange, UwbRound
 
+from .ros2_cdr import LocalEnu
 from .site_shapes import lane_shapes
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,8 @@ LINK_TTL_S = 1.0
 #: at most this many (vehicle, method) estimates and UWB pairs are kept: on an open bus anyone
 #: can invent names (the ones beyond are counted in ``LiveMapState.refused``)
 MAX_ROWS, MAX_LINKS = 1024, 8192
+#: the method a view shows first: the first of these the fleet runs
+SHOWN_METHODS = ("SL-CP", "CP", "SL-SP", "SP")
 
 
 def _en(p_ne) -> list[float]:
@@ -54,15 +56,20 @@ def _en(p_ne) -> list[float]:
 
 
 class LiveMapState:
-    """What the page shows, kept from the messages a recorder takes (``write``) and the UWB rounds
-    it observes (``observe``); thread-safe. ``lanes`` and ``origin_llh`` [rad, rad, m] are the site
-    (default: no lanes, the origin at the first estimate); ``truth`` a
-    :class:`hw_emulation.truth.ScenarioTruth` (emulated runs)."""
+    """What a live view shows (this page, and Foxglove's scene: :mod:`deploy.foxglove_view`),
+    kept from the messages a recorder takes (``write``) and the UWB rounds it observes
+    (``observe``); thread-safe. ``lanes`` and ``origin_llh`` [rad, rad, m] are the site (default:
+    no lanes, the origin at the first estimate); ``truth`` a
+    :class:`hw_emulation.truth.ScenarioTruth` (emulated runs). Positions are east, north [m] in
+    the tangent plane at the origin."""
 
     def __init__(self, lanes=(), origin_llh: tuple[float, float, float] | None = None, truth=None) -> None:
         self._lock = threading.Lock()
-        self._lanes = lane_shapes(lanes)
-        self.origin = tuple(float(x) for x in origin_llh) if origin_llh is not None else None
+        self.lanes = lane_shapes(lanes)
+        self.origin: tuple[float, float, float] | None = None
+        self._enu: LocalEnu | None = None
+        if origin_llh is not None:
+            self._set_origin(origin_llh)
         self._truth = dict(truth.vehicles) if truth is not None else {}
         self._est: dict[tuple[str, str], Estimate] = {}
         self._links: dict[tuple[str, str], float] = {}
@@ -79,7 +86,34 @@ class LiveMapState:
             if old is None or m.t >= old.t:
                 self._est[(m.vehicle, m.method)] = m
             if self.origin is None:
-                self.origin = tuple(float(x) for x in m.llh)
+                self._set_origin(m.llh)
+
+    def _set_origin(self, llh) -> None:
+        lat, lon, h = (float(x) for x in llh)
+        self.origin = (lat, lon, h)
+        self._enu = LocalEnu(self.origin)
+
+    def enu(self, llh) -> tuple[float, float]:
+        """East, north [m] of a position (latitude, longitude [rad], height [m])."""
+        assert self._enu is not None, "no origin yet"
+        e, n, _ = self._enu(*(float(x) for x in llh))
+        return e, n
+
+    def latest(self, method: str) -> dict[str, Estimate]:
+        """Vehicle -> its newest estimate of ``method``."""
+        with self._lock:
+            return {v: e for (v, m), e in self._est.items() if m == method}
+
+    def shown_method(self) -> str | None:
+        """The first of :data:`SHOWN_METHODS` that some vehicle runs (None before any estimate)."""
+        with self._lock:
+            running = {m for _, m in self._est}
+        return next((m for m in SHOWN_METHODS if m in running), None)
+
+    def links_at(self, now: float) -> list[tuple[str, str]]:
+        """The pairs ranged within :data:`LINK_TTL_S` before sensor time ``now`` [s]."""
+        with self._lock:
+            return [p for p, t in sorted(self._links.items()) if now - t <= LINK_TTL_S]
 
     def observe(self, m: Message) -> None:
         """A UWB round (or a single range): its pairs were measured at its time."""
@@ -97,9 +131,9 @@ class LiveMapState:
                     continue
                 self._links[pair] = max(self._links.get(pair, -math.inf), float(m.t))
 
-    def _ne(self, llh) -> np.ndarray:
-        assert self.origin is not None
-        return earth.ned_offset(*(float(x) for x in llh), *self.origin)[:2]
+    def _en_of(self, llh) -> list[float]:
+        e, n = self.enu(llh)
+        return [round(e, 3), round(n, 3)]
 
     def site(self) -> dict[str, Any]:
         with self._lock:
@@ -109,30 +143,29 @@ class LiveMapState:
             for vid, vt in self._truth.items():
                 tr = vt.truth
                 step = max(1, int(round(1.0 / float(np.median(np.diff(tr.t))))))
-                tracks[vid] = [_en(self._ne(p)) for p in tr.llh[::step]]
+                tracks[vid] = [self._en_of(p) for p in tr.llh[::step]]
         return {"type": "site",
                 "origin": None if origin is None else [math.degrees(origin[0]), math.degrees(origin[1]), origin[2]],
                 "lanes": [{"id": ln.id, "centre": [_en(p) for p in ln.centre], "width": ln.width,
                            "stop_line": None if ln.stop_line is None else [_en(p) for p in ln.stop_line]}
-                          for ln in self._lanes],
+                          for ln in self.lanes],
                 "truth_tracks": tracks}
 
     def snapshot(self) -> dict[str, Any]:
         with self._lock:
             est = list(self._est.values())
-            links = dict(self._links)
         if not est or self.origin is None:
             return {"type": "state", "t": None, "estimates": [], "links": []}
         now = max(e.t for e in est)
         return {"type": "state", "t": now, "estimates": [self._row(e) for e in sorted(est, key=_order)],
-                "links": [list(p) for p, t in sorted(links.items()) if now - t <= LINK_TTL_S]}
+                "links": [list(p) for p in self.links_at(now)]}
 
     def _row(self, e: Estimate) -> dict[str, Any]:
-        ne = self._ne(e.llh)
+        east, north = self.enu(e.llh)
         c = np.asarray(e.cov_pos, float)
         vn, ve = float(e.v_ned[0]), float(e.v_ned[1])
         row: dict[str, Any] = {
-            "vehicle": e.vehicle, "method": e.method, "t": e.t, "e": float(ne[1]), "n": float(ne[0]),
+            "vehicle": e.vehicle, "method": e.method, "t": e.t, "e": east, "n": north,
             "cov": [float(c[1, 1]), float(c[0, 1]), float(c[0, 0])], "heading": float(e.rpy[2]),
             "speed": math.hypot(vn, ve), "first_stopped": bool(e.first_stopped),
             "sigma_h": math.sqrt(max(0.0, float(c[0, 0] + c[1, 1])))}
@@ -140,7 +173,7 @@ class LiveMapState:
         if vt is not None:
             err, k = vt.error_of(e.t, e.llh)
             row["err_h"] = math.hypot(float(err[0]), float(err[1]))
-            row["truth"] = _en(self._ne(vt.truth.llh[k]))
+            row["truth"] = self._en_of(vt.truth.llh[k])
         return row
 
 

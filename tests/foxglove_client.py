@@ -17,6 +17,7 @@ class FoxgloveClient(threading.Thread):
         self.server_info: dict = {}
         self.channels: dict[int, dict] = {}  #: channel id -> its advertisement (topic, schema...)
         self.messages: dict[str, list[tuple[int, bytes]]] = {}  #: topic -> (log time [ns], payload)
+        self.subscribed: set[str] = set()  #: topics whose subscription has been sent
         self.error: Exception | None = None
 
     def run(self) -> None:
@@ -48,6 +49,7 @@ class FoxgloveClient(threading.Thread):
                             subs[sid] = ch["topic"]
                             new.append({"id": sid, "channelId": ch["id"]})
                         ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                        self.subscribed.update(ch["topic"] for ch in ready)
                     try:
                         m = ws.recv(timeout=0.1)
                     except TimeoutError:
@@ -68,6 +70,13 @@ class FoxgloveClient(threading.Thread):
                             pending.append((time.monotonic(), ch))
         except Exception as exc:  # noqa: BLE001 - reported to the test
             self.error = exc
+
+    def wait_subscribed(self, topics: set[str], timeout: float = 10.0) -> None:
+        """Until the subscriptions to ``topics`` are sent, and a moment for the server to take them."""
+        deadline = time.monotonic() + timeout
+        while not topics <= self.subscribed and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(0.2)
 
     def topics(self) -> dict[str, dict]:
         return {ch["topic"]: ch for ch in self.channels.values()}

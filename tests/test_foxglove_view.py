@@ -26,10 +26,7 @@ def test_a_foxglove_client_receives_the_topics_with_their_schemas() -> None:
                      np.array([0.0, 0.0, math.radians(30.0)]), np.diag([4.0, 1.0, 9.0]), True)
         sink.write(e)  # the channel exists (and is advertised) from the first estimate
         client.start()
-        deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline and len(client.channels) < 2:
-            time.sleep(0.05)
-        time.sleep(0.3)  # the subscriptions reach the server
+        client.wait_subscribed({"/slcp/V1/SL_CP/fix", "/slcp/diagnostics"})
         for k in range(5):
             sink.write(Estimate(e.vehicle, e.method, 2.1 + 0.1 * k, e.llh, e.v_ned, e.rpy, e.cov_pos, True))
         sink.write(Diagnostics("V1", 2.5, {"beacons_rx": 12}, {"t": 2.5}))
@@ -90,10 +87,7 @@ def test_the_scene_holds_the_site_the_vehicles_with_their_ellipses_and_the_uwb_l
 
         estimates(1.0)
         client.start()
-        deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline and not any(ch["topic"] == "/slcp/scene" for ch in client.channels.values()):
-            time.sleep(0.05)
-        time.sleep(0.3)
+        client.wait_subscribed({"/slcp/scene"})
         sink.observe(UwbRound("V1", 1, 1.5, ("V2",), np.array([7.0])))
         for k in range(12):
             estimates(1.6 + 0.1 * k)
