@@ -36,10 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from slcp.transport import keys
 from slcp.transport.messages import Diagnostics, Estimate, Message
 
-from .live_map import LiveMapState
+from .live_map import UWB_KEYS, LiveMapState
 from .mcap_recording import log_time_ns, ned_to_enu_cov, topic_name
 
 log = logging.getLogger(__name__)
@@ -54,7 +53,7 @@ class FoxgloveSink:
     """A Foxglove WebSocket server on ``host:port`` (port 0: any free one, see :attr:`port`)
     that publishes what it is given (a recorder's sink: ``write(m)``, ``close()``)."""
 
-    observe_keys = (keys.ROOT + "/uwb/*",)
+    observe_keys = UWB_KEYS
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, name: str = "slcp", lanes=(),
                  origin_llh: tuple[float, float, float] | None = None) -> None:

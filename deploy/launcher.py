@@ -34,7 +34,7 @@ from pathlib import Path
 from slcp.agent.methods import DEFAULT_FUSION, METHODS
 from slcp.geo.lanelet2_site import write_lanelet2
 from slcp.hw_emulation.faults import load_faults
-from slcp.hw_emulation.scenario import load_scenario
+from slcp.hw_emulation.scenario import Scenario, load_scenario
 from slcp.hw_emulation.truth import build_truth
 from slcp.transport.security import create_fleet
 
@@ -59,18 +59,18 @@ def free_port() -> int:
 
 def _write_agent_configs(out: Path, vehicles: list[str], scenario: str, methods: tuple[str, ...], fusion: str,
                          lane_constraint: bool, endpoint: str, zenoh_mode: str, sign: bool,
-                         secure: bool, lanelet2: bool = False) -> dict[str, Path]:
+                         secure: bool, standalone: Scenario | None = None) -> dict[str, Path]:
     """The agents' files under ``out/config`` (and, for ``sign`` or ``secure``, the run's keys).
-    With ``lanelet2`` they name no scenario, as a deployed vehicle's: the site is a Lanelet2 map
-    of the scenario's (``config/site.osm``), the sensors' models are written out
-    (:mod:`deploy.vehicle_agent_file`)."""
+    Given ``standalone`` (the scenario), they name no scenario, as a deployed vehicle's: the site
+    is a Lanelet2 map of the scenario's (``config/site.osm``), the sensors' models are written
+    out (:mod:`deploy.vehicle_agent_file`)."""
     security = ""
     if sign or secure:
         # a new CA for every run: the certificates of an earlier run in this directory, or of
         # another run on the host, must not admit anyone to this one
         create_fleet(out / "keys", vehicles, new_ca=True)
         security = '[security]\ntrust_dir = "../keys"\n' + ('' if sign else 'sign_beacons = false\n') + '\n'
-    scn = load_scenario(scenario) if lanelet2 else None
+    scn = standalone
     if scn is not None:
         write_lanelet2(scn.site, out / "config" / "site.osm")
     configs = {}
@@ -166,7 +166,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     vehicles = [v.id for v in scn.vehicles]
     fleet_dir = out / "keys"
     configs = _write_agent_configs(out, vehicles, scenario, methods, fusion, lane_constraint, endpoint, zenoh_mode,
-                                   sign, secure, lanelet2)
+                                   sign, secure, scn if lanelet2 else None)
     # the truth first (the evaluation needs it anyway): the bag and the map show it beside the estimates
     truth = build_truth(scn, stop_seed=seed) if evaluate else None
     # then the viewers: a port that is taken stops the run before it starts

@@ -47,6 +47,8 @@ LINK_TTL_S = 1.0
 #: at most this many (vehicle, method) estimates and UWB pairs are kept: on an open bus anyone
 #: can invent names (the ones beyond are counted in ``LiveMapState.refused``)
 MAX_ROWS, MAX_LINKS = 1024, 8192
+#: what a live view observes besides the recording: the UWB rounds (its links)
+UWB_KEYS = (keys.ROOT + "/uwb/*",)
 #: the method a view shows first: the first of these the fleet runs
 SHOWN_METHODS = ("SL-CP", "CP", "SL-SP", "SP")
 
@@ -186,7 +188,7 @@ class LiveMapSink:
     threads: a recorder's sink (``write(m)``, ``close()``) that also observes the UWB rounds
     (:attr:`observe_keys`, ``observe(m)``)."""
 
-    observe_keys = (keys.ROOT + "/uwb/*",)
+    observe_keys = UWB_KEYS
 
     def __init__(self, state: LiveMapState, host: str = "127.0.0.1", port: int = 8780, rate_hz: float = 5.0) -> None:
         from websockets.sync.server import serve

@@ -25,6 +25,9 @@ import math
 from slcp.transport import keys
 from slcp.transport.messages import Beacon, GnssFix, ImuBatch, Message, UwbRound
 
+from . import ros2_cdr
+from .mcap_recording import log_time_ns, ros_name
+
 IMU, FIX, TWIST = "sensor_msgs/msg/Imu", "sensor_msgs/msg/NavSatFix", "geometry_msgs/msg/TwistWithCovarianceStamped"
 UWB_ROUND, BEACON = "slcp_msgs/msg/UwbRound", "slcp_msgs/msg/Beacon"
 CUSTOM_TYPES = {
@@ -49,7 +52,7 @@ def register_types(ts) -> None:
 
 
 def _topic(vehicle: str, what: str) -> str:
-    return f"/slcp/{vehicle.replace('-', '_').replace('.', '_')}/{what}"
+    return f"/slcp/{ros_name(vehicle)}/{what}"
 
 
 class InputWriter:
@@ -70,9 +73,6 @@ class InputWriter:
             self._beacon(m)
 
     def _imu(self, m: ImuBatch) -> None:
-        from . import ros2_cdr
-        from .mcap_recording import log_time_ns
-
         topic, frame = _topic(m.vehicle, "imu"), f"{m.vehicle}/imu"
         for t, dt, th, dv in zip(m.t.tolist(), m.dt.tolist(), m.dtheta.tolist(), m.dvel.tolist()):
             if not dt > 0:
@@ -83,9 +83,6 @@ class InputWriter:
                                                         (dv[0] / dt, -dv[1] / dt, -dv[2] / dt)))
 
     def _gnss(self, m: GnssFix) -> None:
-        from . import ros2_cdr
-        from .mcap_recording import log_time_ns
-
         ns = log_time_ns(m.t)
         sn, se, sd = (float(x) for x in m.sigma_ned)
         lat, lon, h = (float(x) for x in m.llh)
@@ -107,8 +104,6 @@ class InputWriter:
                     covariance=_array(cov))))
 
     def _uwb(self, m: UwbRound) -> None:
-        from .mcap_recording import log_time_ns
-
         s = self.sink
         ns = log_time_ns(m.t)
         s._put(_topic(m.vehicle, "uwb"), UWB_ROUND, ns, s.T[UWB_ROUND](
@@ -116,8 +111,6 @@ class InputWriter:
             peers=list(m.peers), ranges=_array(m.ranges)))
 
     def _beacon(self, b: Beacon) -> None:
-        from .mcap_recording import log_time_ns
-
         s = self.sink
         ns = log_time_ns(b.t)
         s._put(_topic(b.vehicle, "beacon"), BEACON, ns, s.T[BEACON](

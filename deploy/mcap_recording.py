@@ -70,8 +70,13 @@ def log_time_ns(t: float) -> int:
     return max(0, int(round(t * 1e9))) if math.isfinite(t) else 0
 
 
+def ros_name(name: str) -> str:
+    """A vehicle's or method's name as a ROS topic part (letters, digits and ``_``)."""
+    return name.replace("-", "_").replace(".", "_")
+
+
 def topic_name(vehicle: str, method: str, what: str) -> str:
-    return f"/slcp/{vehicle.replace('-', '_').replace('.', '_')}/{method.replace('-', '_')}/{what}"
+    return f"/slcp/{ros_name(vehicle)}/{ros_name(method)}/{what}"
 
 
 @functools.lru_cache(maxsize=4096)

@@ -167,14 +167,17 @@ class Recorder:
                                                             maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD))),
                  asyncio.create_task(self.run(bus.subscribe(keys.ROOT + "/diag/**", 100_000, wake=False,
                                                             maxbytes=QUEUE_BYTES, max_payload=MAX_PAYLOAD)))]
+        observers: dict[str, list] = {}  # key expression -> the sinks observing it: one subscription each
         for sink in self.sinks:
             for expr in getattr(sink, "observe_keys", ()):
-                sub = bus.subscribe(expr, 100_000, wake=False, maxbytes=QUEUE_BYTES // 8, max_payload=MAX_PAYLOAD)
-                tasks.append(asyncio.create_task(self._observe(sub, sink)))
+                observers.setdefault(expr, []).append(sink)
+        for expr, sinks in observers.items():
+            sub = bus.subscribe(expr, 100_000, wake=False, maxbytes=QUEUE_BYTES // 8, max_payload=MAX_PAYLOAD)
+            tasks.append(asyncio.create_task(self._observe(sub, sinks)))
         return tasks
 
-    async def _observe(self, sub: Subscription, sink, poll_s: float = 0.1) -> None:
-        """Give ``sink`` (its ``observe(m)``) what ``sub`` delivers, unrecorded, until cancelled."""
+    async def _observe(self, sub: Subscription, sinks: list, poll_s: float = 0.1) -> None:
+        """Give ``sinks`` (their ``observe(m)``) what ``sub`` delivers, unrecorded, until cancelled."""
         while True:
             await asyncio.sleep(poll_s)
             for _, p in sub.drain():
@@ -183,12 +186,8 @@ class Recorder:
                 except CodecError:
                     self.codec_errors += 1
                     continue
-                try:
-                    sink.observe(m)
-                except Exception:  # noqa: BLE001 - as in _to_sink
-                    self.sink_errors += 1
-                    if self.sink_errors == 1:
-                        log.exception("%s failed; the recording goes on", type(sink).__name__)
+                for sink in sinks:
+                    self._to_sink(sink, m, "observe")
 
     def flush(self) -> None:
         """Record what is still queued (the recording tasks cancelled, or their bus closing)."""
@@ -198,9 +197,9 @@ class Recorder:
                 self.write(batch)
         self._count_queue_losses()
 
-    def _to_sink(self, sink, m: Message) -> None:
+    def _to_sink(self, sink, m: Message, how: str = "write") -> None:
         try:
-            sink.write(m)
+            getattr(sink, how)(m)
         except Exception:  # noqa: BLE001 - the JSON lines must go on whatever a sink does
             self.sink_errors += 1
             if self.sink_errors == 1:
