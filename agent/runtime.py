@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 #: A payload the codec would refuse for its size (``codec.MAX_PAYLOAD``) is counted
 #: (``oversized_<kind>``), not even copied.
 QUEUE_BYTES = 4 << 20
+#: [s] after the stop, how long the agent keeps taking messages still on their way (see ``_linger``)
+LINGER_QUIET_S = 0.25
+LINGER_MAX_S = 1.5
 
 
 def _beacon_prefilter(trust: BeaconVerifier) -> Callable[[bytes], str]:
@@ -106,6 +109,7 @@ class Agent:
             except asyncio.CancelledError:
                 pass
         await self._drain(subs)  # what arrived before the stop
+        await self._linger(subs)
         self.engine.finish()
         await self._publish_outbox()
         self.dropped = {k: s.dropped for k, s in subs.items()}
@@ -127,9 +131,25 @@ class Agent:
             if subs["gnss"].wake and not self.engine.waiting_for_fix:
                 subs["gnss"].wake = False
 
-    async def _drain(self, subs: dict[str, Subscription]) -> None:
+    async def _drain(self, subs: dict[str, Subscription]) -> int:
+        n = 0
         for kind, _, payload in drain_in_arrival_order(subs):
             await self._receive(kind, payload)
+            n += 1
+        return n
+
+    async def _linger(self, subs: dict[str, Subscription]) -> None:
+        """Take what is still on its way after the stop: a fleet stops as its last messages
+        (the radio's last deliveries, sent as the emulator ends) cross the router, and a beacon
+        delivered to this agent should be counted by it. Until :data:`LINGER_QUIET_S` pass with
+        nothing new, at most :data:`LINGER_MAX_S` (a flood never runs dry)."""
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        end, quiet_until = now + LINGER_MAX_S, now + LINGER_QUIET_S
+        while loop.time() < min(end, quiet_until):
+            await asyncio.sleep(LINGER_QUIET_S / 5)
+            if await self._drain(subs):
+                quiet_until = loop.time() + LINGER_QUIET_S
 
     async def _receive(self, kind: str, payload: bytes) -> None:
         try:
