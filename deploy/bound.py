@@ -112,12 +112,14 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
     t1 = float(truth.vehicles[ids[0]].truth.t[-1])
     ts = np.arange(t0, t1 + 1e-9, 1.0 / rate)
     # truth at the bound steps: map-frame positions, stop flags, lanes
-    pos, moving, first, lane = {}, {}, {}, {}
+    pos, moving, first, lane, present = {}, {}, {}, {}, {}
     o = scn.origin_llh
     for vid in ids:
         tr = truth.vehicles[vid]
         k = np.clip(np.searchsorted(tr.truth.t, ts - 1e-9), 0, len(tr.truth.t) - 1)
         pos[vid] = map_ne(tr.truth.llh[k], o)
+        # off the air (a vehicle of external trajectories before or after its samples): no information
+        present[vid] = tr.present[k] if tr.present is not None else np.ones(len(ts), bool)
         moving[vid] = ~tr.stopped[k]
         # first stopped at any instant of the step's interval [t_k, t_k+1): the bound at step k
         # stands for the whole interval (``Bound.at``), and a detector may claim (and fix) as
@@ -132,12 +134,12 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
         spec = MethodSpec.of(m)
         if spec.ranges:  # the fleet's information, processed jointly: a bound for any distributed scheme
             covs = _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, spec.stop_line, True,
-                        lmap if spec.stop_line else None, lane_offset == "lane")
+                        lmap if spec.stop_line else None, lane_offset == "lane", present)
         else:  # a vehicle on its own (the common-mode error is not learned from the others)
             covs = {}
             for vid in ids:
                 covs.update(_run(scn, specs, [vid], ts, pos, moving, first, lane, lanes, spec.stop_line, False,
-                                 lmap if spec.stop_line else None, lane_offset == "lane"))
+                                 lmap if spec.stop_line else None, lane_offset == "lane", present))
         for vid in ids:
             out[(m, vid)] = covs[vid]
     return Bound(ts, out)
@@ -150,7 +152,7 @@ GNSS_ROWS = np.kron(np.ones((3, 3)), I2)
 
 
 def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use_ranges: bool,
-         lmap: LaneMap | None = None, offset_per_lane: bool = False) -> dict:
+         lmap: LaneMap | None = None, offset_per_lane: bool = False, present: dict | None = None) -> dict:
     n_v = len(ids)
     n = _NV * n_v + 2
     P = _prior(scn, specs, ids)
@@ -165,12 +167,14 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
         if k > 0:
             P = _predict(P, scn, specs, ids, moving, k, ts[k] - ts[k - 1])
         info = np.zeros((n, n))
+        on = np.array([present is None or bool(present[vid][k]) for vid in ids])
         for i, vid in enumerate(ids):
-            _own_information(info, P, i, vid, specs[vid], k, first, lane, pos, lanes, lmap, use_sl,
-                             was_first[vid])
+            if on[i]:
+                _own_information(info, P, i, vid, specs[vid], k, first, lane, pos, lanes, lmap, use_sl,
+                                 was_first[vid])
             was_first[vid] = bool(first[vid][k])
         if use_ranges and n_v > 1:
-            _range_information(info, scn, ids, pos, k, p_radio * ranges_per_step)
+            _range_information(info, scn, ids, pos, k, p_radio * ranges_per_step, on)
         P = np.linalg.inv(np.linalg.inv(P) + info)
         P = 0.5 * (P + P.T)
         for i, vid in enumerate(ids):
@@ -265,9 +269,10 @@ def _own_information(info, P, i: int, vid: str, sg, k: int, first, lane, pos, la
         info[np.ix_(cols, cols)] += np.outer(h, h) / STOP_LINE_MAP_SIGMA**2
 
 
-def _range_information(info, scn, ids, pos, k: int, per_step: float) -> None:
-    """The UWB ranges of step ``k`` between every pair, weighted by the chance that a range is
-    measured and its beacon arrives (``per_step``: ranges per step times delivery probability)."""
+def _range_information(info, scn, ids, pos, k: int, per_step: float, on: np.ndarray | None = None) -> None:
+    """The UWB ranges of step ``k`` between every pair (of vehicles ``on`` the air), weighted by
+    the chance that a range is measured and its beacon arrives (``per_step``: ranges per step
+    times delivery probability)."""
     uwb, radio = scn.uwb, scn.radio
     pk = np.array([pos[v][k] for v in ids])
     ii, jj = np.triu_indices(len(ids), 1)
@@ -275,6 +280,8 @@ def _range_information(info, scn, ids, pos, k: int, per_step: float) -> None:
     rho = np.hypot(d[:, 0], d[:, 1])
     p = uwb.success_probability(rho) * (rho <= radio.max_range) * (rho > 0.5)
     w = p * per_step / max(uwb.sigma_los, 0.01) ** 2
+    if on is not None:
+        w = w * (on[ii] & on[jj])
     for a, c, dd, r, wk in zip(ii, jj, d, rho, w):
         if wk <= 0.0:
             continue

@@ -122,12 +122,19 @@ def _score(truth: ScenarioTruth, estimates: dict[tuple[str, str], list[Estimate]
     lasts = [es[-1].t for es in estimates.values() if es]
     if not firsts or len(firsts) < len(estimates):
         raise ValueError("a vehicle sent no estimate: its filters never started")
-    grid = np.arange(max(firsts), min(lasts) + 1e-9, RECORD_PERIOD)
+    # vehicles that come and go (external trajectories): the union of their spans, NaN where a
+    # vehicle is off the air; else the span every vehicle has estimates in
+    coming_and_going = any(v.present is not None for v in truth.vehicles.values())
+    grid = (np.arange(min(firsts), max(lasts) + 1e-9, RECORD_PERIOD) if coming_and_going
+            else np.arange(max(firsts), min(lasts) + 1e-9, RECORD_PERIOD))
     res = RunResult(grid, {}, {}, {}, counters, decisions=decisions, range_outcomes=range_outcomes)
     for (vid, m), es in estimates.items():
         vt = truth.vehicles[vid].truth
         te = np.array([e.t for e in es])
         pick = np.searchsorted(te, grid + 1e-9, side="right") - 1
+        off = (pick < 0) | ~np.array([truth.vehicles[vid].present_at(float(x)) for x in grid]) \
+            if coming_and_going else np.zeros(len(grid), bool)
+        pick = np.maximum(pick, 0)
         idx = np.clip(np.searchsorted(vt.t, te - 1e-9), 0, len(vt.t) - 1)
         err_ne, cov_ne, along, first = [], [], [], []
         for j in pick.tolist():
@@ -147,4 +154,8 @@ def _score(truth: ScenarioTruth, estimates: dict[tuple[str, str], list[Estimate]
         res.along[key] = np.array(along)
         res.nees[key] = np.einsum("ni,nij,nj->n", en, np.linalg.inv(cn), en)
         res.err_ne[key], res.cov_ne[key] = en, cn
+        if off.any():
+            for arr in (res.err[key], res.sigma[key], res.along[key], res.nees[key], en):
+                arr[off] = np.nan
+            res.first[key][off] = False
     return res

@@ -38,10 +38,16 @@ class Path:
         Polyline vertices (north, east) [m]; consecutive duplicates are removed.
     step : float
         Resampling step [m] for the heading spline.
+    smooth : bool
+        Smooth the chord headings (penalised spline; for densely sampled smooth curves, whose
+        chord headings are stair-stepped), else interpolate them (monotone cubic, no overshoot:
+        for a polyline the path must pass through, such as a traffic simulator's samples; the
+        integrated heading then keeps within about ``step`` x the turn at a vertex / 8 of it).
     """
 
     points: np.ndarray
     step: float = 0.5
+    smooth: bool = True
     length: float = field(init=False)
 
     def __post_init__(self) -> None:
@@ -68,6 +74,10 @@ class Path:
 
         if np.ptp(hd) < 1e-12:
             self._heading = CubicSpline(mid[[0, -1]], hd[[0, -1]], extrapolate=True)
+        elif not self.smooth:
+            from scipy.interpolate import PchipInterpolator
+
+            self._heading = PchipInterpolator(mid, hd, extrapolate=True)
         else:
             self._heading = gcv_smoothing_spline(mid, hd)
         self._heading_rate = self._heading.derivative(1)

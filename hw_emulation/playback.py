@@ -58,27 +58,33 @@ class SensorPlayback:
         self.ids = sorted(self.truth.vehicles)
 
     def events(self) -> list[tuple[float, int, str, Any, int]]:
-        """(time, order, kind, vehicle or ranging round, index) in sensor-time order."""
+        """(time, order, kind, vehicle or ranging round, index) in sensor-time order; a vehicle
+        that is off the air (:attr:`VehicleTruth.present`) has none (an IMU batch only if it is
+        on the air over the whole batch)."""
         ev: list[tuple[float, int, str, Any, int]] = []
         stagger = self.truth.scenario.imu_stagger
+        vt = self.truth.vehicles
         for k, vid in enumerate(self.ids):
             t = self.sensors[vid].imu_t
+            on = vt[vid].present_at
             # staggered: vehicle k's batches end ``k * batch / n`` samples later than the first's
             first = self.batch + ((k * self.batch) // len(self.ids) if stagger else 0)
             for j in range(first, len(t), self.batch):
-                ev.append((float(t[j]), 1, "imu", vid, j))
+                if on(float(t[j - self.batch])) and on(float(t[j])):
+                    ev.append((float(t[j]), 1, "imu", vid, j))
             g = self.sensors[vid].gnss
             for i in range(len(g.t)):
-                if g.t[i] > t[0] + 1e-9:
+                if g.t[i] > t[0] + 1e-9 and on(float(g.t[i])):
                     ev.append((float(g.t[i]), 0, "gnss", vid, i))
             cam = self.sensors[vid].lane
             if cam is not None:
-                ev.extend((float(tc), 0, "lane", vid, i) for i, tc in enumerate(cam.t) if tc > t[0] + 1e-9)
+                ev.extend((float(tc), 0, "lane", vid, i) for i, tc in enumerate(cam.t) if tc > t[0] + 1e-9 and on(tc))
         # one event per ranging round: every pair with a range at that time, (pair, index)
         rounds: dict[float, list[tuple[tuple[str, str], int]]] = {}
         for pair, rr in self.ranges.items():
+            on_a, on_b = vt[pair[0]].present_at, vt[pair[1]].present_at
             for i in np.flatnonzero(np.isfinite(rr.range)):
-                if rr.t[i] > 0:
+                if rr.t[i] > 0 and on_a(float(rr.t[i])) and on_b(float(rr.t[i])):
                     rounds.setdefault(float(rr.t[i]), []).append((pair, int(i)))
         for t, members in rounds.items():
             ev.append((t, 0, "uwb", members, members[0][1]))

@@ -28,6 +28,7 @@ from .sensors.gnss import GnssModel
 from .sensors.imu import ImuModel, imu_model_of
 from .sensors.radio import RadioModel
 from .sensors.uwb import UwbModel
+from .trajectory_source import TrajectorySource, parse_trajectories
 
 EVENT_KINDS = ("first_stopped", "stopped", "moving", "passes_stop_line", "near", "green", "time", "end")
 
@@ -129,6 +130,8 @@ class Scenario:
     #: IMU samples per message (an IMU driver's batch): 10 at 100 Hz is a message every 0.1 s
     imu_batch: int = 10
     camera: LaneCameraModel = field(default_factory=LaneCameraModel)  #: every vehicle's lane camera
+    #: the vehicles' paths from a file instead of the traffic model (:mod:`hw_emulation.trajectory_truth`)
+    trajectories: TrajectorySource | None = None
 
     @property
     def site(self) -> Site:
@@ -206,7 +209,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     """Validate a parsed TOML document and build a :class:`Scenario`."""
     ctx = _Ctx(source)
     _check_keys(ctx, data, {"scenario", "lanes", "signals", "vehicles", "sensors", "radio", "uwb",
-                            "events", "windows", "paper"}, "")
+                            "events", "windows", "paper", "trajectories"}, "")
     sc = ctx.table(data, "scenario", "", required=True)
     head = _parse_header(ctx, sc)
     lanes = _parse_lanes(ctx, data)
@@ -227,7 +230,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
         common_mode_sigma=ctx.number(sc, "common_mode_sigma", "scenario", 1.5, non_negative=True),
         common_mode_tau=ctx.number(sc, "common_mode_tau", "scenario", 600.0, positive=True),
         events=tuple(events), windows=windows, paper_table=ctx.table(data, "paper", ""), source=source,
-        camera=camera,
+        camera=camera, trajectories=parse_trajectories(ctx, ctx.table(data, "trajectories", "")),
     )
 
 

@@ -65,6 +65,9 @@ class VehicleTruth:
     stopped, first_stopped : ndarray of bool, shape (n,)
     segment : ndarray of str, shape (n,)
         Lane id (or ``A>B`` turn) occupied.
+    present : ndarray of bool, shape (n,), or None
+        Whether the vehicle is on the air (its sensors report) at each sample; None: always
+        (a vehicle of external trajectories is on the air from its first sample to its last).
     """
 
     truth: Truth
@@ -72,6 +75,11 @@ class VehicleTruth:
     stopped: np.ndarray
     first_stopped: np.ndarray
     segment: np.ndarray
+    present: np.ndarray | None = None
+
+    def present_at(self, t: float) -> bool:
+        """Whether the vehicle is on the air at ``t`` [s] (its sensors report)."""
+        return self.present is None or bool(self.present[self.sample_at(t)])
 
     def stopped_at(self, t: np.ndarray) -> np.ndarray:
         """Whether the vehicle truly stands at times ``t`` [s] (the first IMU sample not before
@@ -119,6 +127,10 @@ def build_truth(scn: Scenario, rng: np.random.Generator | None = None,
     from the scenario's seed, combined with ``stop_seed`` (a run's seed) if given: a Monte-Carlo
     over runs then redraws them with the sensors instead of replaying one draw per scenario.
     """
+    if scn.trajectories is not None:
+        from .trajectory_truth import build_trajectory_truth
+
+        return build_trajectory_truth(scn)
     traffic = simulate_traffic(scn, rng if rng is not None else stance_rng(scn, stop_seed))
     fs = first_stopped_flags(scn, traffic)
     out = {}

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from .. import cli_types as T
+from .scenario_import import add_import_commands, cmd_from_sumo, cmd_from_trajectories
 
 
 def add_scenario(sub) -> None:
@@ -46,6 +47,7 @@ def add_scenario(sub) -> None:
     ch.add_argument("--out", type=Path, default=None, metavar="FILE.toml",
                     help="write here (default: print to the terminal); an existing file is kept unless --force")
     ch.add_argument("--force", action="store_true", help="replace an existing --out file")
+    add_import_commands(ssub)
     ev = ssub.add_parser("evaluate", help="run all vehicles and the four methods in one process (no bus)")
     ev.add_argument("name", help="shipped scenario name or path to a .toml file")
     ev.add_argument("--seed", type=T.seed, default=0, help="sensor seed (default 0)")
@@ -67,6 +69,10 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
                                f"scenario {args.name}; run it with: slcp run {args.out}")
     if args.scenario_command == "chaos":
         return _chaos(args)
+    if args.scenario_command == "from-sumo":
+        return cmd_from_sumo(args)
+    if args.scenario_command == "from-trajectories":
+        return cmd_from_trajectories(args)
     if args.scenario_command == "to-lanelet2":
         from slcp.geo.lanelet2_site import write_lanelet2
 
@@ -122,7 +128,9 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
         for vid in sorted(truth.vehicles):
             row = {"window": w, "vehicle": vid}
             for meth in METHODS:
-                row[meth] = float(np.sqrt(np.mean(r.err[(vid, meth)][m] ** 2))) if m.any() else None
+                e = r.err[(vid, meth)][m]
+                e = e[np.isfinite(e)]  # a vehicle off the air has no error
+                row[meth] = float(np.sqrt(np.mean(e**2))) if len(e) else None
             row["paper"] = scn.paper_table.get(w, {}).get(vid, {})
             rows.append(row)
     detect = {}
