@@ -1,9 +1,11 @@
 """Scoring first-stopped decisions against the emulator's truth.
 
 A claim at time t is *correct* when the vehicle is truly the first stopped vehicle of its lane
-at some time within ``t ± tolerance``: the truth labels a vehicle stopped below 0.05 m/s, and a
-filter may declare a stop a few hundredths of a second earlier or later while the vehicle is
-within centimetres of its stop position.
+at some time within ``t ± tolerance``, or is within centimetres of where it stands first stopped
+(``zone``, :attr:`hw_emulation.truth.VehicleTruth.first_stop_zone`): the truth labels a vehicle
+stopped below 0.05 m/s, and a filter may declare a stop earlier or later while the vehicle
+creeps the last centimetres to its stop position (a few hundredths of a second in slcp's
+traffic model, seconds in SUMO's).
 
 - precision: correct claimed time / claimed time;
 - recall: truly-first time covered by a claim / truly-first time;
@@ -28,7 +30,8 @@ def _dilate(flags: np.ndarray, t: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 def score_first_stopped(t: np.ndarray, truth_first: np.ndarray, claimed: np.ndarray,
-                        err_h: np.ndarray | None = None, tolerance: float = 0.3) -> dict:
+                        err_h: np.ndarray | None = None, tolerance: float = 0.3,
+                        zone: np.ndarray | None = None) -> dict:
     """Scores of one vehicle's claims.
 
     Parameters
@@ -41,6 +44,8 @@ def score_first_stopped(t: np.ndarray, truth_first: np.ndarray, claimed: np.ndar
         Horizontal error [m] of the stop-line method at each sample.
     tolerance : float
         Timing tolerance [s] of a claim.
+    zone : ndarray of bool, shape (n,), optional
+        Where the vehicle is within centimetres of a first-stopped stance (a claim is correct there).
     """
     t = np.asarray(t, float)
     truth_first = np.asarray(truth_first, bool)
@@ -49,6 +54,8 @@ def score_first_stopped(t: np.ndarray, truth_first: np.ndarray, claimed: np.ndar
     steps = steps[steps > 0]
     dt = float(np.median(steps)) if steps.size else 0.0
     near_truth = _dilate(truth_first, t, tolerance)
+    if zone is not None:
+        near_truth |= np.asarray(zone, bool)
     out: dict = {
         "truth_s": float(truth_first.sum() * dt),
         "claimed_s": float(claimed.sum() * dt),

@@ -64,7 +64,8 @@ def evaluate_recording(truth, path: Path, out: Path, methods: tuple[str, ...], f
     detection: dict = {}
     for (vid, m), sc in scored.items():
         if MethodSpec.of(m).stop_line and (sc.claim.any() or sc.truth_first.any()):
-            detection.setdefault(vid, {})[m] = score_first_stopped(sc.t, sc.truth_first, sc.claim, sc.err[:, 0])
+            detection.setdefault(vid, {})[m] = score_first_stopped(sc.t, sc.truth_first, sc.claim, sc.err[:, 0],
+                                                                   zone=sc.zone)
     return {
         "scenario": truth.scenario.name,
         "events": event_times(truth),
@@ -112,7 +113,7 @@ def _read_recording(path: Path) -> tuple[dict[tuple[str, str], list[dict]], dict
 class _Scored:
     """One vehicle and method's estimates against the truth, at the estimates' times."""
 
-    def __init__(self, t, err, nees, claim, truth_first, standing, sigma_h) -> None:
+    def __init__(self, t, err, nees, claim, truth_first, standing, sigma_h, zone=None) -> None:
         self.t = np.array(t)
         self.err = np.array(err).reshape(-1, 3)  #: horizontal, along-track, cross-track [m]
         self.nees = np.array(nees)
@@ -120,12 +121,13 @@ class _Scored:
         self.truth_first = np.array(truth_first, bool)
         self.standing = np.array(standing, bool)
         self.sigma_h = np.asarray(sigma_h, float)
+        self.zone = np.array(zone if zone is not None else truth_first, bool)
 
 
 def _score_method(vt, m: str, recs: list[dict], w) -> _Scored:
     """Score one method's estimates of vehicle ``vt``, writing a CSV row for each to ``w``."""
     tr = vt.truth
-    ts, eh, nees, claim, truth_first, stands = [], [], [], [], [], []
+    ts, eh, nees, claim, truth_first, stands, zone = [], [], [], [], [], [], []
     for r in recs:
         e, k = vt.error_of(r["t"], r["llh"])
         yaw = tr.euler[k, 2]
@@ -146,9 +148,10 @@ def _score_method(vt, m: str, recs: list[dict], w) -> _Scored:
         nees.append(q)
         claim.append(bool(r["first_stopped"]))
         truth_first.append(bool(vt.first_stopped[k]))
+        zone.append(bool(vt.first_stop_zone[k]))
         stands.append(bool(vt.stopped[k]))
     sigma_h = np.sqrt([r["cov_pos"][0][0] + r["cov_pos"][1][1] for r in recs])
-    return _Scored(ts, eh, nees, claim, truth_first, stands, sigma_h)
+    return _Scored(ts, eh, nees, claim, truth_first, stands, sigma_h, zone)
 
 
 def _window_rows(scored: dict[tuple[str, str], _Scored], windows: dict, bound) -> dict:

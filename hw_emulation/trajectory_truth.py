@@ -127,7 +127,9 @@ def project_lanes(track: Track, heading: np.ndarray, lanes: dict[str, Lane]) -> 
 
 def queue_heads(scn: Scenario, tracks: dict[str, Track], lanes_of: dict[str, tuple[np.ndarray, np.ndarray]],
                 t_grid: np.ndarray) -> dict[str, np.ndarray]:
-    """Per vehicle and grid step: the first stopped vehicle of its approach (module docstring)."""
+    """Per vehicle and grid step: the vehicle nearest the stop line of a lane that ends in one,
+    within the gate (the first stopped vehicle of its approach while it also stands, which the
+    truth's own motion tells: :func:`build_trajectory_truth`)."""
     lengths = {lid: polyline_length(ln.centerline) for lid, ln in scn.lanes.items() if ln.stop_line}
     l0 = {v.id: v.l0 for v in scn.vehicles}
     n = len(t_grid)
@@ -148,11 +150,8 @@ def queue_heads(scn: Scenario, tracks: dict[str, Track], lanes_of: dict[str, tup
             if lane in lengths and (lane not in head or pos > head[lane][0]):
                 head[lane] = (pos, vid)
         for lane, (pos, vid) in head.items():
-            tr, i = tracks[vid], at[vid][step]
-            standing = _speed(tr, i) <= STOPPED_SPEED if tr.speed is not None else \
-                0 < i and np.linalg.norm(tr.ne[i] - tr.ne[i - 1]) <= STOPPED_SPEED * (tr.t[i] - tr.t[i - 1])
             # the traffic model's gate, on the reference point's distance to the line
-            flags[vid][step] = bool(standing) and lengths[lane] - pos + l0[vid] <= FIRST_STOP_GATE + 5.0
+            flags[vid][step] = lengths[lane] - pos + l0[vid] <= FIRST_STOP_GATE + 5.0
     return flags
 
 

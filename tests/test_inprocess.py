@@ -65,6 +65,31 @@ def test_detection_scores_closed_form() -> None:
     assert sc["sl_rmse_truth_first_m"] == pytest.approx(np.sqrt((5 * 4.0 + 35 * 0.01) / 40))
 
 
+def test_claims_within_centimetres_of_the_stance_are_correct() -> None:
+    """A driver that creeps the last centimetres to its stop (SUMO's IDM: seconds below 0.1 m/s)
+    is in the first-stop zone there: a claim is not wrong while the stop-line fix would be within
+    5 cm, and is wrong farther out; the zone ends 5 cm after it pulls away."""
+    from slcp.hw_emulation.truth import SETTLE_DISTANCE, VehicleTruth
+
+    t = np.arange(0, 10, 0.01)
+    stop_at, go_at = 4.0, 7.0
+    # at 5 m/s until 20 cm out (3 s), creeping in exponentially, standing, pulling away at 1 m/s²
+    creep = 50.0 - 0.2 * np.exp(-3.0 * (t - 3.0))
+    stance = 50.0 - 0.2 * np.exp(-3.0)
+    arc = np.select([t < 3.0, t < stop_at, t < go_at], [49.8 - 5.0 * (3.0 - t), creep, np.full_like(t, stance)],
+                    stance + 0.5 * (t - go_at) ** 2)
+    first = (t >= stop_at) & (t < go_at)
+    vt = VehicleTruth(None, arc, first.copy(), first, np.array([""] * len(t)))
+    zone = vt.first_stop_zone
+    assert np.array_equal(zone, np.abs(arc - stance) <= SETTLE_DISTANCE + 1e-12) and zone[first].all()
+    assert zone[t < stop_at].any() and not zone[t < 3.0].any()  # 5 cm out: in; 20 cm out: not
+    claimed = (t >= 3.2) & (t < go_at + 0.1)
+    sc = score_first_stopped(t, first, claimed, zone=zone)
+    early = claimed & ~zone & (t < stop_at - 0.3)
+    assert sc["wrong_s"] == pytest.approx(early.sum() * 0.01, abs=1e-9) and early.any()
+    assert score_first_stopped(t, first, claimed)["wrong_s"] > sc["wrong_s"]  # without the zone: more
+
+
 def test_cooperation_improves_the_fleet(run) -> None:
     """With the paper's fusion rule CP can make a good vehicle worse (double counting, issue #5);
     over the fleet it must help."""

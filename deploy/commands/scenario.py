@@ -135,10 +135,11 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
             rows.append(row)
     detect = {}
     for vid, vt in truth.vehicles.items():
-        true_first = vt.first_stopped[9::10][: len(r.t)]
+        k = np.array([vt.sample_at(float(x)) for x in r.t])
+        true_first, zone = vt.first_stopped[k], vt.first_stop_zone[k]
         claims = r.first[(vid, "SL-SP")]
         detect[vid] = {"true_first_s": float(true_first.sum() / 10), "claimed_s": float(claims.sum() / 10),
-                       "claimed_while_not_first_s": float((claims & ~true_first).sum() / 10)}
+                       "claimed_while_not_first_s": float((claims & ~true_first & ~zone).sum() / 10)}
     ranges = summarise(r.range_outcomes)
     if args.json:
         print(json.dumps({"scenario": scn.name, "seed": args.seed, "rows": rows, "first_stopped": detect,
