@@ -88,6 +88,10 @@ class EmulatorService:
         self.playback = SensorPlayback(self.truth, self.seed, self.batch, self.faults, self.fault_stats,
                                        self.published)
         self.sensors, self.ranges, self.ids = self.playback.sensors, self.playback.ranges, self.playback.ids
+        #: the newest estimate a vehicle that leaves the traffic can send [s]: its last IMU sample
+        #: on the air, less the lead (what an agent holds back): pacing waits no longer for it
+        self._last_data = {v: float(vt.truth.t[vt.present][-1]) - self._lead for v, vt in self.truth.vehicles.items()
+                           if vt.present is not None and vt.present.any()}
         signers = self.signers
 
         def resign(b: Beacon) -> Beacon:
@@ -265,7 +269,11 @@ class EmulatorService:
             self._read_estimates()
             # the slowest agent that reports (one that left is forgotten until it reports again,
             # so a dead agent never stalls the fleet and a restarted one rejoins the pacing)
-            slow = min((self.agent_time[v] for v in self.ids if v in self.agent_time), default=-np.inf)
+            # (a vehicle of external trajectories only up to its last data: it reports no more)
+            need = {v: min(t - self._lead, self._last_data.get(v, np.inf)) for v in self.ids}
+            waiting = [v for v in self.ids if v in self.agent_time and self.agent_time[v] < need[v]]
+            slow = -np.inf if not any(v in self.agent_time for v in self.ids) else (
+                t if not waiting else min(self.agent_time[v] for v in waiting))
             if slow >= t - self._lead or (slow == -np.inf and (self.stalled or (not final and t - t0 < self._lead))):
                 break  # (with every agent set aside, the clock runs at max_speed until one reports)
             if time.monotonic() > deadline:
@@ -273,7 +281,7 @@ class EmulatorService:
                     break
                 # set the laggards aside (a hung agent, or one whose estimates no longer get
                 # through): the clock would otherwise wait this long again at every event
-                behind = sorted(v for v in self.ids if self.agent_time.get(v, np.inf) < t - self._lead)
+                behind = sorted(v for v in self.ids if self.agent_time.get(v, np.inf) < need[v])
                 for v in behind:
                     self.stalled[v] = self.agent_time.pop(v)
                 if behind:

@@ -6,9 +6,10 @@ SUMO (the ``eclipse-sumo`` package, ``pip install 'slcp[sumo]'``) simulates the 
 lane and lane position) become its trajectory, the network's lanes and the signalised junction's
 stop lines the site (:mod:`hw_emulation.sumo_network`), and the traffic light's plan the
 scenario's signals. The drivers' stance comes from SUMO's models, set per vehicle: each gets a
-vehicle type of its own whose stop-line gap (``jmStoplineGap``, front to stop line at a red
-light) is drawn from the scenario's stop-gap distribution, which is then the agents' prior;
-SUMO drives on the lane centre, where the lateral prior is centred (its σ is the real drivers').
+vehicle type of its own (SUMO's Krauss driver, deterministic, :data:`DRIVER`) whose stop-line
+gap (``jmStoplineGap``, front to stop line at a red light) is drawn from the scenario's stop-gap
+distribution, which is then the agents' prior; SUMO drives on the lane centre, where the
+lateral prior is centred (its σ is the real drivers').
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 from .external import Track, read_sumo_fcd
-from .scenario import Idm
 from .scenario_writer import ImportOptions, import_tracks, route_lanes
 from .sumo_network import SumoNetworkError, sumo_site
 
@@ -74,11 +74,13 @@ def _run(cmd: list[str], log_path: Path, what: str) -> None:
 
 
 def netgenerate(out: Path, arm_length: float = 200.0, lanes: int = 2) -> Path:
-    """A four-way signalised junction (``netgenerate --grid``, one node with four arms)."""
+    """A four-way signalised junction (``netgenerate --grid``, one node with four arms), a green
+    phase for each approach in turn (no left turn waits inside the junction for oncoming traffic)."""
     net = Path(out)
     _run([str(sumo_home() / "bin" / "netgenerate"), "--grid", "--grid.number=1",
-          f"--grid.attach-length={arm_length}", "--tls.guess=true", f"--default.lanenumber={lanes}",
-          "--no-turnarounds=true", "-o", str(net)], net.with_suffix(".log"), "netgenerate")
+          f"--grid.attach-length={arm_length}", "--tls.guess=true", "--tls.layout=incoming",
+          f"--default.lanenumber={lanes}", "--no-turnarounds=true", "-o", str(net)], net.with_suffix(".log"),
+         "netgenerate")
     return net
 
 
@@ -94,14 +96,15 @@ def random_trips(net: Path, folder: Path, opt: SumoOptions) -> Path:
     return routes
 
 
-def _idm_attrs(idm: Idm) -> dict[str, str]:
-    return {"carFollowModel": "IDM", "accel": f"{idm.a:g}", "decel": f"{idm.b:g}", "tau": f"{idm.T:g}",
-            "minGap": f"{idm.s0:g}", "delta": f"{idm.delta:g}"}
+#: SUMO's Krauss model, deterministic (σ 0): it brakes to a clean stop at a red light. (SUMO's
+#: IDM creeps its last centimetres at speeds alternating between 0 and 0.15 m/s for seconds,
+#: which no car does and a stationarity detector rightly calls moving.)
+DRIVER = {"carFollowModel": "Krauss", "sigma": "0", "accel": "1.5", "decel": "3", "tau": "1", "minGap": "2"}
 
 
 def typed_routes(routes: Path, out: Path, opt: SumoOptions) -> dict[str, float]:
-    """``routes`` with a vehicle type of its own per vehicle (IDM with the scenario defaults,
-    the drawn stop-line gap), written to ``out``; returns the gaps drawn by SUMO vehicle id."""
+    """``routes`` with a vehicle type of its own per vehicle (:data:`DRIVER`, the drawn stop-line
+    gap), written to ``out``; returns the gaps drawn by SUMO vehicle id."""
     try:
         tree = ET.parse(routes)
     except (ET.ParseError, OSError) as exc:
@@ -116,7 +119,7 @@ def typed_routes(routes: Path, out: Path, opt: SumoOptions) -> dict[str, float]:
         vid = veh.get("id")
         gaps[vid] = gap
         vt = ET.Element("vType", {"id": f"slcp_{vid}", "length": f"{opt.length:g}", "speedDev": "0",
-                                  "jmStoplineGap": f"{gap:.4f}", **_idm_attrs(Idm())})
+                                  "jmStoplineGap": f"{gap:.4f}", **DRIVER})
         root.insert(i + len(gaps) - 1, vt)
         veh.set("type", vt.get("id"))
     tree.write(out)

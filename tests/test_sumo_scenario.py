@@ -65,9 +65,9 @@ def test_the_network_becomes_the_site_with_a_stop_line_at_each_signalised_approa
             mine = site.lanes[ln.getID()]
             assert mine.centerline[-1] == pytest.approx([y - cy, x - cx], abs=1e-9)
             assert mine.width == pytest.approx(ln.getWidth())
-    # the plan: 4 phases of green, one per approach (and each approach's two lanes together)
+    # the plan: a green phase for each approach in turn (an approach's two lanes together)
     assert site.cycle == pytest.approx(sum(p.duration for p in tls.getPrograms()["0"].getPhases()))
-    assert all(len(w) == 1 for w in site.green.values()) and len({tuple(w) for w in site.green.values()}) == 2
+    assert all(len(w) == 1 for w in site.green.values()) and len({tuple(w) for w in site.green.values()}) == 4
 
 
 def test_every_vehicles_truth_follows_its_sumo_trajectory_within_5_cm(junction, truth) -> None:
@@ -231,3 +231,32 @@ def test_the_cli_builds_and_refuses(tmp_path, junction) -> None:
     r = subprocess.run([*cli, "from-sumo", str(net), "--out", str(tmp_path / "x"), "--origin", "95,3"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "--origin" in r.stderr
+
+
+@pytest.mark.fleet
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_the_fleet_runs_the_sumo_junction_and_claims_sumos_queue_heads(tmp_path, junction, truth) -> None:
+    """One agent process per SUMO vehicle, each starting when its vehicle appears; the stop-line
+    method's first-stopped claims, pooled over the fleet, against the truth that the test above
+    holds to SUMO's queues (SL-SP alone: the claims are the detector's, the ranges not needed)."""
+    from slcp.deploy.launcher import run_fleet
+
+    _, path = junction
+    m = run_fleet(str(path), methods=("SL-SP",), seed=0, out=tmp_path / "run")
+    assert m["processes"]["restarts"] == [] if "restarts" in m["processes"] else True
+    est = m["estimates"]
+    assert len(est) == len(truth.vehicles) >= 30 and all(n > 50 for n in est.values()), est
+    det = [d["SL-SP"] for d in m["first_stopped"].values()]
+    claimed, wrong = sum(d["claimed_s"] for d in det), sum(d["wrong_s"] for d in det)
+    truth_s, covered = sum(d["truth_s"] for d in det), sum(d["covered_s"] for d in det)
+    print(f"claimed {claimed:.1f} s, wrong {wrong:.1f} s, truly first {truth_s:.1f} s, covered {covered:.1f} s")
+    assert truth_s > 60 and 1 - wrong / claimed >= 0.99 and covered / truth_s >= 0.95
+    # a vehicle's estimates begin when it appears: none before its first SUMO sample
+    fcd = _fcd(path.parent / "sumo" / "fcd.xml")
+    import csv
+
+    for vid in truth.vehicles:
+        with open(tmp_path / "run" / "estimates" / f"{vid}.csv") as fh:
+            first = min(float(r["time_s"]) for r in csv.DictReader(fh))
+        assert first >= fcd[vid[1:]][0][0] - 1e-6
