@@ -82,10 +82,9 @@ class SensorPlayback:
         # one event per ranging round: every pair with a range at that time, (pair, index)
         rounds: dict[float, list[tuple[tuple[str, str], int]]] = {}
         for pair, rr in self.ranges.items():
-            on_a, on_b = vt[pair[0]].present_at, vt[pair[1]].present_at
-            for i in np.flatnonzero(np.isfinite(rr.range)):
-                if rr.t[i] > 0 and on_a(float(rr.t[i])) and on_b(float(rr.t[i])):
-                    rounds.setdefault(float(rr.t[i]), []).append((pair, int(i)))
+            ok = np.isfinite(rr.range) & (rr.t > 0) & vt[pair[0]].present_over(rr.t) & vt[pair[1]].present_over(rr.t)
+            for i in np.flatnonzero(ok):
+                rounds.setdefault(float(rr.t[i]), []).append((pair, int(i)))
         for t, members in rounds.items():
             ev.append((t, 0, "uwb", members, members[0][1]))
         ev.sort(key=lambda e: (e[0], e[1]))

@@ -3,8 +3,9 @@
 
 Each vehicle is *on the air* (its sensors report, so its agent runs) from its first sample to its
 last: a vehicle that enters the simulation later or leaves it earlier than the scenario's span
-drives on, off the air, at its first or last speed along its first or last heading, so that its
-motion, hence its IMU, is smooth where it appears and disappears. Between its samples the
+drives on, off the air, for :data:`OFF_AIR_LEAD` seconds at its first or last speed along its
+first or last heading (and stands beyond), so that its motion, hence its IMU, is smooth where it
+appears and disappears. Between its samples the
 reference point (``l0`` behind the front for positions of the front, as SUMO reports) follows the
 samples' polyline, passing through every sample at its time.
 

@@ -99,6 +99,13 @@ class VehicleTruth:
             zone[lo:hi] = True
         return zone
 
+    def present_over(self, t: np.ndarray) -> np.ndarray:
+        """:meth:`present_at` of every time in ``t`` [s], shape of ``t``."""
+        t = np.asarray(t, float)
+        if self.present is None:
+            return np.ones(t.shape, bool)
+        return self.present[np.minimum(np.searchsorted(self.truth.t, t - 1e-9), len(self.truth.t) - 1)]
+
     def present_at(self, t: float) -> bool:
         """Whether the vehicle is on the air at ``t`` [s] (its sensors report)."""
         return self.present is None or bool(self.present[self.sample_at(t)])

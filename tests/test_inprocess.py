@@ -127,3 +127,27 @@ def test_no_false_zupt_after_a_gnss_outage() -> None:
     err = r.err[("V1", "SP")]
     after = r.t > 23.0  # the first fixes after the outage are taken
     assert float(np.max(err[after])) < 4.0 and float(np.sqrt(np.mean(err**2))) < 4.0
+
+
+def test_the_in_process_studys_summary_closed_form() -> None:
+    """Means, sds, paired differences, the ordering check and the pooled detection of
+    :func:`deploy.inprocess_study.summarise` on made-up seeds."""
+    from slcp.deploy.inprocess_study import study_markdown, summarise
+
+    def seed(s: int, cp_v1: float) -> dict:
+        det = {"truth_s": 10.0, "claimed_s": 9.0, "wrong_s": 0.5 * s, "covered_s": 8.0}
+        return {"seed": s, "rmse": {"V1": {"SP": 3.0 + s, "SL-SP": 1.0, "CP": cp_v1 + s, "SL-CP": 0.5},
+                                    "V2": {"SP": 2.0, "SL-SP": 2.0, "CP": 1.5, "SL-CP": 1.6}},
+                "first_stopped": {"V1": {"SL-SP": det, "SL-CP": det}}}
+
+    per_seed = [seed(0, 2.0), seed(1, 2.5), seed(2, 2.0)]
+    s = summarise(per_seed)
+    assert s["rmse"]["V1"]["SP"]["mean_m"] == pytest.approx(4.0) and s["rmse"]["V1"]["SP"]["sd_m"] == pytest.approx(1.0)
+    d = s["paired"]["V1"]["CP - SP"]  # CP - SP: -1.0, -0.5, -1.0
+    assert d["mean_m"] == pytest.approx(-2.5 / 3) and d["n_seeds"] == 3 and d["verdict"] == "better"
+    assert s["not_ordered"] == {"CP <= SP": [], "SL-CP <= CP": ["V2"], "SL-SP <= SP": []}
+    fs = s["first_stopped"]["SL-CP"]
+    assert fs["claimed_s"] == pytest.approx(27.0) and fs["precision"] == pytest.approx(1 - 1.5 / 27.0)
+    assert fs["recall"] == pytest.approx(24.0 / 30.0)
+    page = study_markdown({"seeds": [0, 1, 2], "summary": s}, "t")
+    assert "mean RMSE SL-CP <= CP: not for V2" in page and "| V1 | 4.00 ± 1.00 |" in page

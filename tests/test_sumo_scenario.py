@@ -14,7 +14,7 @@ import numpy as np
 import pymap3d
 import pytest
 
-from slcp.hw_emulation.external import TrajectoryError, Track, read_csv_tracks, read_sumo_fcd, write_csv_tracks
+from slcp.hw_emulation.external import Track, TrajectoryError, read_csv_tracks, read_sumo_fcd, write_csv_tracks
 from slcp.hw_emulation.scenario import ScenarioError, load_scenario
 from slcp.hw_emulation.sumo_network import SumoNetworkError, sumo_site
 from slcp.hw_emulation.sumo_scenario import SumoOptions, build_sumo_scenario, netgenerate, sumo_home

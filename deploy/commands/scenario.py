@@ -48,6 +48,12 @@ def add_scenario(sub) -> None:
                     help="write here (default: print to the terminal); an existing file is kept unless --force")
     ch.add_argument("--force", action="store_true", help="replace an existing --out file")
     add_import_commands(ssub)
+    st = ssub.add_parser("study", help="a seeded study in process (every method, the vehicles' engine without the "
+                                       "bus), spread over the cores: RMSE per vehicle, paired differences, detection")
+    st.add_argument("name", help="shipped scenario name or path to a .toml file")
+    st.add_argument("--seeds", type=T.positive_int, default=25, help="seeds 0..N-1 (default 25)")
+    st.add_argument("--jobs", type=T.positive_int, default=None, help="parallel seeds (default: cores)")
+    st.add_argument("--out", type=Path, required=True, metavar="DIR", help="writes study.json and report.md here")
     ev = ssub.add_parser("evaluate", help="run all vehicles and the four methods in one process (no bus)")
     ev.add_argument("name", help="shipped scenario name or path to a .toml file")
     ev.add_argument("--seed", type=T.seed, default=0, help="sensor seed (default 0)")
@@ -67,12 +73,9 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
 
         return _write_or_print(args, shipped_scenario_text(args.name),
                                f"scenario {args.name}; run it with: slcp run {args.out}")
-    if args.scenario_command == "chaos":
-        return _chaos(args)
-    if args.scenario_command == "from-sumo":
-        return cmd_from_sumo(args)
-    if args.scenario_command == "from-trajectories":
-        return cmd_from_trajectories(args)
+    own = {"chaos": _chaos, "study": _study, "from-sumo": cmd_from_sumo, "from-trajectories": cmd_from_trajectories}
+    if args.scenario_command in own:
+        return own[args.scenario_command](args)
     if args.scenario_command == "to-lanelet2":
         from slcp.geo.lanelet2_site import write_lanelet2
 
@@ -171,6 +174,24 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
             for v, d in detect.items()
         )
     )
+    return 0
+
+
+def _study(args: argparse.Namespace) -> int:
+    import sys
+
+    from slcp.hw_emulation.scenario import load_scenario
+
+    from ..inprocess_study import run_study, write_study
+
+    scn = load_scenario(args.name)  # a clear error before the workers start
+
+    def progress(seed: int, done: int, total: int) -> None:
+        print(f"seed {seed} done ({done}/{total})", file=sys.stderr, flush=True)
+
+    study = run_study(args.name, list(range(args.seeds)), args.jobs, progress)
+    path = write_study(study, args.out, f"{scn.name}: a {len(scn.vehicles)}-vehicle study")
+    print(path.read_text(), end="")
     return 0
 
 
