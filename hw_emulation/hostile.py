@@ -79,6 +79,7 @@ class HostileStation:
     def __post_init__(self) -> None:
         if not self.fleet:
             raise ValueError("a hostile station needs the fleet's vehicle names")
+        self._big_rounds = 0
         if self.identities < 2 or self.token_life <= 0:
             raise ValueError("need at least 2 identities and a positive token life")
         self.rng = np.random.default_rng(self.seed)
@@ -151,8 +152,10 @@ class HostileStation:
                 self._pool[i] = self.captured[int(rng.integers(len(self.captured)))]
 
     def oversized(self) -> list[tuple[str, bytes]]:
-        """One oversized payload to a receiver's radio, to the radio and to the recorder."""
-        victim = self.fleet[int(self.rng.integers(len(self.fleet)))]
+        """One oversized payload to a receiver's radio, to the radio and to the recorder, the
+        fleet's vehicles in turn (each is hit within as many rounds as there are vehicles)."""
+        victim = self.fleet[self._big_rounds % len(self.fleet)]
+        self._big_rounds += 1
         return [(keys.radio_rx(victim), self.big), (keys.radio_tx(victim), self.big),
                 (keys.diag(victim), self.big)]
 
