@@ -102,10 +102,11 @@ def test_a_fault_schedule_runs_on_the_fleet_and_is_reported(tmp_path) -> None:
     restarts = m["processes"]["restarts"]
     assert [(x["process"], x["exit_code"]) for x in restarts] == [("router", "stopped"), ("agent-V1", -9),
                                                                   ("emulator", -9)]
-    # an agent is back within 5 s; the emulator rebuilds the scenario's truth and sensor data
-    # before it resumes (about 2.5 s of CPU), and took 5.15 and 5.46 s in two suite runs on
-    # the 2-core machine: its bound only tells a resumed run from a stuck one (speed is a figure)
-    limit = {"agent-V1": 5.0, "emulator": 15.0, "router": 10.0}
+    # the bounds only tell a resumed run from a stuck one (speed is a figure): an agent was back
+    # within 2 s alone, but beside the suite's heaviest fleet test (38 SUMO agents) a restart
+    # took over 5 s; the emulator rebuilds the scenario's truth and sensor data before it
+    # resumes (about 2.5 s of CPU) and took 5.15 to 12.1 s in suite runs on the 2-core machine
+    limit = {"agent-V1": 15.0, "emulator": 20.0, "router": 10.0}
     assert all(x["rejoined_after_s"] is not None and x["rejoined_after_s"] < limit[x["process"]]
                for x in restarts), restarts
     # resumed where the fleet was: the kill comes at t = 45 s on the launcher's 0.2 s (wall) poll,
