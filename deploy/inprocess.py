@@ -132,8 +132,7 @@ def _score(truth: ScenarioTruth, estimates: dict[tuple[str, str], list[Estimate]
         vt = truth.vehicles[vid].truth
         te = np.array([e.t for e in es])
         pick = np.searchsorted(te, grid + 1e-9, side="right") - 1
-        off = (pick < 0) | ~np.array([truth.vehicles[vid].present_at(float(x)) for x in grid]) \
-            if coming_and_going else np.zeros(len(grid), bool)
+        off = (pick < 0) | ~truth.vehicles[vid].present_over(grid)
         pick = np.maximum(pick, 0)
         idx = np.clip(np.searchsorted(vt.t, te - 1e-9), 0, len(vt.t) - 1)
         err_ne, cov_ne, along, first = [], [], [], []

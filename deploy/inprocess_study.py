@@ -39,8 +39,8 @@ def one_seed(args: tuple[str, int]) -> dict:
     r = run_inprocess(truth, seed)
     out: dict = {"seed": seed, "rmse": {}, "first_stopped": {}}
     for vid, vt in truth.vehicles.items():
-        k = np.array([vt.sample_at(float(x)) for x in r.t])
-        on = vt.present[k] if vt.present is not None else np.ones(len(r.t), bool)
+        k = np.minimum(np.searchsorted(vt.truth.t, r.t - 1e-9), len(vt.truth.t) - 1)  # VehicleTruth.sample_at
+        on = vt.present_over(r.t)
         for m in METHODS:
             e = r.err[(vid, m)][on]
             e = e[np.isfinite(e)]

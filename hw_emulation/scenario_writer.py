@@ -76,18 +76,19 @@ def sensor_tables(like: str) -> tuple[list[str], list[str]]:
 
 
 def route_lanes(track: Track, lanes: dict[str, Lane]) -> list[str]:
-    """The site lanes a detailed track drives on, in order."""
-    return [str(x) for x in dict.fromkeys(track.lane) if str(x) in lanes] if track.detailed else []
+    """The site lanes a track drives on, in order: its own lanes', or, without them, the lanes
+    its positions lie on."""
+    lane_ids = track.lane if track.detailed else project_lanes(track, motion_heading(track), lanes)[0]
+    return [str(x) for x in dict.fromkeys(lane_ids) if str(x) in lanes]
 
 
 def trajectory_scenario_toml(head: list[str], name: str, description: str, lanes: dict[str, Lane],
                              tracks: dict[str, Track], opt: ImportOptions,
-                             signals: tuple[float, dict[str, list[tuple[float, float]]]] | None = None,
-                             routes: dict[str, list[str]] | None = None) -> str:
+                             routes: dict[str, list[str]],
+                             signals: tuple[float, dict[str, list[tuple[float, float]]]] | None = None) -> str:
     """The TOML text: ``head`` (comment lines), the scenario, its trajectories
     (``trajectories.csv`` beside it), a window over the whole run, the signals (cycle, green
-    windows per lane), the lanes and the vehicles (routes: the lanes each drives on, from its
-    track's lanes unless given)."""
+    windows per lane), the lanes and the vehicles (``routes``: the lanes each drives on)."""
     lat, lon, h = opt.origin
     v = toml_value
     common, tables = sensor_tables(opt.sensors_like)
@@ -113,7 +114,7 @@ def trajectory_scenario_toml(head: list[str], name: str, description: str, lanes
         out += ["", "[[lanes]]", f"id = {v(ln.id)}", f"centerline = {v(np.round(ln.centerline, 4).tolist())}",
                 f"width = {float(ln.width)!r}", f"stop_line = {v(ln.stop_line)}"]
     for vid, tr in tracks.items():
-        route = (routes or {}).get(vid) or route_lanes(tr, lanes)
+        route = routes[vid]
         width = lanes[route[0]].width
         out += ["", "[[vehicles]]", f"id = {v(vid)}", f"route = {v(route)}", f"depart = {float(tr.t[0])!r}",
                 f"length = {opt.length!r}", f"l0 = {opt.l0!r}",
@@ -137,8 +138,7 @@ def import_tracks(tracks: dict[str, Track], lanes: dict[str, Lane], out: Path, o
     tracks = {vid: replace(tr, t=tr.t - t0) for vid, tr in tracks.items()}
     routes = {}
     for vid, tr in tracks.items():
-        lane_ids = tr.lane if tr.detailed else project_lanes(tr, motion_heading(tr), lanes)[0]
-        routes[vid] = [str(x) for x in dict.fromkeys(lane_ids) if str(x) in lanes]
+        routes[vid] = route_lanes(tr, lanes)
         if not routes[vid]:
             raise ValueError(f"vehicle {vid!r} never drives on a lane of the site (a wrong frame or offset?)")
     end = max(tr.t[-1] for tr in tracks.values())
@@ -148,6 +148,6 @@ def import_tracks(tracks: dict[str, Track], lanes: dict[str, Lane], out: Path, o
     write_csv_tracks(tracks, out / "trajectories.csv")
     path = out / "scenario.toml"
     path.write_text(trajectory_scenario_toml(head, name, description, lanes, tracks, replace(opt, duration=duration),
-                                             signals=signals, routes=routes))
+                                             routes, signals))
     load_scenario(path)  # what was written reads back
     return path, t0

@@ -265,12 +265,12 @@ class EmulatorService:
                 time.monotonic() - left < self.rejoin_grace for left in self._away.values()):
             await asyncio.sleep(0.01)  # an agent left: hold the clock while it restarts
         deadline = time.monotonic() + (5.0 if final else self.stall_timeout)
+        # (a vehicle of external trajectories only up to its last data: it reports no more)
+        need = {v: min(t - self._lead, self._last_data.get(v, np.inf)) for v in self.ids}
         while not stop.is_set():
             self._read_estimates()
             # the slowest agent that reports (one that left is forgotten until it reports again,
             # so a dead agent never stalls the fleet and a restarted one rejoins the pacing)
-            # (a vehicle of external trajectories only up to its last data: it reports no more)
-            need = {v: min(t - self._lead, self._last_data.get(v, np.inf)) for v in self.ids}
             waiting = [v for v in self.ids if v in self.agent_time and self.agent_time[v] < need[v]]
             slow = -np.inf if not any(v in self.agent_time for v in self.ids) else (
                 t if not waiting else min(self.agent_time[v] for v in waiting))

@@ -186,14 +186,14 @@ def build_trajectory_truth(scn: Scenario) -> ScenarioTruth:
         segment = np.where(present, lanes_of[vid][0][k], "").astype(str)
         stopped = (np.linalg.norm(truth.v_ned, axis=1) < STOPPED_SPEED) & present
         g = np.clip(np.round(truth.t / STEP).astype(int), 0, n - 1)
-        out[vid] = VehicleTruth(truth, prof.arc(truth.t), stopped, heads[vid][g] & stopped, segment, present)
-        routes[vid] = Route(path, [Segment(str(x), 0.0, path.length, False) for x in dict.fromkeys(tr.lane)]
-                            if tr.detailed else [Segment("", 0.0, path.length, False)])
+        first = heads[vid][g] & stopped
+        out[vid] = VehicleTruth(truth, prof.arc(truth.t), stopped, first, segment, present)
+        routes[vid] = Route(path, [Segment("", 0.0, path.length, False)])  # the lanes are in ``segment``
         s_grid[vid], v_grid[vid] = s, np.gradient(s, t_grid)
-        stop_at = np.flatnonzero(heads[vid])
-        gaps[vid] = float("nan")
+        gaps[vid] = float("nan")  # the stop gap where it first stands first, front to line
+        stop_at = np.flatnonzero(first)
         if len(stop_at) and tr.detailed:
-            i = int(np.clip(np.searchsorted(tr.t, t_grid[stop_at[0]] - 1e-6), 0, len(tr.t) - 1))
+            i = int(k[stop_at[0]])
             gaps[vid] = polyline_length(scn.lanes[str(tr.lane[i])].centerline) - float(tr.lane_pos[i])
     traffic = TrafficResult(t_grid, routes, s_grid, v_grid, gaps, {vid: float("nan") for vid in tracks})
     return ScenarioTruth(scn, traffic, out)
