@@ -60,7 +60,9 @@ def test_an_agent_killed_with_sigkill_is_restarted_and_rejoins(tmp_path) -> None
     restarts = m["processes"]["restarts"]
     print("restarts:", restarts)
     assert len(restarts) == 1 and restarts[0]["process"] == "agent-V2" and restarts[0]["exit_code"] == -9
-    assert restarts[0]["rejoined_after_s"] is not None and restarts[0]["rejoined_after_s"] < 5.0
+    # rejoined, not stuck: the bound is not a speed target (alone a restart is back within 2 s;
+    # beside the suite's 38-agent SUMO fleet test one took 8 s)
+    assert restarts[0]["rejoined_after_s"] is not None and restarts[0]["rejoined_after_s"] < 15.0
     lines = [json.loads(x) for x in (out / "recorded" / "messages.jsonl").read_text().splitlines()]
     v2 = sorted(d["t"] for d in lines if d["type"] == "Estimate" and d["vehicle"] == "V2" and d["method"] == "CP")
     gaps = [(a, b) for a, b in zip(v2, v2[1:]) if b - a > 0.15]  # 10 Hz estimates; the clock waits for V2
