@@ -244,3 +244,37 @@ def test_transport_rate_and_geodetic_rates_at_altitude() -> None:
     ldot, odot = rates[0], rates[1]
     w_en = earth.transport_rate_ned(lat, h, v)
     assert np.allclose(w_en, [odot * math.cos(lat), -ldot, -odot * math.sin(lat)], rtol=1e-12)
+
+
+def test_a_gap_without_imu_data_in_closed_form() -> None:
+    """Φ and Q_d over a gap: an unknown constant acceleration a ~ N(0, σ²) per axis moves the
+    velocity error by a·G and the position error by a·G²/2 (so their covariance is
+    σ² [G, G²/2]ᵀ[G, G²/2]); a constant turn rate the attitude by ω·G; the biases walk with their
+    density; the augmented Gauss-Markov states decay exactly, their added variance the integral
+    ∫₀ᴳ q e^(−2s/τ) ds computed here by quadrature, and a random walk (τ = ∞) gains q·G."""
+    from scipy.integrate import quad
+
+    from slcp.agent.nav.error_model import gap_transition
+
+    gap, sa, sr = 1.7, (0.8, 0.3), (0.02, 0.05)
+    gqg = np.arange(1.0, 16.0) * 1e-6
+    tau, psd = np.array([30.0, np.inf, 4.0]), np.array([0.5, 0.01, 2.0])
+    phi, qd = gap_transition(18, gap, sa, sr, gqg, tau, psd)
+    want_phi = np.eye(18)
+    want_phi[6:9, 3:6] = gap * np.eye(3)
+    want_phi[15, 15], want_phi[17, 17] = math.exp(-gap / 30.0), math.exp(-gap / 4.0)
+    np.testing.assert_allclose(phi, want_phi, rtol=1e-14, atol=0)
+    want = np.zeros((18, 18))
+    for k, s in enumerate((sa[0], sa[0], sa[1])):
+        j = np.zeros(18)
+        j[3 + k], j[6 + k] = gap, gap**2 / 2.0
+        want += s**2 * np.outer(j, j)
+    for k, s in enumerate((sr[0], sr[0], sr[1])):
+        want[k, k] = (s * gap) ** 2
+    want[range(9, 15), range(9, 15)] = gqg[9:15] * gap
+    for i, (t_, q) in enumerate(zip(tau, psd)):
+        want[15 + i, 15 + i] = quad(lambda s, t_=t_, q=q: q * math.exp(-2.0 * s / t_), 0.0, gap)[0]
+    np.testing.assert_allclose(qd, want, rtol=1e-12, atol=1e-18)
+    phi15, qd15 = gap_transition(15, gap, sa, sr, gqg, np.array([]), np.array([]))
+    np.testing.assert_array_equal(phi15, want_phi[:15, :15])
+    np.testing.assert_allclose(qd15, want[:15, :15], rtol=1e-12, atol=1e-18)

@@ -373,3 +373,14 @@ def test_a_veto_lifted_while_the_vehicle_creeps_does_not_make_it_first() -> None
     assert tr.vetoed is None and not any(claims)  # not even at the step that lifts the veto
     dec, _ = tr.decide(2.0, e3, cov, math.pi / 2, 0.0, {"E1": e1})
     assert dec.first  # at rest again (its stop kept its start through the creep)
+
+
+def test_at_rest_for_exactly_min_stationary_is_long_enough() -> None:
+    """"At rest for at least ``min_stationary``": a vehicle standing since 0.5 s is still
+    "moving" at 0.625 s and is decided with the geometry from 0.75 s (times exact in binary)."""
+    from slcp.agent.first_stopped import DetectorSettings
+
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP, DetectorSettings(min_stationary=0.25)))
+    assert tr.moving_decision(0.5, 0.0)[0].reason == "moving"
+    assert tr.moving_decision(0.625, 0.0)[0].reason == "moving"
+    assert tr.moving_decision(0.75, 0.0) is None

@@ -260,3 +260,15 @@ def test_a_switch_of_reference_stream_starts_the_range_history_afresh() -> None:
     det.beacon("V9", "CP", 0.6, at(28.0, 0.0), np.zeros(3), cov)
     assert det.range("V9", 0.6, 20.0, at(0.0, 0.0), own_cov, 0.1) is None
     assert det.counters["range_strikes"] == 0
+
+
+@pytest.mark.parametrize("times, flagged", [((0.0, 0.5, 1.0), True), ((0.0, 0.5, 1.25), False)])
+def test_three_strikes_within_the_window_ends_included_flag(times, flagged: bool) -> None:
+    """``strikes`` failed tests within ``window`` s flag a neighbour: three strikes spanning
+    exactly the window (1 s; times exact in binary) do, three spanning more do not."""
+    det = MisbehaviourDetector()
+    cov = np.diag([1.0, 1.0, 1.0])
+    for t in times:
+        det.beacon("V9", "CP", t, at(20.0, 0.0), np.zeros(3), cov)
+        assert det.range("V9", t, 60.0, at(0.0, 0.0), 0.01 * cov, 0.1) == "range"
+    assert det.excluded("V9", times[-1]) == flagged

@@ -94,7 +94,7 @@ def test_the_signature_covers_every_field_but_its_own(fleet) -> None:
         assert store.verify(decode(encode(dataclasses.replace(signed, **{name: value})))) == "bad_signature", name
 
 
-def test_a_certificate_not_issued_by_the_fleet_ca_is_refused(fleet, tmp_path) -> None:
+def test_a_certificate_not_issued_by_the_fleet_ca_is_refused(fleet, tmp_path, caplog) -> None:
     other = tmp_path / "other"
     create_fleet(other, ["V9"])
     mixed = tmp_path / "mixed"
@@ -104,6 +104,9 @@ def test_a_certificate_not_issued_by_the_fleet_ca_is_refused(fleet, tmp_path) ->
     store = TrustStore.from_dir(mixed)
     assert "V9" not in store.vehicles() and "V1" in store.vehicles()
     assert "V9" in store.refused[mixed / "V9.crt"] and "not signed by the fleet CA" in store.refused[mixed / "V9.crt"]
+    # and the log says which file and why (an operator reads it there)
+    assert any(str(mixed / "V9.crt") in r.getMessage() and "not signed by the fleet CA" in r.getMessage()
+               for r in caplog.records if r.levelname == "WARNING"), caplog.text
     (tmp_path / "empty").mkdir()
     with pytest.raises(SecurityError, match="ca.crt: cannot read"):
         TrustStore.from_dir(tmp_path / "empty")
