@@ -272,3 +272,16 @@ def test_three_strikes_within_the_window_ends_included_flag(times, flagged: bool
         det.beacon("V9", "CP", t, at(20.0, 0.0), np.zeros(3), cov)
         assert det.range("V9", t, 60.0, at(0.0, 0.0), 0.01 * cov, 0.1) == "range"
     assert det.excluded("V9", times[-1]) == flagged
+
+
+def test_the_range_rate_reference_may_be_exactly_the_window_old() -> None:
+    """References for the range-rate test are kept up to ``rate_window[1]`` (1 s) old, that age
+    included: against the range of exactly 1 s ago the 10 m step fails (threshold 3 + 5 σ, σ
+    0.72 m over 1 s); against the half-second-old one it would pass (5 m, threshold 5.9 m)."""
+    det = MisbehaviourDetector(rate_test=True)
+    cov, own = np.diag([1.0, 1.0, 1.0]), np.diag([9.0, 9.0, 9.0])
+    for t, resid in ((0.0, 0.0), (0.5, 5.0)):
+        det.beacon("V9", "CP", t, at(20.0, 0.0), np.zeros(3), cov)
+        assert det.range("V9", t, 20.0 + resid, at(0.0, 0.0), own, 0.1) is None
+    det.beacon("V9", "CP", 1.0, at(20.0, 0.0), np.zeros(3), cov)
+    assert det.range("V9", 1.0, 30.0, at(0.0, 0.0), own, 0.1) == "range rate"
