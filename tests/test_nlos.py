@@ -272,3 +272,48 @@ def test_an_nlos_model_accepts_outliers_from_any_non_negative_size() -> None:
     assert dataclasses.replace(MODEL, outlier_min=0.5).outlier_min == 0.5
     with pytest.raises(ValueError):
         dataclasses.replace(MODEL, outlier_min=-0.5)
+
+
+def test_the_normal_probability_between_two_bounds_in_both_tails() -> None:
+    """``_cdf_between(a, b)`` = P(a < X < b) for X ~ N(0, 1), against quadrature of the density,
+    with both bounds below zero, both above, and one each side, out into the far tails."""
+    from slcp.agent.range_gate import _cdf_between
+
+    pts = (-40.0, -8.0, -3.0, -1.0, -0.2, 0.0, 0.3, 2.0, 7.0, 40.0)
+    for i, a in enumerate(pts):
+        for b in pts[i + 1:]:
+            want = integrate.quad(stats.norm.pdf, a, b, epsabs=0.0, epsrel=1e-11, limit=200)[0]
+            assert _cdf_between(a, b) == pytest.approx(want, rel=1e-9, abs=1e-300), (a, b)
+
+
+def test_a_range_continues_its_track_within_three_sigma_plus_the_rate_uncertainty() -> None:
+    """A range continues the track when it is within 3 σ of the prediction, σ² = 2 σ_uwb² +
+    q dt³/3 (the relative acceleration's random walk), plus the range-rate uncertainty × dt."""
+    tr = _tracker()
+    for dt in (0.1, 1.0):
+        limit = 3.0 * math.sqrt(2.0 * tr.sigma**2 + tr.accel_psd * dt**3 / 3.0) + tr.rate_sigma * dt
+        for rate in (0.0, -4.0):
+            start = 20.0 + rate * dt
+            assert tr._agrees(0.0, 20.0, dt, start + 0.99 * limit, rate)
+            assert tr._agrees(0.0, 20.0, dt, start - 0.99 * limit, rate)
+            assert not tr._agrees(0.0, 20.0, dt, start + 1.01 * limit, rate)
+    assert not tr._agrees(1.0, 20.0, 1.0, 20.0, 0.0)  # no time between: no continuation
+
+
+def test_an_outlier_out_of_order_leaves_the_links_belief() -> None:
+    """A gross range stamped before the link's last one is scored, not kept: an outlier that
+    reports the link's NLOS probability and bias as they are."""
+    tr = _tracker()
+    for tk in np.arange(0.0, 2.0, 0.1):
+        tr.belief("V2", float(tk), 20.0, 0.0)
+    lk = tr._links["V2"]
+    out = tr.belief("V2", 1.85, 35.0, 0.0)
+    assert out.outlier and out.p_nlos == lk.p and out.bias_mean_square == lk.b2
+
+
+def test_an_nlos_bias_may_start_at_zero() -> None:
+    import dataclasses
+
+    assert dataclasses.replace(MODEL, bias_min=0.0).bias_min == 0.0
+    with pytest.raises(ValueError):
+        dataclasses.replace(MODEL, bias_min=-0.1)

@@ -100,6 +100,7 @@ def test_gnss_white_multipath_nlos_outage_statistics(rng) -> None:
     # the velocity noise and the receiver's reported velocity σ, in and out of NLOS
     assert e.vel_error[~e.nlos].std() == pytest.approx(ev.velocity_white, rel=0.03)
     assert e.vel_error[e.nlos].std() == pytest.approx(math.hypot(ev.velocity_white, ev.velocity_nlos), rel=0.03)
+    assert np.abs(e.vel_error[e.nlos].mean(axis=0)).max() < 0.05  # zero-mean, as the filters assume
     assert np.allclose(e.reported_sigma_v[~e.nlos], ev.velocity_white)
     ratio = e.reported_sigma_v[e.nlos] / math.hypot(ev.velocity_white, ev.velocity_nlos)
     assert np.median(ratio) == pytest.approx(1.0, abs=0.05) and np.std(np.log(ratio)) > 0.2  # mis-scaled
@@ -297,3 +298,10 @@ def test_imu_misalignment_is_a_small_rotation_and_the_biases_are_independent_per
     for bias in (e.gyro_bias, e.accel_bias):
         r = np.corrcoef(bias.T)
         assert np.abs(r[np.triu_indices(3, 1)]).max() < 0.1, r
+
+
+@pytest.mark.parametrize("field", ["rate", "error_tau"])
+def test_a_camera_model_needs_a_positive_rate_and_error_time(field: str) -> None:
+    for bad in (0.0, -1.0):
+        with pytest.raises(ValueError, match=field):
+            LaneCameraModel(**{field: bad})

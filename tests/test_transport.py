@@ -589,3 +589,18 @@ def test_token_buckets_in_closed_form() -> None:
     assert not tb.take("a", 9.0)  # a clock going back adds nothing
     with pytest.raises(ValueError):
         TokenBuckets(0.0, 1.0)
+
+
+def test_arrays_of_any_number_type_and_numpy_scalars_travel_as_their_values() -> None:
+    """A beacon built from integer arrays (a breakdown, constants, the covariance) and numpy
+    scalars (time, sequence) decodes to the same values, as float64 and plain numbers."""
+    b = Beacon("V1", np.int64(7), "SL-CP", np.float64(12.5), np.array([0.7, 2.0, 50.0]), np.zeros(3, int),
+               np.eye(3, dtype=int) * 2, sources=((("V1",), np.eye(3, dtype=np.int32)), (("~common",), np.eye(3))),
+               constants=(("V1~1.0", np.array([1, 0, 0])),))
+    d = decode(encode(b))
+    assert d.seq == 7 and d.t == 12.5 and type(d.t) is float and type(d.seq) is int
+    np.testing.assert_array_equal(d.cov_pos, 2 * np.eye(3))
+    np.testing.assert_array_equal(d.v_ned, np.zeros(3))
+    assert [lab for lab, _ in d.sources] == [("V1",), ("~common",)]
+    np.testing.assert_array_equal(d.sources[0][1], np.eye(3))
+    np.testing.assert_array_equal(d.constants[0][1], [1.0, 0.0, 0.0])
