@@ -53,16 +53,18 @@ def test_chi_square_quantile_and_survival_equal_scipys() -> None:
             chi2_gate(*bad)
 
 
-def test_bounded_minimiser_takes_scipys_steps(rng) -> None:
+@pytest.mark.parametrize("lo, hi", [(0.01, 0.99), (-3.0, -0.5), (-2.0, 5.0)])
+def test_bounded_minimiser_takes_scipys_steps(rng, lo: float, hi: float) -> None:
     """The same iterates as ``minimize_scalar(method="bounded")``: identical minimisers on
-    smooth, kinked and flat functions, including minima on the bounds."""
+    smooth, kinked and flat functions, including minima on the bounds, on intervals on either
+    side of zero (the fusion rules search [0, 1])."""
     for _ in range(500):
-        c, a, k = rng.uniform(-0.5, 1.5), rng.uniform(0.1, 10.0), rng.uniform(1.1, 4.0)
+        c, a, k = rng.uniform(lo - 0.5, hi + 0.5), rng.uniform(0.1, 10.0), rng.uniform(1.1, 4.0)
         b = rng.uniform(-2, 2)
         for f in (lambda x, a=a, b=b, c=c, k=k: a * abs(x - c) ** k + b * x,
                   lambda x, a=a, c=c: math.cosh(a * (x - c)), lambda x: 1.0):
-            ours = fminbound(f, 0.01, 0.99, xatol=1e-3)
-            ref = minimize_scalar(f, bounds=(0.01, 0.99), method="bounded", options={"xatol": 1e-3}).x
+            ours = fminbound(f, lo, hi, xatol=1e-3)
+            ref = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3}).x
             assert ours == ref
 
 

@@ -50,6 +50,21 @@ def test_gnss_velocity_jacobian() -> None:
                                             np.array([0.05, -0.1, 0.4]), LEVER))
 
 
+def test_each_update_is_counted_under_its_measurements_name() -> None:
+    """The filters' counters (diagnostics) key each update by its model's name: one accepted
+    GNSS velocity counts 1 under ``gnss_vel``, a rejected one 1 under the rejections."""
+    from slcp.agent.nav.kalman import FilterStats, UpdateResult
+
+    m = gnss_velocity(moving_state(), np.array([8.1, -5.2, 0.2]), np.eye(3), np.zeros(3), LEVER)
+    assert m.name == "gnss_vel"
+    stats = FilterStats()
+    stats.count(UpdateResult(np.zeros(15), 1.0, 3, True, m.name))
+    assert stats.updates == {"gnss_vel": 1} and stats.rejected == {}
+    stats.count(UpdateResult(np.zeros(15), 99.0, 3, False, m.name))
+    stats.count(UpdateResult(np.zeros(15), 1.0, 3, True, m.name))
+    assert stats.updates == {"gnss_vel": 2} and stats.rejected == {"gnss_vel": 1}
+
+
 def test_vehicle_constraint_jacobians() -> None:
     _check_jacobian(lambda s: zero_velocity(s, 0.01))
     _check_jacobian(lambda s: non_holonomic(s, 0.1, 0.1))

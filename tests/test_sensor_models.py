@@ -305,3 +305,13 @@ def test_a_camera_model_needs_a_positive_rate_and_error_time(field: str) -> None
     for bad in (0.0, -1.0):
         with pytest.raises(ValueError, match=field):
             LaneCameraModel(**{field: bad})
+
+
+def test_two_state_markov_takes_certain_transitions_and_names_a_bad_probability(rng) -> None:
+    """p = 1 is a probability: with p_enter = p_exit = 1 the chain alternates every step. A
+    value outside [0, 1] is refused, naming the parameter."""
+    s = two_state_markov(10, 1.0, 1.0, rng, start=False)
+    np.testing.assert_array_equal(s, [False, True] * 5)
+    for kw, name in (({"p_enter": 1.5, "p_exit": 0.1}, "p_enter"), ({"p_enter": 0.1, "p_exit": -0.2}, "p_exit")):
+        with pytest.raises(ValueError, match=name):
+            two_state_markov(10, rng=rng, **kw)
