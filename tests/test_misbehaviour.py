@@ -285,3 +285,13 @@ def test_the_range_rate_reference_may_be_exactly_the_window_old() -> None:
         assert det.range("V9", t, 20.0 + resid, at(0.0, 0.0), own, 0.1) is None
     det.beacon("V9", "CP", 1.0, at(20.0, 0.0), np.zeros(3), cov)
     assert det.range("V9", 1.0, 30.0, at(0.0, 0.0), own, 0.1) == "range rate"
+
+
+@pytest.mark.parametrize("v0, strike", [(3.0, None), (3.25, "acceleration")])
+def test_the_sudden_stop_test_applies_from_above_stop_from(v0: float, strike) -> None:
+    """From above ``stop_from`` (3 m/s) to standing within 0.125 s: a strike; from exactly
+    3 m/s, not (speeds exact in binary; the drop beats max_accel dt + step = 2.25 m/s both times)."""
+    det = MisbehaviourDetector(max_accel=10.0, velocity_step=1.0)
+    cov = np.diag([1.0, 1.0, 1.0])
+    det.beacon("V9", "CP", 0.0, at(0, 0), np.array([0.0, v0, 0.0]), cov)
+    assert det.beacon("V9", "CP", 0.125, at(0, v0 * 0.0625), np.zeros(3), cov) == strike
