@@ -152,6 +152,26 @@ def test_bench_prints_every_figure(capsys) -> None:
     assert out["replay"] is None
 
 
+def test_bench_prints_the_step_costs_beside_each_fleet_point(capsys, monkeypatch) -> None:
+    """Each fleet point carries the agents' main step costs measured right after it (a stub
+    stands for the fleet runs), in the JSON and on the point's own line."""
+    import json
+
+    from slcp.deploy import fleet_bench
+    from slcp.deploy.cli import main
+    from slcp.deploy.commands.lab import FLEET_POINT_STEPS
+
+    monkeypatch.setattr(fleet_bench, "run_fleet_point", lambda n, *a, **k: {"agents": n, "error": "stub"})
+    assert main(["bench", "--quick", "--json", "--drive", "/nonexistent", "--fleet", "3,4"]) == 0
+    points = json.loads(capsys.readouterr().out)["fleet"]
+    assert [p["agents"] for p in points] == [3, 4]
+    assert all(set(p["steps"]) == set(FLEET_POINT_STEPS) and min(p["steps"].values()) > 0 for p in points)
+    assert main(["bench", "--quick", "--drive", "/nonexistent", "--fleet", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    at = lines.index("  fleet   3 agents: stub")
+    assert lines[at + 1].startswith("    step costs right after it: mechanisation ") and "beacon verify" in lines[at + 1]
+
+
 def _start_probe(*pid_files):
     """The pool probe with ``pid_files``, and its (first) worker's pid once that job started."""
     import subprocess

@@ -236,10 +236,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         for n in counts:
             if not args.json:
                 print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
-            out["fleet"].append(run_fleet_point(n, args.fleet_duration, args.fleet_method,
-                                                    zenoh_mode=args.fleet_zenoh_mode,
-                                                    imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion,
-                                                    view=args.fleet_view))
+            point = run_fleet_point(n, args.fleet_duration, args.fleet_method, zenoh_mode=args.fleet_zenoh_mode,
+                                    imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion, view=args.fleet_view)
+            # the machine's speed drifts within a run too: the costs of the agents' main steps,
+            # measured again right after the point, tell a slow moment from a regression
+            steps = micro_benchmarks(quick=True)
+            point["steps"] = {k: steps[k] for k in FLEET_POINT_STEPS}
+            out["fleet"].append(point)
     if args.json:
         print(json.dumps(out))
         return 0
@@ -255,36 +258,53 @@ def _cmd_bench(args: argparse.Namespace) -> int:
               f"{r['wall_s']:.2f} s, median of runs at {', '.join(f'{x:g}' for x in r['realtime_factor_runs'])}x; "
               f"outage RMS {r['outage_h_rms_m']:.2f} m)")
     for f in out.get("fleet", []):
-        if "error" in f:
-            print(f"  fleet {f['agents']:3d} agents: {f['error']}")
-            continue
-        lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
-        print(
-            f"  fleet {f['agents']:3d} agents ({f['method']}, {f['fusion']}, Zenoh {f['zenoh_mode']}, "
-            f"IMU batch {f['imu_batch']}): "
-            f"real-time factor {f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, "
-            f"CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
-            f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
-            f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, "
-            f"machine {f['machine_cpu_pct']:.0f} %, "
-            f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "
-            f"beacon latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms, sensor drops {f['sensor_dropped']}"
-            + (f", live map {f['view_frames']} frames of up to {f['view_vehicles']} vehicles" if "view_frames" in f
-               else "")
-        )
-        if f.get("windows"):
-            worst = f["beacon_p99_ms_worst_window"]
-            print(
-                f"    by {f['windows'][0]['wall_s']:.0f} s window: "
-                f"machine CPU {f['machine_cpu_pct_peak']:.0f} % at the "
-                f"busiest, beacon p99 {'–' if worst is None else f'{worst:.1f} ms'} in the worst; "
-                + ", ".join(
-                    f"{w['machine_cpu_pct']:.0f} %/"
-                    + ("–" if w["beacon_p99_ms"] is None else f"{w['beacon_p99_ms']:.0f} ms")
-                    for w in f["windows"]
-                )
-            )
+        _print_fleet_point(f)
     return 0
+
+
+#: the step costs ``slcp bench`` measures again beside each fleet point
+FLEET_POINT_STEPS = ("mechanisation_us", "covariance_step_us", "gnss_update_us", "range_update_source_ci_us",
+                     "beacon_verify_us")
+
+
+def _print_fleet_point(f: dict) -> None:
+    if "error" in f:
+        print(f"  fleet {f['agents']:3d} agents: {f['error']}")
+    else:
+        _print_fleet_figures(f)
+    if f.get("steps"):
+        print("    step costs right after it: " + ", ".join(
+            f"{k.removesuffix('_us').replace('_', ' ')} {v:.1f} µs" for k, v in f["steps"].items()))
+
+
+def _print_fleet_figures(f: dict) -> None:
+    """One fleet point's figures (``slcp bench`` without ``--json``)."""
+    lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
+    print(
+        f"  fleet {f['agents']:3d} agents ({f['method']}, {f['fusion']}, Zenoh {f['zenoh_mode']}, "
+        f"IMU batch {f['imu_batch']}): "
+        f"real-time factor {f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, "
+        f"CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
+        f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
+        f"{f['emulator_cpu_pct']:.0f} %, launcher {f['launcher_cpu_pct']:.0f} %, "
+        f"machine {f['machine_cpu_pct']:.0f} %, "
+        f"RSS/agent {f['rss_mb_per_agent']['mean']:.0f} MB (max {f['rss_mb_per_agent']['max']:.0f}), "
+        f"beacon latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms, sensor drops {f['sensor_dropped']}"
+        + (f", live map {f['view_frames']} frames of up to {f['view_vehicles']} vehicles" if "view_frames" in f
+           else "")
+    )
+    if f.get("windows"):
+        worst = f["beacon_p99_ms_worst_window"]
+        print(
+            f"    by {f['windows'][0]['wall_s']:.0f} s window: "
+            f"machine CPU {f['machine_cpu_pct_peak']:.0f} % at the "
+            f"busiest, beacon p99 {'–' if worst is None else f'{worst:.1f} ms'} in the worst; "
+            + ", ".join(
+                f"{w['machine_cpu_pct']:.0f} %/"
+                + ("–" if w["beacon_p99_ms"] is None else f"{w['beacon_p99_ms']:.0f} ms")
+                for w in f["windows"]
+            )
+        )
 
 
 HANDLERS = {"attack-eval": _cmd_attack_eval, "bound": _cmd_bound, "bench": _cmd_bench, "soak": _cmd_soak}
