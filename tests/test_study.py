@@ -157,15 +157,20 @@ def test_bench_prints_the_step_costs_beside_each_fleet_point(capsys, monkeypatch
     stands for the fleet runs), in the JSON and on the point's own line."""
     import json
 
-    from slcp.deploy import fleet_bench
+    from slcp.deploy import bench, fleet_bench
     from slcp.deploy.cli import main
     from slcp.deploy.commands.lab import FLEET_POINT_STEPS
 
     monkeypatch.setattr(fleet_bench, "run_fleet_point", lambda n, *a, **k: {"agents": n, "error": "stub"})
+    calls = []  # the step costs themselves are the test above's: here, how often and where they go
+    monkeypatch.setattr(bench, "micro_benchmarks", lambda quick=False: calls.append(quick) or {
+        k: 1.0 + len(calls) for k in (*FLEET_POINT_STEPS, "imu_step_us")})
     assert main(["bench", "--quick", "--json", "--drive", "/nonexistent", "--fleet", "3,4"]) == 0
     points = json.loads(capsys.readouterr().out)["fleet"]
     assert [p["agents"] for p in points] == [3, 4]
-    assert all(set(p["steps"]) == set(FLEET_POINT_STEPS) and min(p["steps"].values()) > 0 for p in points)
+    # once for the run, then once after each point, each point with its own
+    assert calls == [True, True, True] and [p["steps"]["mechanisation_us"] for p in points] == [3.0, 4.0]
+    assert all(set(p["steps"]) == set(FLEET_POINT_STEPS) for p in points)
     assert main(["bench", "--quick", "--drive", "/nonexistent", "--fleet", "3"]) == 0
     lines = capsys.readouterr().out.splitlines()
     at = lines.index("  fleet   3 agents: stub")
