@@ -174,7 +174,8 @@ def test_bench_prints_the_step_costs_beside_each_fleet_point(capsys, monkeypatch
     assert main(["bench", "--quick", "--drive", "/nonexistent", "--fleet", "3"]) == 0
     lines = capsys.readouterr().out.splitlines()
     at = lines.index("  fleet   3 agents: stub")
-    assert lines[at + 1].startswith("    step costs right after it: mechanisation ") and "beacon verify" in lines[at + 1]
+    after = lines[at + 1]
+    assert after.startswith("    step costs right after it: mechanisation ") and "beacon verify" in after
 
 
 def _start_probe(*pid_files):
