@@ -604,36 +604,3 @@ def test_arrays_of_any_number_type_and_numpy_scalars_travel_as_their_values() ->
     assert [lab for lab, _ in d.sources] == [("V1",), ("~common",)]
     np.testing.assert_array_equal(d.sources[0][1], np.eye(3))
     np.testing.assert_array_equal(d.constants[0][1], [1.0, 0.0, 0.0])
-
-
-@pytest.mark.fleet
-@pytest.mark.timeout(60)
-def test_a_clients_callbacks_run_in_zenohs_threads_and_a_routers_in_threads_of_their_own() -> None:
-    """An agent's subscriptions add no Python thread each (the callbacks run in the Zenoh thread
-    that receives, and still deliver); a router's do (its receiving threads forward the fleet's
-    traffic and must not wait for the process's GIL)."""
-    import threading
-
-    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
-
-    async def main() -> tuple[int, int, bytes]:
-        ep = f"tcp/127.0.0.1:{free_port()}"
-        router = ZenohBus(ZenohConfig(mode="router", listen=(ep,)))
-        client = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
-        try:
-            n0 = threading.active_count()
-            subs = [client.subscribe(f"slcp/v1/probe/{k}") for k in range(5)]
-            n1 = threading.active_count()
-            for k in range(2):
-                router.subscribe(f"slcp/v1/other/{k}")
-            n2 = threading.active_count()
-            await asyncio.sleep(0.3)
-            await router.publish("slcp/v1/probe/3", b"x")
-            got = (await asyncio.wait_for(subs[3].get(), 5.0))[1]
-            return n1 - n0, n2 - n1, got
-        finally:
-            await client.close()
-            await router.close()
-
-    added_client, added_router, got = asyncio.run(main())
-    assert (added_client, added_router, got) == (0, 2, b"x")

@@ -108,15 +108,13 @@ class _Undeclarable(Protocol):
     def undeclare(self) -> object: ...
 
 
-def _callback(fn: Callable[[zenoh.Sample], None], direct: bool) -> Any:
-    """``fn`` as a subscriber's handler. ``direct``: run in the Zenoh thread that received the
-    sample. zenoh-python's default runs each subscriber's callbacks in a Python thread of its
-    own, fed through a channel: one more thread per subscription, and a thread switch and a
-    hand-over of the GIL for every message. slcp's callbacks only copy the payload and queue it
-    (no Zenoh call, no blocking), which is what running them in Zenoh's thread asks. Not in a
-    router: its receiving threads forward the whole fleet's traffic and must not wait for this
-    process's GIL (the launcher's router shares its process with the recorder)."""
-    return zenoh.handlers.Callback(fn, indirect=False) if direct else fn
+def _direct(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback[zenoh.Sample]:
+    """``fn`` run in the Zenoh thread that received the sample. zenoh-python's default runs each
+    subscriber's callbacks in a Python thread of its own, fed through a channel: one more thread
+    per subscription, and a thread switch and a hand-over of the GIL for every message. slcp's
+    callbacks only copy the payload and queue it (no Zenoh call, no blocking), which is what
+    running them in Zenoh's thread asks."""
+    return zenoh.handlers.Callback(fn, indirect=False)
 
 
 _zenoh_log_started = False
@@ -166,7 +164,6 @@ class ZenohBus:
         self._subs: list[Subscription] = []
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self._closed = False
-        self._direct = config.mode != "router"
 
     def connected(self) -> bool:
         """Whether the session has a link to any router or peer right now."""
@@ -196,7 +193,7 @@ class ZenohBus:
                 return
             sub.offer(str(sample.key_expr), payload.to_bytes(), threadsafe=True)
 
-        self._subscribers.append(self.session.declare_subscriber(expr, _callback(on_sample, self._direct)))
+        self._subscribers.append(self.session.declare_subscriber(expr, _direct(on_sample)))
         self._subs.append(sub)
         return sub
 
@@ -206,7 +203,7 @@ class ZenohBus:
         def on_sample(sample: zenoh.Sample) -> None:
             callback(str(sample.key_expr), sample.payload.to_bytes())
 
-        self._subscribers.append(self.session.declare_subscriber(expr, _callback(on_sample, self._direct)))
+        self._subscribers.append(self.session.declare_subscriber(expr, _direct(on_sample)))
 
     def declare_alive(self, key: str) -> None:
         if key in self._tokens:  # one token per key
@@ -233,8 +230,7 @@ class ZenohBus:
             except RuntimeError:
                 pass
 
-        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, _callback(on_sample, self._direct),
-                                                                             history=True))
+        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, _direct(on_sample), history=True))
 
     async def close(self) -> None:
         if self._closed:
