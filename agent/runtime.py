@@ -94,7 +94,7 @@ class Agent:
             subs["beacon"].prefilter = _beacon_prefilter(trust)
         self.bus.declare_alive(keys.alive("agent", v))
         # with a trust store, the fleet's vehicles only: a stranger's tokens are dropped in the
-        # transport's thread (one subscriber for the fleet, not one per vehicle)
+        # transport's thread (one subscriber, not one per vehicle: each has a thread of its own)
         fleet = frozenset(trust.identities("vehicle")) - {v} if trust is not None else None
         self.bus.watch_alive(keys.ROOT + "/alive/agent/*", self._on_alive, names=fleet)
         consumer = asyncio.create_task(self._consume(waker, subs), name=f"{v}-consume")

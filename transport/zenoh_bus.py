@@ -15,7 +15,6 @@ import json
 import logging
 import os
 import re
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -108,15 +107,6 @@ class _Undeclarable(Protocol):
     def undeclare(self) -> object: ...
 
 
-def _direct(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback[zenoh.Sample]:
-    """``fn`` run in the Zenoh thread that received the sample. zenoh-python's default runs each
-    subscriber's callbacks in a Python thread of its own, fed through a channel: one more thread
-    per subscription, and a thread switch and a hand-over of the GIL for every message. slcp's
-    callbacks only copy the payload and queue it (no Zenoh call, no blocking), which is what
-    running them in Zenoh's thread asks."""
-    return zenoh.handlers.Callback(fn, indirect=False)
-
-
 _zenoh_log_started = False
 
 
@@ -193,7 +183,7 @@ class ZenohBus:
                 return
             sub.offer(str(sample.key_expr), payload.to_bytes(), threadsafe=True)
 
-        self._subscribers.append(self.session.declare_subscriber(expr, _direct(on_sample)))
+        self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
         self._subs.append(sub)
         return sub
 
@@ -203,7 +193,7 @@ class ZenohBus:
         def on_sample(sample: zenoh.Sample) -> None:
             callback(str(sample.key_expr), sample.payload.to_bytes())
 
-        self._subscribers.append(self.session.declare_subscriber(expr, _direct(on_sample)))
+        self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
 
     def declare_alive(self, key: str) -> None:
         if key in self._tokens:  # one token per key
@@ -230,7 +220,7 @@ class ZenohBus:
             except RuntimeError:
                 pass
 
-        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, _direct(on_sample), history=True))
+        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, on_sample, history=True))
 
     async def close(self) -> None:
         if self._closed:
