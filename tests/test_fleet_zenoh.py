@@ -234,7 +234,7 @@ def test_an_emulator_that_does_not_exit_after_the_scenario_is_killed_and_the_run
 
     from slcp.deploy import launcher
 
-    hang_after = "import sys, time; from deploy.cli import main; main(sys.argv[1:]); time.sleep(600)"
+    hang_after = "import sys, time; from slcp.deploy.cli import main; main(sys.argv[1:]); time.sleep(600)"
     _emulator_replaced(monkeypatch, lambda argv: [sys.executable, "-c", hang_after, *argv[3:]])
     monkeypatch.setattr(launcher, "_supervise", functools.partial(launcher._supervise, exit_grace_s=3.0))
     out = tmp_path / "run"
