@@ -116,10 +116,10 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
     o = scn.origin_llh
     for vid in ids:
         tr = truth.vehicles[vid]
-        k = np.clip(np.searchsorted(tr.truth.t, ts - 1e-9), 0, len(tr.truth.t) - 1)
+        k = tr.samples_over(ts)
         pos[vid] = map_ne(tr.truth.llh[k], o)
         # off the air (a vehicle of external trajectories before or after its samples): no information
-        present[vid] = tr.present[k] if tr.present is not None else np.ones(len(ts), bool)
+        present[vid] = tr.present_over(ts)
         moving[vid] = ~tr.stopped[k]
         # first stopped at any instant of the step's interval [t_k, t_k+1): the bound at step k
         # stands for the whole interval (``Bound.at``), and a detector may claim (and fix) as

@@ -39,7 +39,7 @@ def one_seed(args: tuple[str, int]) -> dict:
     r = run_inprocess(truth, seed)
     out: dict = {"seed": seed, "rmse": {}, "first_stopped": {}}
     for vid, vt in truth.vehicles.items():
-        k = np.minimum(np.searchsorted(vt.truth.t, r.t - 1e-9), len(vt.truth.t) - 1)  # VehicleTruth.sample_at
+        k = vt.samples_over(r.t)
         on = vt.present_over(r.t)
         for m in METHODS:
             e = r.err[(vid, m)][on]

@@ -79,10 +79,10 @@ class HostileStation:
     def __post_init__(self) -> None:
         if not self.fleet:
             raise ValueError("a hostile station needs the fleet's vehicle names")
-        self._big_rounds = 0
         if self.identities < 2 or self.token_life <= 0:
             raise ValueError("need at least 2 identities and a positive token life")
         self.rng = np.random.default_rng(self.seed)
+        self._big_rounds = 0  # oversized payloads sent: the next victim in turn
         #: genuine beacons heard on the bus: (the key they were delivered on, payload)
         self.captured: deque[tuple[str, bytes]] = deque(maxlen=256)
         self.now = 0.0  #: the fleet's sensor time [s], as the newest genuine beacon says

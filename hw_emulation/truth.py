@@ -101,10 +101,9 @@ class VehicleTruth:
 
     def present_over(self, t: np.ndarray) -> np.ndarray:
         """:meth:`present_at` of every time in ``t`` [s], shape of ``t``."""
-        t = np.asarray(t, float)
         if self.present is None:
-            return np.ones(t.shape, bool)
-        return self.present[np.minimum(np.searchsorted(self.truth.t, t - 1e-9), len(self.truth.t) - 1)]
+            return np.ones(np.shape(t), bool)
+        return self.present[self.samples_over(t)]
 
     def present_at(self, t: float) -> bool:
         """Whether the vehicle is on the air at ``t`` [s] (its sensors report)."""
@@ -113,8 +112,11 @@ class VehicleTruth:
     def stopped_at(self, t: np.ndarray) -> np.ndarray:
         """Whether the vehicle truly stands at times ``t`` [s] (the first IMU sample not before
         each), shape of ``t``."""
-        k = np.clip(np.searchsorted(self.truth.t, np.asarray(t, float) - 1e-9), 0, len(self.truth.t) - 1)
-        return self.stopped[k]
+        return self.stopped[self.samples_over(t)]
+
+    def samples_over(self, t: np.ndarray) -> np.ndarray:
+        """:meth:`sample_at` of every time in ``t`` [s], shape of ``t``."""
+        return np.minimum(np.searchsorted(self.truth.t, np.asarray(t, float) - 1e-9), len(self.truth.t) - 1)
 
     def sample_at(self, t: float) -> int:
         """The index of the truth sample an estimate of time ``t`` [s] is scored against: the first
