@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import free_port, run_group, short_scenario
+from conftest import free_port, run_group, short_scenario, wait_for_port
 
 pytestmark = [pytest.mark.fleet, pytest.mark.slow]
 
@@ -193,7 +193,7 @@ def test_a_killed_recorder_keeps_what_it_wrote_and_a_restarted_one_continues(tmp
         return k
 
     try:
-        time.sleep(1.5)
+        wait_for_port(port, timeout=60.0)  # a router's start-up takes seconds on a loaded machine
         rec = recorder()
 
         async def main():
