@@ -193,6 +193,8 @@ async def emulator_main(scenario: str, seed: int, speed: float | None, zcfg: Zen
                     emu.forget_agent(v)
                 return
             if up:
+                if v not in alive:
+                    log.info("agent %s alive", v)
                 alive.add(v)
                 emu.agent_back(v)
             else:

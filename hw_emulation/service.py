@@ -109,6 +109,8 @@ class EmulatorService:
         self.stalled: dict[str, float] = {}
         #: departures of names that are not the scenario's vehicles, ignored
         self.unknown_liveliness = 0
+        #: (monotonic time, sensor time) from which ``max_speed`` is measured (see :meth:`_pace`)
+        self._rate_ref: tuple[float, float] | None = None
 
     # ----------------------------------------------------------------- diagnostics
     def diagnostics(self) -> Diagnostics:
@@ -227,6 +229,7 @@ class EmulatorService:
             self.now = max(self.now, float(self.start_at))
             log.warning("resuming the scenario at t=%.2f s", self.now)
         wall0, t0 = time.monotonic(), self.now
+        self._rate_ref = None
         try:
             next_diag = t0
             for t, messages in self.playback.messages(start_at=t0):
@@ -257,10 +260,19 @@ class EmulatorService:
             else:
                 await asyncio.sleep(0)
             return
-        # as fast as the slowest agent keeps up (and no faster than max_speed)
-        ahead = (t - t0) / self.max_speed - (time.monotonic() - wall0)
+        # as fast as the slowest agent keeps up, and no faster than max_speed measured from the
+        # last time the clock was behind that rate: time spent waiting (for the agents, for one
+        # that restarts, for a busy machine) is never made up in a burst, which could play the
+        # rest of a scenario within a fraction of a second, before agents that are back after a
+        # network outage report again
+        now = time.monotonic()
+        ref_wall, ref_t = self._rate_ref or (now, t)
+        ahead = (t - ref_t) / self.max_speed - (now - ref_wall)
         if ahead > 0:
+            self._rate_ref = (ref_wall, ref_t)
             await asyncio.sleep(ahead)
+        else:
+            self._rate_ref = (now, t)
         while not stop.is_set() and not final and any(
                 time.monotonic() - left < self.rejoin_grace for left in self._away.values()):
             await asyncio.sleep(0.01)  # an agent left: hold the clock while it restarts

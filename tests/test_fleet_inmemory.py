@@ -146,7 +146,7 @@ def test_an_agent_that_stalls_the_clock_is_waited_for_once_then_set_aside_until_
     on again as soon as it reports a time later than the one it stalled at."""
     truth = build_truth(load_scenario("paper-1"))
     emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0, stall_timeout=0.3)
-    wall0, stop = time.monotonic() - 1e3, asyncio.Event()  # far behind max_speed: no rate limit
+    wall0, stop = time.monotonic() - 1e3, asyncio.Event()  # (max_speed adds at most 0.05 s a call here)
 
     def pace(t: float) -> float:
         w = time.monotonic()
@@ -163,6 +163,33 @@ def test_an_agent_that_stalls_the_clock_is_waited_for_once_then_set_aside_until_
     assert pace(10.5) < 0.1  # everyone within the lead
     assert 0.3 <= pace(11.5) < 1.0 and emu.stalled == {"V0": 10.1, "V1": 10.0, "V2": 10.0}
     assert pace(11.6) < 0.1  # nobody left to wait for: the clock runs on
+
+
+def test_the_clock_never_makes_up_held_time_in_a_burst() -> None:
+    """Agent-paced clock with every agent set aside (back after a network outage, not yet
+    reporting): it runs at max_speed, measured from the last time it was held, not from the start
+    of the run. Long after the start (the run's budget at max_speed far ahead of the clock), 2 s
+    of sensor time still take at least 2 s / max_speed of wall time; once it has run that fast,
+    waiting has not bought a burst either."""
+    truth = build_truth(load_scenario("paper-1"))
+    emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0, max_speed=20.0)
+    emu.stalled = {v: -np.inf for v in truth.vehicles}
+    wall0, stop = time.monotonic() - 1e3, asyncio.Event()
+
+    async def play(t_from: float, t_to: float) -> float:
+        w = time.monotonic()
+        for t in np.arange(t_from, t_to + 1e-9, 0.05):
+            await emu._pace(float(t), wall0, 0.0, stop)
+        return time.monotonic() - w
+
+    async def main() -> tuple[float, float]:
+        first = await play(20.0, 22.0)
+        await asyncio.sleep(0.5)  # held (as by a restart): 10 s of sensor time at max_speed
+        return first, await play(22.05, 24.05)
+
+    first, after_hold = asyncio.run(main())
+    assert 2.0 / 20.0 <= first < 1.0
+    assert 2.0 / 20.0 <= after_hold < 1.0
 
 
 def test_the_filters_start_from_the_fix_nearest_the_first_imu_sample_whatever_had_arrived() -> None:
