@@ -604,3 +604,40 @@ def test_arrays_of_any_number_type_and_numpy_scalars_travel_as_their_values() ->
     assert [lab for lab, _ in d.sources] == [("V1",), ("~common",)]
     np.testing.assert_array_equal(d.sources[0][1], np.eye(3))
     np.testing.assert_array_equal(d.constants[0][1], [1.0, 0.0, 0.0])
+
+
+@pytest.mark.fleet
+@pytest.mark.timeout(60)
+def test_a_session_closed_right_after_publishing_delivers_its_last_message() -> None:
+    """Clients that publish a burst, then a last message, then close at once: every last message
+    reaches a subscriber behind the router (closing the session without letting the queues
+    drain lost 1 to 3 of the 16 here: a process's final diagnostics)."""
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
+
+    async def main() -> tuple[int, int]:
+        ep = f"tcp/127.0.0.1:{free_port()}"
+        router = ZenohBus(ZenohConfig(mode="router", listen=(ep,)))
+        sub_bus = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
+        sub = sub_bus.subscribe("slcp/v1/test/last", 1000)
+        sent = 0
+        try:
+            for _ in range(2):
+                pubs = [ZenohBus(ZenohConfig(mode="client", connect=(ep,))) for _ in range(8)]
+                await asyncio.sleep(0.5)  # the subscriber's declaration reaches them
+
+                async def burst_then_close(i: int, pub: ZenohBus) -> None:
+                    for _ in range(50):
+                        await pub.publish("slcp/v1/test/bulk", b"x" * 20_000)
+                    await pub.publish("slcp/v1/test/last", str(i).encode())
+                    await pub.close()
+
+                await asyncio.gather(*(burst_then_close(i, p) for i, p in enumerate(pubs)))
+                sent += len(pubs)
+            await asyncio.sleep(0.5)
+            return sent, len(sub.drain())
+        finally:
+            await sub_bus.close()
+            await router.close()
+
+    sent, got = asyncio.run(main())
+    assert got == sent == 16
