@@ -53,8 +53,7 @@ def drive_config(outage=None, nhc: bool = True, estimate_time_offset: bool = Tru
 def pytest_xdist_auto_num_workers(config) -> int:
     """``-n auto``: two workers more than the cores this process may use. A good part of the
     suite's time is spent waiting on processes, sockets and paced playback, which spare workers
-    fill with CPU-bound tests: on two cores, three workers kept 1.8 of them busy and four 1.94
-    (the suite 238-257 s against 230-232 s; five: 242 s)."""
+    fill with CPU-bound tests (on two cores, four workers keep them busier than three or five)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return cores + 2
 
