@@ -238,6 +238,8 @@ class ZenohBus:
         wait = self.CLOSE_LINGER_S - (time.monotonic() - self._last_publish)
         if wait > 0:
             await asyncio.sleep(wait)
+            if self._closed:  # closed by another caller meanwhile
+                return
         self._closed = True
         for sub in self._subs:
             sub.closed = True
