@@ -78,6 +78,9 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
                                          "beacons_tx": 0, "estimates_tx": 0, "codec_errors": 0,
                                          "not_for_me": 0, "before_init": 0, "decisions": 0}
         self.decision_log: list[tuple[float, str, str]] = []
+        #: stop-line method -> the reason of its latest first-stopped decision ("moving", "not
+        #: near a stop line", "neighbour V3 may be ahead", "first stopped", ...), in diagnostics
+        self.decision_reason: dict[str, str] = {}
         #: GNSS fixes received before the filters start (the newest few)
         self._pending_fixes: deque[GnssFix] = deque(maxlen=32)
         #: per (vehicle, method): the signature verifications a sender may cost (made when first used)
@@ -476,6 +479,7 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
                 ghosts[o] = (llh, cov + np.eye(3) * (self.cfg.ghost_speed * age) ** 2)
             dec, changed = first_stopped_step(tr, self.filters[m], self.tables[m], self.cfg.lanes,
                                               self.cfg.origin_llh, t, ghosts, self.cfg.lane_map)
+            self.decision_reason[m] = dec.reason
             if changed:
                 self.decision_log.append((t, m, dec.reason))
                 log.info("%s %s: %s at t=%.1f (%s)", self.cfg.vehicle, m,

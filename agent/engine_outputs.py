@@ -36,6 +36,7 @@ class EngineOutputs:
     filters: dict[str, MethodFilter]
     tables: dict[str, NeighbourTable]
     trackers: dict[str, StopTracker]
+    decision_reason: dict[str, str]
     counters: dict[str, int]
     seq: Sequencer
     misbehaviour: MisbehaviourDetector | None
@@ -109,6 +110,8 @@ class EngineOutputs:
         mb = self.misbehaviour
         status = {"t": t, "neighbours": len(set().union(*(tab.vehicles() for tab in self.tables.values()))),
                   "first_stopped": [m for m in self.trackers if self.claim(m)],
+                  # why each stop-line method claims or does not (its latest decision)
+                  "decisions": dict(self.decision_reason),
                   "lost": {v: [lt, how] for v, (lt, how) in self.lost.items()},
                   "departures": [list(d) for d in self.departures],
                   # verified beacons per sender (the most frequent, within the codec's map limit)

@@ -384,3 +384,28 @@ def test_at_rest_for_exactly_min_stationary_is_long_enough() -> None:
     assert tr.moving_decision(0.5, 0.0)[0].reason == "moving"
     assert tr.moving_decision(0.625, 0.0)[0].reason == "moving"
     assert tr.moving_decision(0.75, 0.0) is None
+
+
+def test_each_agents_diagnostics_say_why_it_claims_first_stopped_or_not(tmp_path) -> None:
+    """paper-1 (V1 and V2 queue northbound, V1 first; V0 turns away) in process: each agent's
+    diagnostics carry its stop-line method's latest decision reason, through the codec: V1's is
+    "first stopped", V2's names V1, V0's is never a claim."""
+    from slcp.deploy.inprocess import run_inprocess
+    from slcp.hw_emulation.scenario import load_scenario
+    from slcp.hw_emulation.truth import build_truth
+    from slcp.transport.codec import decode, encode
+    from slcp.transport.messages import Diagnostics
+
+    from conftest import short_scenario
+
+    truth = build_truth(load_scenario(short_scenario(tmp_path, "paper-1", 30.0)))
+    reasons: dict[str, list[str]] = {v: [] for v in truth.vehicles}
+
+    def on_output(v: str, m) -> None:
+        if isinstance(m, Diagnostics):
+            reasons[v].append(decode(encode(m)).status["decisions"]["SL-SP"])
+
+    run_inprocess(truth, seed=0, methods=("SL-SP",), on_output=on_output)
+    assert reasons["V0"][0] == "moving" and "first stopped" not in reasons["V0"]
+    assert reasons["V1"][-1] == "first stopped"
+    assert "V1" in reasons["V2"][-1] and "first stopped" not in reasons["V2"]
