@@ -121,7 +121,7 @@ class VehicleTruth:
     def sample_at(self, t: float) -> int:
         """The index of the truth sample an estimate of time ``t`` [s] is scored against: the first
         IMU sample not before ``t`` (the last one after the end)."""
-        return min(int(np.searchsorted(self.truth.t, t - 1e-9)), len(self.truth.t) - 1)
+        return int(self.samples_over(t))
 
     def error_of(self, t: float, llh) -> tuple[np.ndarray, int]:
         """An estimate's position error: its NED offset [m] from the truth at ``t`` [s] (``llh``

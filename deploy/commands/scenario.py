@@ -138,7 +138,7 @@ def _evaluate(args: argparse.Namespace, scn, truth) -> int:
             rows.append(row)
     detect = {}
     for vid, vt in truth.vehicles.items():
-        k = np.array([vt.sample_at(float(x)) for x in r.t])
+        k = vt.samples_over(r.t)
         true_first, zone = vt.first_stopped[k], vt.first_stop_zone[k]
         claims = r.first[(vid, "SL-SP")]
         detect[vid] = {"true_first_s": float(true_first.sum() / 10), "claimed_s": float(claims.sum() / 10),
