@@ -187,11 +187,13 @@ async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent:
     bus = ZenohBus(zcfg)
     try:
         bus.declare_alive(keys.alive("sensors", plan.vehicle))
+        # subscribed before anything is published: declared just before, the subscription could
+        # reach the agent after its first estimates, and the scoring would start epochs later
+        collector = EstimateCollector(bus, plan.vehicle)
         if wait_agent > 0:
             if not await wait_for_agent(bus, plan.vehicle, wait_agent):
                 log.warning("no agent %s after %.0f s; publishing anyway", plan.vehicle, wait_agent)
-            await asyncio.sleep(0.5)  # let its subscriptions propagate
-        collector = EstimateCollector(bus, plan.vehicle)
+            await asyncio.sleep(0.5)  # let the subscriptions propagate both ways
         wall0 = time.perf_counter()
         stats = await publish_plan(bus, plan, speed, stop)
         if not stop.is_set():
