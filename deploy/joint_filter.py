@@ -1,9 +1,10 @@
-"""The joint filter of the joint reference (:mod:`deploy.joint_reference`): an iterated EKF in
-information form on the joint bound's model (:mod:`deploy.bound`), fed with measured rows.
+"""The joint filter of the joint reference (:mod:`deploy.joint_reference`): an iterated EKF on
+the joint bound's model (:mod:`deploy.bound`), fed with measured rows.
 
 Per vehicle the state is position, velocity, INS acceleration error (north, east each), GNSS
 multipath (2), stop-gap errors (2) and lane offset (1); then the GNSS common mode (2), shared;
-then one NLOS bias per UWB link in use. A vehicle moves as its INS says (velocity increments
+then one NLOS bias per UWB link in use, a *consider* state (its estimate the link tracker's, its
+covariance carried exactly). A vehicle moves as its INS says (velocity increments
 from its own filter), its acceleration error a Gauss-Markov process with the covariance its own
 filter holds. Rows: GNSS position (on position + multipath + common mode) and velocity, ZUPT,
 stop-line fix, lane keeping, UWB range (on the two positions and the link's bias). Pure numpy.
@@ -190,38 +191,58 @@ class JointFilter:
         self.t = t
 
     def update(self, rows: list[Row], iterations: int = 3) -> None:
-        """An iterated EKF step on ``rows``, robust (Huber): a row whose innovation at the
-        current iterate lies beyond :data:`HUBER_K` σ of its predicted spread counts with its
-        noise inflated to keep its pull at that bound (an NLOS range, a multipath jump, and the
-        first ranges to a vehicle whose first fixes were far off are weighed, not dropped: a
-        hard gate that drops the ranges to a vehicle once kept dropping them as its σ shrank)."""
+        """An iterated EKF step on ``rows`` (Gauss-Newton about the prediction, the links' biases
+        held as consider states), robust (Huber): a row whose innovation at the current
+        iterate lies beyond :data:`HUBER_K` σ of its predicted spread counts with its noise
+        inflated to keep its pull at that bound (an NLOS range, a multipath jump, and the first
+        ranges to a vehicle whose first fixes were far off are weighed, not dropped: a hard
+        gate that drops the ranges to a vehicle once kept dropping them as its σ shrank)."""
         if not rows:
             return
         self._reanchor(rows)
-        Y0 = np.linalg.inv(self.P)
+        P = self.P
         x_pred = self.x.copy()
         x = x_pred.copy()
         spread = []
         for r in rows:
             _, H = r.fn(x, self.t - r.t)
-            spread.append(np.linalg.inv(H @ self.P @ H.T + r.R))
+            spread.append(np.linalg.inv(H @ P @ H.T + r.R))
         self.counters["rows"] += len(rows)
-        A = Y0
+        # the links' biases are *consider* states (Schmidt): the ranges never move them, their
+        # covariance is carried exactly, so that a link's ranges do not average its bias away
+        # and a geometry error cannot hide in it
+        consider = [e[0] for e in self.links.values()]
+        K: np.ndarray = np.zeros((self.n, 0))
+        Hs: np.ndarray = np.zeros((0, self.n))
+        S: np.ndarray = np.zeros((0, 0))
         for _ in range(iterations):
-            A = Y0.copy()
-            g = Y0 @ (x_pred - x)
+            Hl: list[np.ndarray] = []
+            nus: list[np.ndarray] = []
+            Rl: list[np.ndarray] = []
             for r, Si in zip(rows, spread):
                 h, H = r.fn(x, self.t - r.t)
                 nu = r.z - h
                 d = math.sqrt(max(float(nu @ Si @ nu), 0.0))
                 k = HUBER_K.get(r.kind)
                 w = 1.0 if k is None or d <= k else k / d
-                Ri = np.linalg.inv(r.R) * w
-                A += H.T @ Ri @ H
-                g += H.T @ Ri @ nu
-            x = x + np.linalg.solve(A, g)
+                Hl.append(H)
+                nus.append(nu + H @ (x - x_pred))
+                Rl.append(r.R / w)
+            Hs = np.vstack(Hl)
+            R = np.zeros((len(Hs), len(Hs)))
+            o = 0
+            for Rr in Rl:
+                R[o:o + len(Rr), o:o + len(Rr)] = Rr
+                o += len(Rr)
+            S = Hs @ P @ Hs.T + R
+            K = np.linalg.solve(S, Hs @ P).T
+            if consider:
+                K[consider] = 0.0
+            x = x_pred + K @ np.concatenate(nus)
         self.x = x
-        self.P = np.linalg.inv(A)
+        # any gain: P - K H P - P Hᵀ Kᵀ + K S Kᵀ
+        KHP = K @ (Hs @ P)
+        self.P = P - KHP - KHP.T + K @ S @ K.T
         self.P = 0.5 * (self.P + self.P.T)
 
     def _reanchor(self, rows: list[Row]) -> None:
@@ -325,9 +346,10 @@ class JointFilter:
         """A UWB range between ``a`` and ``c`` (None: judged an outlier or NLOS). Its noise
         holds the second-order term of the linearisation, σ⊥⁴ / (2 r²) with σ⊥² the relative
         position's variance across the line of sight (what a range cannot tell while the
-        geometry is uncertain). The link's NLOS bias is a state (:meth:`_link_state`): a bias
-        repeated at 10 Hz is not noise that averages out, and left as noise it moved two
-        queued vehicles apart by the 2.5 m of a link that started inside an episode."""
+        geometry is uncertain). The link's NLOS bias is a consider state (:meth:`_link_state`):
+        a bias repeated at 10 Hz is not noise that averages out (as noise it moved two queued
+        vehicles apart by the 2.5 m of a link that started inside an episode), and estimated
+        from the geometry it becomes where a geometry error goes."""
         s = self.settings
         i, j = self.ix[a], self.ix[c]
         P, x = self.P, self.x
@@ -350,7 +372,7 @@ class JointFilter:
                     self.counters["range_outlier"] = self.counters.get("range_outlier", 0) + 1
                     return None
                 p_nlos = link.p_nlos
-            li = self._link_state(f"{a}|{c}", t, None if self.nlos is None else link.bias_variance)
+            li = self._link_state(f"{a}|{c}", t, p_nlos)
             spread = float(u @ Pr @ u) + var + float(self.P[li, li])
             if s.uwb_nlos.classify(r - rho - float(self.x[li]), spread, s.nlos_reject_probability, p_nlos):
                 # a new episode: the link's bias is drawn afresh, and the ranges, kept, tie
@@ -372,30 +394,33 @@ class JointFilter:
             return np.array([rho + x[li]]), H
         return Row(t, np.array([r]), np.eye(1) * var, fn, "range")
 
-    def _link_state(self, link: str, t: float, bias_variance: float | None) -> int:
-        """The NLOS bias state of ``link``, zero mean. Its variance is what the link's own
-        range series says of its bias, p·E[b²] (``bias_variance``, :class:`NlosLinkTracker`;
-        without a tracker the steady share's p₀·E[b²]): a new state starts there, a state
-        below it is raised to it (an episode may be starting) and its process noise holds it
-        there (:meth:`predict`). A link silent for :data:`LINK_IDLE` s is forgotten."""
+    def _link_state(self, link: str, t: float, p_nlos: float | None) -> int:
+        """The NLOS bias state of ``link``: its mean and variance are the bias's moments when
+        the link is NLOS with the probability its own range series gives (``p_nlos``,
+        :class:`NlosLinkTracker`; without one the steady share): zero, or an episode's
+        U(bias_min, bias_max). The variance is raised to that, never lowered (a consider
+        state's covariance with the rest stays valid); a link silent for :data:`LINK_IDLE` s
+        is forgotten."""
         for name in [k for k, (_, last, _) in self.links.items() if t - last > LINK_IDLE]:
             self._drop_state(self.links.pop(name)[0])
         nl = self.settings.uwb_nlos
         if nl is None:
             raise ValueError("a link's bias state needs the settings' NLOS model")
-        bv = nl.steady * nl.bias_mean_square if bias_variance is None else bias_variance
+        p = nl.steady if p_nlos is None else p_nlos
+        mean = p * nl.bias_mean
+        var = max(p * nl.bias_mean_square - mean * mean, 1e-6)
         if link in self.links:
             entry = self.links[link]
-            entry[1], entry[2] = t, bv
+            entry[1], entry[2] = t, var
             li = int(entry[0])
-            self.P[li, li] = max(self.P[li, li], bv)
-            return li
-        li = self.n
-        self.n += 1
-        self.x = np.append(self.x, 0.0)
-        self.P = np.pad(self.P, (0, 1))
-        self.P[li, li] = bv
-        self.links[link] = [li, t, bv]
+        else:
+            li = self.n
+            self.n += 1
+            self.x = np.append(self.x, 0.0)
+            self.P = np.pad(self.P, (0, 1))
+            self.links[link] = [li, t, var]
+        self.x[li] = mean
+        self.P[li, li] = max(self.P[li, li], var)
         return li
 
     def _drop_state(self, k: int) -> None:

@@ -106,26 +106,55 @@ def test_a_range_between_two_equal_vehicles_has_its_closed_form() -> None:
     assert P[1, 1] == pytest.approx(s2, rel=1e-9)
 
 
-def test_a_dropped_link_state_leaves_the_others_marginal() -> None:
-    """Three links, the middle one silent past LINK_IDLE: its state is marginalised (the rest of
-    x and P exactly as they were) and the later link's index moves down."""
+def test_a_link_s_bias_follows_the_tracker_and_a_silent_link_is_marginalised() -> None:
+    """A link's bias state takes the moments of a bias that is NLOS with the tracker's
+    probability p (mean p·E[b], variance p·E[b²] - (p·E[b])², the variance never lowered);
+    of three links, the one silent past LINK_IDLE is marginalised (the rest of x and P as they
+    were) and the later link's index moves down."""
     jf = _filter(("V0", "V1", "V2"), nlos=True)
+    nl = jf.settings.uwb_nlos
     for k, (a, c) in enumerate((("V0", "V1"), ("V0", "V2"), ("V1", "V2"))):
-        jf.x[NV * int(c[1]):NV * int(c[1]) + 2] = (5.0 * k + 5.0, 1.0)
-        jf._link_state(f"{a}|{c}", -9.0 if k == 1 else -5.0, 0.1 + k)
+        jf._link_state(f"{a}|{c}", -9.0 if k == 1 else -5.0, 0.05 * (k + 1))
+    li = jf.links["V0|V1"][0]
+    assert jf.x[li] == pytest.approx(0.05 * nl.bias_mean)
+    assert jf.P[li, li] == pytest.approx(0.05 * nl.bias_mean_square - (0.05 * nl.bias_mean) ** 2)
     rng = np.random.default_rng(1)
     A = rng.normal(size=(jf.n, jf.n))
     jf.P = A @ A.T
     before_x, before_P = jf.x.copy(), jf.P.copy()
-    gone = jf.links["V0|V2"][0]
-    last = jf.links["V1|V2"][0]
-    jf._link_state("V0|V1", 1.5, 0.1)  # V0|V2 silent for 10.5 s
+    gone, last = jf.links["V0|V2"][0], jf.links["V1|V2"][0]
+    jf._link_state("V0|V1", 1.5, 0.9)  # V0|V2 silent for 10.5 s; V0|V1 now likely NLOS
     assert "V0|V2" not in jf.links and jf.links["V1|V2"][0] == last - 1
     keep = [k for k in range(len(before_x)) if k != gone]
-    np.testing.assert_array_equal(jf.x, before_x[keep])
-    expect = before_P[np.ix_(keep, keep)]
-    expect[jf.links["V0|V1"][0], jf.links["V0|V1"][0]] = max(expect[jf.links["V0|V1"][0], jf.links["V0|V1"][0]], 0.1)
-    np.testing.assert_array_equal(jf.P, expect)
+    li = jf.links["V0|V1"][0]
+    expect_x, expect_P = before_x[keep], before_P[np.ix_(keep, keep)]
+    expect_x[li] = 0.9 * nl.bias_mean
+    expect_P[li, li] = max(expect_P[li, li], 0.9 * nl.bias_mean_square - (0.9 * nl.bias_mean) ** 2)
+    np.testing.assert_array_equal(jf.x, expect_x)
+    np.testing.assert_array_equal(jf.P, expect_P)
+
+
+def test_a_link_s_bias_is_a_consider_state() -> None:
+    """Ranges never move a link's bias (Schmidt): after each update it is what the link's
+    tracker made it, and the bias is not averaged away: after 20 ranges on one link in 2 s
+    the relative position along it keeps most of the bias's variance (0.69 of it; white noise
+    of that variance would have shrunk it twenty-fold)."""
+    jf = _filter(nlos=True)
+    jf.x[:2], jf.x[NV:NV + 2] = (0.0, 0.0), (30.0, 0.0)
+    jf.P[:2, :2] = jf.P[NV:NV + 2, NV:NV + 2] = np.eye(2) * 0.5**2
+    jf.P[2:4, 2:4] = jf.P[NV + 2:NV + 4, NV + 2:NV + 4] = np.eye(2) * 1e-8  # velocities known
+    for k in range(20):
+        t = 0.1 * (k + 1)
+        jf.predict(t, {})
+        row = jf.range_row(t, "V1", "V2", 30.0)
+        assert row is not None
+        li = jf.links["V1|V2"][0]
+        before = float(jf.x[li])
+        jf.update([row])
+        assert jf.x[li] == before
+    var_bias = float(jf.P[li, li])
+    rel = jf.P[0, 0] + jf.P[NV, NV] - 2 * jf.P[0, NV]
+    assert var_bias > 0.01 and rel > 0.5 * var_bias  # (the bias decorrelates over 1/exit = 5 s)
 
 
 def _simulate(seed: int, steps: int = 300, dt: float = 0.1):
