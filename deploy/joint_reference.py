@@ -293,30 +293,18 @@ def score(truth: ScenarioTruth, seed: int, step: float = 0.1, acc_scale: float =
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m slcp.deploy.joint_reference", description=__doc__.split("\n\n")[0])
-    ap.add_argument("scenario", help="shipped scenario name or .toml")
-    ap.add_argument("--seeds", default="0", help="comma-separated run seeds (default 0)")
-    ap.add_argument("--step", type=float, default=0.1, help="output step [s] (default 0.1)")
-    ap.add_argument("--acc-scale", type=float, default=1.0,
-                    help="scale of the σ of the INS acceleration error the vehicles' filters report (default 1)")
-    args = ap.parse_args(argv)
-    from slcp.hw_emulation.scenario import load_scenario
-    from slcp.hw_emulation.truth import build_truth
+    from .pooling import seeded_sums
 
-    try:
-        seeds = [int(s) for s in args.seeds.split(",")]
-        scn = load_scenario(args.scenario)
-    except ValueError as exc:
-        print(f"joint_reference: error: {exc}", file=sys.stderr)
+    def options(ap: argparse.ArgumentParser) -> None:
+        ap.add_argument("--step", type=float, default=0.1, help="output step [s] (default 0.1)")
+        ap.add_argument("--acc-scale", type=float, default=1.0,
+                        help="scale of the σ of the INS acceleration error the vehicles' filters report (default 1)")
+
+    got = seeded_sums("joint_reference", (__doc__ or "").split("\n\n")[0], argv,
+                      lambda truth, seed, a: score(truth, seed, a.step, a.acc_scale), options)
+    if got is None:
         return 2
-    total: dict[str, Any] = {}
-    for seed in seeds:
-        for w, per_v in score(build_truth(scn, stop_seed=seed), seed, args.step, args.acc_scale).items():
-            for v, rows in per_v.items():
-                for name, r in rows.items():
-                    acc = total.setdefault(w, {}).setdefault(v, {}).setdefault(name, dict.fromkeys(r, 0.0))
-                    for key, x in r.items():
-                        acc[key] += x
+    args, scn, total = got
     print(f"{scn.name}, seeds {args.seeds}: RMSE [m] / RMSE over the SL-CP bound / ANEES (1 when consistent)")
     for w, per_v in total.items():
         print(f"window {w}")

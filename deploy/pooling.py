@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -74,31 +76,53 @@ def standing_scores(result, truth, source: str = "SL-SP", compare: tuple[str, ..
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m slcp.deploy.pooling", description=__doc__.split("\n\n")[0])
-    ap.add_argument("scenario", help="shipped scenario name or .toml")
-    ap.add_argument("--seeds", default="0", help="comma-separated run seeds (default 0)")
-    args = ap.parse_args(argv)
+def seeded_sums(prog: str, description: str, argv: list[str] | None,
+                per_seed: Callable[[Any, int, argparse.Namespace], dict[str, Any]],
+                extra: Callable[[argparse.ArgumentParser], None] | None = None,
+                ) -> tuple[argparse.Namespace, Any, dict[str, Any]] | None:
+    """The command line of a lab reference run over seeds (``SCENARIO --seeds a,b,…`` and the
+    options ``extra(parser)`` adds): the parsed arguments, the scenario and the sums of
+    ``per_seed(truth, seed, args)`` (nested dicts ending in dicts of numbers) added over the
+    seeds; None (after a one-line error on stderr) for a bad scenario or seed list."""
     from slcp.hw_emulation.scenario import load_scenario
     from slcp.hw_emulation.truth import build_truth
 
-    from .inprocess import run_inprocess
-
+    ap = argparse.ArgumentParser(prog=f"python -m slcp.deploy.{prog}", description=description)
+    ap.add_argument("scenario", help="shipped scenario name or .toml")
+    ap.add_argument("--seeds", default="0", help="comma-separated run seeds (default 0)")
+    if extra is not None:
+        extra(ap)
+    args = ap.parse_args(argv)
     try:
         seeds = [int(s) for s in args.seeds.split(",")]
         scn = load_scenario(args.scenario)
     except ValueError as exc:
-        print(f"pooling: error: {exc}", file=sys.stderr)
-        return 2
-    total: dict = {}
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return None
+    total: dict[str, Any] = {}
+
+    def add(into: dict[str, Any], sums: dict[str, Any]) -> None:
+        for key, x in sums.items():
+            if isinstance(x, dict):
+                add(into.setdefault(key, {}), x)
+            else:
+                into[key] = into.get(key, 0.0) + x
+
     for seed in seeds:
-        truth = build_truth(scn, stop_seed=seed)
-        res = run_inprocess(truth, seed, methods=("SL-SP", "SL-CP"))
-        for v, rows in standing_scores(res, truth).items():
-            for name, r in rows.items():
-                acc = total.setdefault(v, {}).setdefault(name, dict.fromkeys(r, 0.0))
-                for key, x in r.items():
-                    acc[key] += x
+        add(total, per_seed(build_truth(scn, stop_seed=seed), seed, args))
+    return args, scn, total
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .inprocess import run_inprocess
+
+    def per_seed(truth: Any, seed: int, _args: argparse.Namespace) -> dict[str, Any]:
+        return standing_scores(run_inprocess(truth, seed, methods=("SL-SP", "SL-CP")), truth)
+
+    got = seeded_sums("pooling", __doc__.split("\n\n")[0], argv, per_seed)
+    if got is None:
+        return 2
+    args, scn, total = got
     print(f"{scn.name}, seeds {args.seeds}: while each vehicle truly stands; RMSE [m] / RMSE over the "
           "SL-CP bound / ANEES")
     names = next(iter(total.values())).keys() if total else ()
