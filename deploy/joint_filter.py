@@ -75,7 +75,7 @@ class JointFilter:
     their INS acceleration-error covariance scaled by ``acc_scale``."""
 
     def __init__(self, scn: Scenario, ids: list[str], t0: float, settings: FilterSettings,
-                 acc_scale: float = 1.0) -> None:
+                 acc_scale: float = 1.0, keep_links: bool = False) -> None:
         self.scn = scn
         self.settings = settings
         self.acc_scale = acc_scale
@@ -99,6 +99,15 @@ class JointFilter:
         self.lane: dict[str, str | None] = {v: None for v in ids}
         self.P[self.cms, self.cms] = np.eye(2) * scn.common_mode_sigma**2
         self.counters = {"rows": 0}
+        #: every link's bias state from the start, none dropped: the state's size never changes
+        #: (a window re-run over it needs that, :mod:`deploy.joint_window`)
+        self.keep_links = keep_links
+        #: the last prediction: (x, P, F) (F None: no time passed)
+        self.last_pred: tuple[np.ndarray, np.ndarray, np.ndarray | None] = (self.x, self.P, None)
+        if keep_links and settings.uwb_nlos is not None:
+            for i, a in enumerate(ids):
+                for c in ids[i + 1:]:
+                    self._link_state(f"{min(a, c)}|{max(a, c)}", t0, None)
 
     # ------------------------------------------------------------------ state
     def start(self, vid: str, fix: GnssFix, origin: tuple[float, float, float]) -> None:
@@ -147,6 +156,7 @@ class JointFilter:
         the covariance (2, 2) [m²/s⁴] of its acceleration error (None: :data:`ACC_SIGMA`)."""
         dt = t - self.t
         if dt <= 0.0:
+            self.last_pred = (self.x.copy(), self.P.copy(), None)
             return
         n = self.n
         F = np.eye(n)
@@ -189,8 +199,9 @@ class JointFilter:
                 Q[li, li] = bv * (1 - al * al)
         self.P = F @ self.P @ F.T + Q
         self.t = t
+        self.last_pred = (self.x.copy(), self.P.copy(), F)
 
-    def update(self, rows: list[Row], iterations: int = 3) -> None:
+    def update(self, rows: list[Row], iterations: int = 3, x0: np.ndarray | None = None) -> None:
         """An iterated EKF step on ``rows`` (Gauss-Newton about the prediction, the links' biases
         held as consider states), robust (Huber): a row whose innovation at the current
         iterate lies beyond :data:`HUBER_K` σ of its predicted spread counts with its noise
@@ -202,7 +213,7 @@ class JointFilter:
         self._reanchor(rows)
         P = self.P
         x_pred = self.x.copy()
-        x = x_pred.copy()
+        x = x_pred.copy() if x0 is None else x0.copy()
         spread = []
         for r in rows:
             _, H = r.fn(x, self.t - r.t)
@@ -401,7 +412,7 @@ class JointFilter:
         U(bias_min, bias_max). The variance is raised to that, never lowered (a consider
         state's covariance with the rest stays valid); a link silent for :data:`LINK_IDLE` s
         is forgotten."""
-        for name in [k for k, (_, last, _) in self.links.items() if t - last > LINK_IDLE]:
+        for name in [k for k, (_, last, _) in self.links.items() if t - last > LINK_IDLE and not self.keep_links]:
             self._drop_state(self.links.pop(name)[0])
         nl = self.settings.uwb_nlos
         if nl is None:

@@ -18,9 +18,10 @@ shares its measurement rows and runs the joint filter of its neighbourhood) achi
 packet arrives: the yardstick of a distributed rule that shares measurements instead of
 intersecting estimates (docs/decisions/0003-joint-fusion.md).
 
-``python -m slcp.deploy.joint_reference paper-1 --seeds 0,1,2`` prints per vehicle and window the
-RMSE, RMSE over the SL-CP bound and ANEES (normalised: 1 when consistent) of the joint reference
-beside SL-SP and SL-CP in the same runs.
+``python -m slcp.deploy.joint_reference paper-1 --seeds 0,1,2 [--relinearise 10]`` prints per
+vehicle and window the RMSE, RMSE over the SL-CP bound and ANEES (normalised: 1 when consistent)
+of the joint reference beside SL-SP and SL-CP in the same runs; ``--relinearise`` re-runs a
+sliding window at the smoothed estimates (:mod:`deploy.joint_window`).
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from slcp.transport.messages import GnssFix, Message, UwbRange, UwbRound
 from .agent_configs import agent_config
 from .bound import map_ne
 from .joint_filter import GAP_, OFF_, RANGE_SIGMA_MAX, JointFilter, Row
+from .joint_window import relinearised
 
 
 @dataclass
@@ -142,24 +144,67 @@ def _acceleration_error(f: InsFilter, f_b: np.ndarray) -> np.ndarray:
     return out
 
 
+#: one step of the joint reference: (sensor time [s], the vehicles' INS increments up to it,
+#: the shared events of that instant or None, the output index or None)
+Step = tuple[float, dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]], list[tuple[Any, ...]] | None,
+             int | None]
+
+
 def run_joint(truth: ScenarioTruth, shared: Shared, step: float = 0.1, acc_scale: float = 1.0,
-              use_ranges: bool = True, use_site: bool = True,
+              use_ranges: bool = True, use_site: bool = True, relinearise: float = 0.0,
               ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The joint reference over a run's shared data: output times (n,) every ``step`` s, per
     vehicle the position estimates (n, 2) [map north, east; m] and covariances (n, 2, 2) [m²]
-    (NaN before its start). ``acc_scale`` scales the σ of the vehicles' INS acceleration error
-    that their own filters report; ``use_ranges`` and ``use_site`` leave out the UWB ranges or
-    the stop-line and lane rows."""
+    (NaN before its start), each as the filter had it at that time. ``acc_scale`` scales the σ
+    of the vehicles' INS acceleration error that their own filters report; ``use_ranges`` and
+    ``use_site`` leave out the UWB ranges or the stop-line and lane rows; ``relinearise`` > 0
+    re-runs, once a second, the last that many seconds with every row linearised at the
+    smoothed estimates (:func:`deploy.joint_window.relinearised`)."""
     scn = truth.scenario
     origin = scn.origin_llh
     ids = sorted(truth.vehicles)
     t0 = float(truth.vehicles[ids[0]].truth.t[0])
-    t1 = float(truth.vehicles[ids[0]].truth.t[-1])
-    ts = np.arange(t0 + step, t1 + 1e-9, step)
+    ts, steps = _schedule(truth, shared, step, use_ranges, use_site)
     # the vehicles' own range models and NLOS link tracking, as an agent of the fleet carries them
     settings = agent_config(scn, ids[0], ("SL-CP",)).settings
     zupt_sigma = settings.zupt_sigma or 0.02
-    jf = JointFilter(scn, ids, t0, settings, acc_scale)
+    jf = JointFilter(scn, ids, t0, settings, acc_scale, keep_links=relinearise > 0.0)
+    est = {v: np.full((len(ts), 2), np.nan) for v in ids}
+    cov = {v: np.full((len(ts), 2, 2), np.nan) for v in ids}
+
+    def do(f: JointFilter, st: Step, x0: np.ndarray | None) -> None:
+        t, incr, evs, _ = st
+        f.predict(t, incr)
+        if evs:
+            rows: list[Row] = []
+            for ev in evs:
+                rows += _rows_of(f, ev, t, origin, zupt_sigma)
+            f.update(rows, iterations=3 if x0 is None else 1, x0=x0)
+
+    def output(f: JointFilter, k: int) -> None:
+        for v in f.started:
+            b = f.ix[v]
+            est[v][k] = f.x[b:b + 2]
+            cov[v][k] = f.P[b:b + 2, b:b + 2]
+
+    if relinearise > 0.0:
+        relinearised(jf, steps, do, output, relinearise)
+    else:
+        for st in steps:
+            do(jf, st, None)
+            if st[3] is not None:
+                output(jf, st[3])
+    return ts, est, cov
+
+
+def _schedule(truth: ScenarioTruth, shared: Shared, step: float, use_ranges: bool, use_site: bool,
+              ) -> tuple[np.ndarray, list[Step]]:
+    """The output times and the steps of the joint reference: every instant with shared events
+    and every output time, in time order, each with the INS increments since the last."""
+    ids = sorted(truth.vehicles)
+    t0 = float(truth.vehicles[ids[0]].truth.t[0])
+    t1 = float(truth.vehicles[ids[0]].truth.t[-1])
+    ts = np.arange(t0 + step, t1 + 1e-9, step)
     events: list[tuple[float, int, tuple[Any, ...]]] = []
     for t, vid, fix in shared.gnss:
         events.append((t, 0, ("gnss", vid, fix)))
@@ -176,11 +221,9 @@ def run_joint(truth: ScenarioTruth, shared: Shared, step: float = 0.1, acc_scale
     events.sort(key=lambda e: (e[0], e[1]))
     ins = {v: np.array(shared.ins.get(v, []), float).reshape(-1, 7) for v in ids}
     ins_k = {v: 0 for v in ids}
-    est = {v: np.full((len(ts), 2), np.nan) for v in ids}
-    cov = {v: np.full((len(ts), 2, 2), np.nan) for v in ids}
 
-    def predict(t: float) -> None:
-        """To time ``t`` with the INS increments of every sample ending by then."""
+    def increments(t: float) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+        """The INS increments of every sample ending after the last step and by ``t``."""
         incr: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
         for v in ids:
             arr, i = ins[v], ins_k[v]
@@ -193,27 +236,23 @@ def run_joint(truth: ScenarioTruth, shared: Shared, step: float = 0.1, acc_scale
                 s = arr[j - 1, 4:7]
                 incr[v] = (cum[-1], dp, np.array([[s[0], s[1]], [s[1], s[2]]]))
             ins_k[v] = j
-        jf.predict(t, incr)
+        return incr
 
+    steps: list[Step] = []
     e_i, k = 0, 0
     while k < len(ts):
-        # the measurements of one instant, or the next output time, whichever comes first
+        # the events of one instant, or the next output time, whichever comes first
         if e_i < len(events) and events[e_i][0] <= ts[k] + 1e-9:
             te = events[e_i][0]
-            predict(te)
-            rows: list[Row] = []
+            evs = []
             while e_i < len(events) and events[e_i][0] <= te + 1e-9:
-                rows += _rows_of(jf, events[e_i][2], te, origin, zupt_sigma)
+                evs.append(events[e_i][2])
                 e_i += 1
-            jf.update(rows)
+            steps.append((te, increments(te), evs, None))
             continue
-        predict(ts[k])
-        for v in jf.started:
-            b = jf.ix[v]
-            est[v][k] = jf.x[b:b + 2]
-            cov[v][k] = jf.P[b:b + 2, b:b + 2]
+        steps.append((float(ts[k]), increments(float(ts[k])), None, k))
         k += 1
-    return ts, est, cov
+    return ts, steps
 
 
 def _rows_of(jf: JointFilter, ev: tuple[Any, ...], te: float, origin: tuple[float, float, float],
@@ -256,7 +295,8 @@ def _enter_lane(jf: JointFilter, vid: str, ln: str) -> None:
         jf.reset(vid, [OFF_], [jf.specs[vid].lateral[1] ** 2])
 
 
-def score(truth: ScenarioTruth, seed: int, step: float = 0.1, acc_scale: float = 1.0) -> dict[str, Any]:
+def score(truth: ScenarioTruth, seed: int, step: float = 0.1, acc_scale: float = 1.0,
+          relinearise: float = 0.0) -> dict[str, Any]:
     """One seed: per vehicle and window, sums of squared error, NEES and squared bound, and
     counts, for the joint reference and for SL-CP and SL-SP of the same in-process run."""
     from slcp.hw_emulation.events import window_bounds
@@ -267,7 +307,7 @@ def score(truth: ScenarioTruth, seed: int, step: float = 0.1, acc_scale: float =
     shared = Shared()
     with sharing(shared):
         res = run_inprocess(truth, seed, methods=("SL-SP", "SL-CP"), on_message=shared.on_message)
-    ts, est, cov = run_joint(truth, shared, step, acc_scale)
+    ts, est, cov = run_joint(truth, shared, step, acc_scale, relinearise=relinearise)
     bound = posterior_crlb(truth, ("SL-CP",))
     origin = truth.scenario.origin_llh
     out: dict[str, Any] = {}
@@ -299,9 +339,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.add_argument("--step", type=float, default=0.1, help="output step [s] (default 0.1)")
         ap.add_argument("--acc-scale", type=float, default=1.0,
                         help="scale of the σ of the INS acceleration error the vehicles' filters report (default 1)")
+        ap.add_argument("--relinearise", type=float, default=0.0, metavar="SECONDS",
+                        help="re-run the last SECONDS once a second, every row linearised at the smoothed "
+                             "estimates (default 0: a plain iterated EKF)")
 
     got = seeded_sums("joint_reference", (__doc__ or "").split("\n\n")[0], argv,
-                      lambda truth, seed, a: score(truth, seed, a.step, a.acc_scale), options)
+                      lambda truth, seed, a: score(truth, seed, a.step, a.acc_scale, a.relinearise), options)
     if got is None:
         return 2
     args, scn, total = got

@@ -16,6 +16,7 @@ from slcp.agent.site_updates import SiteUpdates
 from slcp.deploy.agent_configs import agent_config
 from slcp.deploy.joint_filter import ACC_TAU, NV, JointFilter, Row
 from slcp.deploy.joint_reference import Shared, main, sharing
+from slcp.deploy.joint_window import relinearised, smoothed
 from slcp.geo import earth
 from slcp.hw_emulation.scenario import load_scenario
 from slcp.transport.messages import GnssFix
@@ -271,3 +272,103 @@ def test_the_reference_on_paper_1_in_process(capsys) -> None:
     v0 = next(ln for ln in out.splitlines() if ln.strip().startswith("V0"))
     joint, own = float(v0.split("joint")[1].split("/")[0]), float(v0.split("SL-SP")[1].split("/")[0])
     assert joint < 0.5 < own
+
+
+def test_rts_smoothing_equals_the_batch_solution_of_a_linear_problem() -> None:
+    """A 1-D constant-velocity track with noisy position fixes, filtered by a Kalman filter and
+    smoothed by :func:`smoothed`: every smoothed state equals the weighted least-squares
+    solution over the whole track (the information matrix of the prior, the motion and the
+    fixes, solved at once)."""
+    rng = np.random.default_rng(5)
+    dt, q, r, n = 0.5, 0.3, 0.8, 12
+    F = np.array([[1.0, dt], [0.0, 1.0]])
+    Q = q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+    H = np.array([[1.0, 0.0]])
+    x0, P0 = np.array([0.0, 1.0]), np.diag([4.0, 1.0])
+    z = np.cumsum(np.full(n, dt)) + rng.normal(size=n) * r
+    hist = {}
+    x, P = x0.copy(), P0.copy()
+    for k in range(n):
+        xp, Pp = (F @ x, F @ P @ F.T + Q) if k else (x.copy(), P.copy())
+        K = Pp @ H.T / (H @ Pp @ H.T + r * r)
+        x = xp + (K * (z[k] - H @ xp)).ravel()
+        P = (np.eye(2) - K @ H) @ Pp
+        hist[k] = (xp, Pp, F if k else None, x, P)
+    got = smoothed(hist, 0, n - 1)
+    # batch: minimise the prior, motion and fix residuals over all 2n states
+    A = np.zeros((2 * n, 2 * n))
+    b = np.zeros(2 * n)
+    A[:2, :2] += np.linalg.inv(P0)
+    b[:2] += np.linalg.inv(P0) @ x0
+    Qi = np.linalg.inv(Q)
+    for k in range(1, n):
+        J = np.zeros((2, 2 * n))
+        J[:, 2 * k - 2:2 * k] = -F
+        J[:, 2 * k:2 * k + 2] = np.eye(2)
+        A += J.T @ Qi @ J
+    for k in range(n):
+        A[2 * k, 2 * k] += 1 / r**2
+        b[2 * k] += z[k] / r**2
+    batch = np.linalg.solve(A, b).reshape(n, 2)
+    for k in range(n):
+        np.testing.assert_allclose(got[k], batch[k], atol=1e-9)
+
+
+def _synthetic_steps(seed: int, with_ranges: bool):
+    steps = []
+    for k, (t, truth, data, r, _sa) in enumerate(_simulate(seed, steps=150)):
+        steps.append((t, data, r if with_ranges else None, truth, k))
+    return steps
+
+
+def _run_synthetic(steps, window: float):
+    jf = JointFilter(SCN, ["V1", "V2"], 0.0, _settings(), keep_links=True)
+    est = {}
+
+    def do(f: JointFilter, st, x0) -> None:
+        t, data, r, _, _ = st
+        f.predict(t, {vid: (dv, dv * 0.05, np.eye(2) * 0.02**2) for vid, (dv, _, _) in data.items()})
+        rows: list[Row] = []
+        for vid, (_, fix, lane) in data.items():
+            if fix is not None:
+                if vid not in f.started:
+                    f.start(vid, fix, ORIGIN)
+                rows += f.gnss_rows(t, vid, fix, ORIGIN)
+            if lane and vid in f.started:
+                rows.append(f.lane_row(t, vid, LEFT_LINE))
+        if r is not None and len(f.started) == 2 and f.relative_sigma("V1", "V2") < 0.2 * r:
+            row = f.range_row(t, "V1", "V2", r)
+            assert row is not None
+            rows.append(row)
+        f.update(rows, iterations=3 if x0 is None else 1, x0=x0)
+
+    def output(f: JointFilter, k: int) -> None:
+        est[k] = f.x.copy()
+
+    if window > 0.0:
+        relinearised(jf, steps, do, output, window)
+    else:
+        for st in steps:
+            do(jf, st, None)
+            output(jf, st[-1])
+    return est
+
+
+def test_relinearising_a_linear_problem_changes_nothing(monkeypatch) -> None:
+    """Without ranges (and without the robust weights, which depend on where the rows are
+    evaluated) every row is linear: re-running the window at smoothed states gives the plain
+    filter's outputs; with the ranges it does not."""
+    monkeypatch.setattr("slcp.deploy.joint_filter.HUBER_K", {})
+    steps = _synthetic_steps(2, with_ranges=False)
+    plain, relin = _run_synthetic(steps, 0.0), _run_synthetic(steps, 3.0)
+    for k in plain:
+        np.testing.assert_allclose(relin[k], plain[k], atol=1e-7)
+    steps = _synthetic_steps(2, with_ranges=True)
+    plain, relin = _run_synthetic(steps, 0.0), _run_synthetic(steps, 3.0)
+    assert max(float(np.max(np.abs(relin[k] - plain[k]))) for k in plain) > 1e-6
+
+
+def test_a_window_needs_a_filter_of_fixed_size() -> None:
+    jf = JointFilter(SCN, ["V1", "V2"], 0.0, _settings())
+    with pytest.raises(ValueError, match="keep_links"):
+        relinearised(jf, [], lambda f, st, x0: None, lambda f, k: None, 3.0)
