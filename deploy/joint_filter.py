@@ -51,9 +51,6 @@ LINK_IDLE = 10.0
 #: Huber's bound on a row's normalised innovation, by kind of row (the others are not robust)
 HUBER_K = {"range": 2.0, "gnss": 3.0}
 
-
-
-
 #: a row's model: (state, how long before the filter time [s]) -> (h (m,), H (m, n))
 RowFn = Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]]
 
@@ -70,7 +67,7 @@ class Row:
 
 
 class JointFilter:
-    """The joint EKF in information form over the vehicles ``ids`` of scenario ``scn`` (their
+    """The joint iterated EKF over the vehicles ``ids`` of scenario ``scn`` (their
     GNSS, IMU, stop-gap and lane models), with the vehicles' range and NLOS ``settings`` and
     their INS acceleration-error covariance scaled by ``acc_scale``."""
 
@@ -88,7 +85,7 @@ class JointFilter:
         self.cm = NV * len(ids)  #: first of the two common-mode states
         self.cms = slice(self.cm, self.cm + 2)
         #: per UWB link ("A|B"): the index of its NLOS bias state (appended after the common
-        #: mode), the sensor time of its last range and its bias variance p·E[b²] [m²]
+        #: mode), the sensor time of its last range and the bias's variance then [m²]
         self.links: dict[str, list[Any]] = {}
         self.x = np.zeros(self.n)
         self.P = np.zeros((self.n, self.n))
@@ -125,13 +122,17 @@ class JointFilter:
         self.P[b:b + NV, b:b + NV] = np.diag(d)
         self.started.add(vid)
 
-    def relative_sigma(self, a: str, c: str) -> float:
-        """σ [m] of the position of ``a`` relative to ``c`` across their line of sight now:
-        the uncertainty of the line of sight's direction, times the range."""
+    def relative(self, a: str, c: str) -> tuple[np.ndarray, np.ndarray]:
+        """The position of ``a`` relative to ``c`` now (2,) [m] and its covariance (2, 2) [m²]."""
         i, j = self.ix[a], self.ix[c]
         P = self.P
         Pr = P[i:i + 2, i:i + 2] + P[j:j + 2, j:j + 2] - P[i:i + 2, j:j + 2] - P[j:j + 2, i:i + 2]
-        d = self.x[i:i + 2] - self.x[j:j + 2]
+        return self.x[i:i + 2] - self.x[j:j + 2], Pr
+
+    def relative_sigma(self, a: str, c: str) -> float:
+        """σ [m] of the position of ``a`` relative to ``c`` across their line of sight now:
+        the uncertainty of the line of sight's direction, times the range."""
+        d, Pr = self.relative(a, c)
         w = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-3)
         return math.sqrt(max(float(w @ Pr @ w), 0.0))
 
@@ -144,11 +145,8 @@ class JointFilter:
 
     def reset(self, vid: str, states: list[int], var: list[float]) -> None:
         """New random constants (a new stop's gap, a new lane's offset): back to their prior."""
-        k = [self.ix[vid] + s for s in states]
-        self.x[k] = 0.0
-        self.P[k, :] = 0.0
-        self.P[:, k] = 0.0
-        self.P[k, k] = var
+        for s, v in zip(states, var):
+            self.reset_state(self.ix[vid] + s, 0.0, v)
 
     def predict(self, t: float, ins: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]]) -> None:
         """To time ``t`` with each vehicle's INS over the step: its velocity increment ``dv``
@@ -363,9 +361,8 @@ class JointFilter:
         from the geometry it becomes where a geometry error goes."""
         s = self.settings
         i, j = self.ix[a], self.ix[c]
-        P, x = self.P, self.x
-        Pr = P[i:i + 2, i:i + 2] + P[j:j + 2, j:j + 2] - P[i:i + 2, j:j + 2] - P[j:j + 2, i:i + 2]
-        d = x[i:i + 2] - x[j:j + 2]
+        x = self.x
+        d, Pr = self.relative(a, c)
         rho = max(float(np.hypot(*d)), 1e-3)
         u = d / rho
         perp = max(float(np.trace(Pr) - u @ Pr @ u), 0.0)
