@@ -380,6 +380,12 @@ class JointFilter:
                     self.counters["range_outlier"] = self.counters.get("range_outlier", 0) + 1
                     return None
                 p_nlos = link.p_nlos
+                if p_nlos > s.nlos_reject_probability:
+                    # the link's own series says it is in an episode: its bias, 0.3-3 m, is
+                    # known to ±0.8 m at best, and each of its 10 ranges a second would carry
+                    # that error again; the link waits for the episode's end (the step down)
+                    self.counters["range_nlos"] = self.counters.get("range_nlos", 0) + 1
+                    return None
             li = self._link_state(f"{a}|{c}", t, p_nlos)
             spread = float(u @ Pr @ u) + var + float(self.P[li, li])
             if s.uwb_nlos.classify(r - rho - float(self.x[li]), spread, s.nlos_reject_probability, p_nlos):
