@@ -372,3 +372,27 @@ def test_a_window_needs_a_filter_of_fixed_size() -> None:
     jf = JointFilter(SCN, ["V1", "V2"], 0.0, _settings())
     with pytest.raises(ValueError, match="keep_links"):
         relinearised(jf, [], lambda f, st, x0: None, lambda f, k: None, 3.0)
+
+
+def test_a_link_in_an_nlos_episode_waits_for_its_end() -> None:
+    """Two standing vehicles 30 m apart, ranged at 10 Hz: when the link's ranges step up by
+    2.5 m and stay there (an NLOS episode), the link's tracker holds it to be NLOS and its
+    ranges are held back (counted); when they step down again, they are fused again."""
+    jf = _filter(nlos=True)
+    jf.x[:2], jf.x[NV:NV + 2] = (0.0, 0.0), (30.0, 0.0)
+    jf.x[2:4] = jf.x[NV + 2:NV + 4] = 0.0
+    jf.P[:2, :2] = jf.P[NV:NV + 2, NV:NV + 2] = np.eye(2) * 0.1**2
+    jf.P[2:4, 2:4] = jf.P[NV + 2:NV + 4, NV + 2:NV + 4] = np.eye(2) * 1e-8  # standing
+    rng = np.random.default_rng(4)
+    used = []
+    for k in range(60):
+        t = 0.1 * (k + 1)
+        r = 30.0 + (2.5 if 20 <= k < 40 else 0.0) + rng.normal() * 0.05
+        jf.predict(t, {})
+        row = jf.range_row(t, "V1", "V2", r)
+        used.append(row is not None)
+        if row is not None:
+            jf.update([row])
+    assert all(used[:20]) and not any(used[25:40]) and all(used[45:])
+    assert jf.counters["range_nlos"] >= 15
+    assert abs(jf.x[NV] - jf.x[0] - 30.0) < 0.1  # the episode moved nobody
