@@ -24,6 +24,8 @@ from slcp.transport.messages import GnssFix
 SCN = load_scenario("paper-1")
 ORIGIN = SCN.origin_llh
 LEFT_LINE = Line2D((0.0, -1.75), (1.0, 0.0))
+#: σ of the simulated INS acceleration error [m/s²] (:func:`_simulate`)
+SIM_ACC_SIGMA = 0.02
 
 
 def _settings(nlos: bool = False):
@@ -166,7 +168,7 @@ def _simulate(seed: int, steps: int = 300, dt: float = 0.1):
     rng = np.random.default_rng(seed)
     specs = {v.id: v for v in SCN.vehicles}
     ids = ("V1", "V2")
-    sa = 0.02
+    sa = SIM_ACC_SIGMA
     p = {"V1": np.array([0.0, 0.0]), "V2": np.array([-30.0, 0.0])}
     v = {vid: np.array([5.0, 0.0]) for vid in ids}
     mp = {vid: rng.normal(size=2) * specs[vid].gnss.multipath_h for vid in ids}
@@ -202,6 +204,26 @@ def _simulate(seed: int, steps: int = 300, dt: float = 0.1):
         yield t, {vid: p[vid].copy() for vid in ids}, data, r, sa
 
 
+def _synthetic_step(f: JointFilter, t: float, data: dict, r: float | None, x0: np.ndarray | None) -> None:
+    """One step of :func:`_simulate`'s data through ``f``: the INS (the simulation's
+    acceleration error σ), the fixes (the first one starts a vehicle), the lane rows and the
+    range (``r`` None: none) once its line of sight is known; rows linearised at ``x0``."""
+    f.predict(t, {vid: (dv, dv * 0.05, np.eye(2) * SIM_ACC_SIGMA**2) for vid, (dv, _, _) in data.items()})
+    rows: list[Row] = []
+    for vid, (_, fix, lane) in data.items():
+        if fix is not None:
+            if vid not in f.started:
+                f.start(vid, fix, ORIGIN)
+            rows += f.gnss_rows(t, vid, fix, ORIGIN)
+        if lane and vid in f.started:
+            rows.append(f.lane_row(t, vid, LEFT_LINE))
+    if r is not None and len(f.started) == 2 and f.relative_sigma("V1", "V2") < 0.2 * r:
+        row = f.range_row(t, "V1", "V2", r)
+        assert row is not None
+        rows.append(row)
+    f.update(rows, iterations=3 if x0 is None else 1, x0=x0)
+
+
 def test_the_filter_is_consistent_on_data_drawn_from_its_model() -> None:
     """Seeded Monte-Carlo, 16 runs of 30 s in one lane. The normalised NEES of both vehicles'
     positions averages 1 (0.84 measured: their errors, the slow multipath and common mode, give
@@ -212,22 +234,8 @@ def test_the_filter_is_consistent_on_data_drawn_from_its_model() -> None:
     nees, rel_err, rel_sig = [], [], []
     for seed in range(16):
         jf = JointFilter(SCN, ["V1", "V2"], 0.0, _settings())
-        for t, truth, data, r, sa in _simulate(seed):
-            incr = {vid: (dv, dv * 0.05, np.eye(2) * sa**2) for vid, (dv, _, _) in data.items()}
-            jf.predict(t, incr)
-            rows: list[Row] = []
-            for vid, (_, fix, lane) in data.items():
-                if fix is not None:
-                    if vid not in jf.started:
-                        jf.start(vid, fix, ORIGIN)
-                    rows += jf.gnss_rows(t, vid, fix, ORIGIN)
-                if lane and vid in jf.started:
-                    rows.append(jf.lane_row(t, vid, LEFT_LINE))
-            if len(jf.started) == 2 and jf.relative_sigma("V1", "V2") < 0.2 * r:
-                row = jf.range_row(t, "V1", "V2", r)
-                assert row is not None
-                rows.append(row)
-            jf.update(rows)
+        for t, truth, data, r, _sa in _simulate(seed):
+            _synthetic_step(jf, t, data, r, None)
             if t > 5.0:
                 for vid, b in (("V1", 0), ("V2", NV)):
                     e = jf.x[b:b + 2] - truth[vid]
@@ -327,20 +335,7 @@ def _run_synthetic(steps, window: float):
 
     def do(f: JointFilter, st, x0) -> None:
         t, data, r, _, _ = st
-        f.predict(t, {vid: (dv, dv * 0.05, np.eye(2) * 0.02**2) for vid, (dv, _, _) in data.items()})
-        rows: list[Row] = []
-        for vid, (_, fix, lane) in data.items():
-            if fix is not None:
-                if vid not in f.started:
-                    f.start(vid, fix, ORIGIN)
-                rows += f.gnss_rows(t, vid, fix, ORIGIN)
-            if lane and vid in f.started:
-                rows.append(f.lane_row(t, vid, LEFT_LINE))
-        if r is not None and len(f.started) == 2 and f.relative_sigma("V1", "V2") < 0.2 * r:
-            row = f.range_row(t, "V1", "V2", r)
-            assert row is not None
-            rows.append(row)
-        f.update(rows, iterations=3 if x0 is None else 1, x0=x0)
+        _synthetic_step(f, t, data, r, x0)
 
     def output(f: JointFilter, k: int) -> None:
         est[k] = f.x.copy()
