@@ -65,10 +65,14 @@ def outage_metrics(err: np.ndarray, withheld: np.ndarray) -> dict:
 def score_estimates(fix_t: np.ndarray, fix_llh: np.ndarray, withheld: np.ndarray, est: list[Estimate],
                     lever_arm: tuple[float, float, float]) -> tuple[dict, np.ndarray, np.ndarray]:
     """One method's estimates against the fixes: its figures (:func:`outage_metrics`, with
-    ``n_estimates``, ``epochs`` scored, ``h_rms_m`` and ``h_max_m``), and the scored epochs'
-    mask and errors (:func:`errors_at_epochs`)."""
+    ``n_estimates``, ``epochs`` scored and the first and last of them, ``first_epoch_t`` and
+    ``last_epoch_t`` [s], ``h_rms_m`` and ``h_max_m``), and the scored epochs' mask and errors
+    (:func:`errors_at_epochs`)."""
     inside, err = errors_at_epochs(fix_t, fix_llh, np.array([e.t for e in est]), antenna_positions(est, lever_arm))
     wh = withheld[inside]
-    m = {"n_estimates": len(est), "epochs": int(inside.sum()), "h_rms_m": _rms(err),
+    scored = np.asarray(fix_t, float)[inside]
+    m = {"n_estimates": len(est), "epochs": int(inside.sum()),
+         "first_epoch_t": float(scored[0]) if len(scored) else None,
+         "last_epoch_t": float(scored[-1]) if len(scored) else None, "h_rms_m": _rms(err),
          "h_max_m": float(err.max()) if len(err) else None, **outage_metrics(err, wh)}
     return m, inside, err

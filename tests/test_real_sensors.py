@@ -391,8 +391,12 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
     assert res["gnss_withheld"] == 120 and res["max_late_s"] < 0.1
     assert sp["epochs"] >= 460 and sp["gnss_on_h_rms_m"] < 0.5 and sp["n_outages"] == 2
     off = run_replay(load_drive(SHARED_DRIVE), drive_config())
-    n = sp["epochs"]  # both score from the first epoch their estimates cover
-    ref = outage_metrics(off.h_err[:n], off.withheld[:n])
+    # the epochs the live run scored, by time (the first n epochs assumed both runs start
+    # scoring at the same epoch; a live run that starts later would be compared with a window
+    # that also ends earlier)
+    same = (off.t >= sp["first_epoch_t"] - 1e-6) & (off.t <= sp["last_epoch_t"] + 1e-6)
+    assert int(same.sum()) == sp["epochs"]
+    ref = outage_metrics(off.h_err[same], off.withheld[same])
     print(f"\nlive agent outage RMS {sp['outage_h_rms_m']:.3f} m, offline {ref['outage_h_rms_m']:.3f} m; "
           f"end mean {sp['outage_h_end_mean_m']:.3f} / {ref['outage_h_end_mean_m']:.3f} m")
     for k in ("outage_h_rms_m", "outage_h_end_mean_m", "outage_h_max_m"):
