@@ -335,7 +335,8 @@ def test_the_driver_reads_nmea_from_a_serial_port() -> None:
 def _agent(cfg_text: str, tmp_path: Path, port: int) -> subprocess.Popen:
     cfg = tmp_path / "agent.toml"
     cfg.write_text(cfg_text + f'\n[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n')
-    p = subprocess.Popen([*CLI, "agent", "--config", str(cfg)], start_new_session=True,
+    # -v: the agent logs its counters when it stops (a test can show them when it fails)
+    p = subprocess.Popen([*CLI, "-v", "agent", "--config", str(cfg)], start_new_session=True,
                          stdout=subprocess.DEVNULL, stderr=open(tmp_path / "agent.log", "w"))
     wait_for_port(port)
     return p
@@ -352,9 +353,12 @@ def _drive_agent_config() -> str:
 @pytest.mark.timeout(180)
 def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) -> None:
     """One engine under both hosts: the first 120 s of the real drive (two 15 s outages) played
-    onto V0's topics at 10× to a live agent configured by the drive's vehicle file, and the
+    onto V0's topics at 5× to a live agent configured by the drive's vehicle file, and the
     offline replay with its defaults (the same engine settings: checked below), agree within a
-    centimetre on the outage figures of the epochs the live run scored."""
+    centimetre on the outage figures of the epochs the live run scored. (At 10× the engine's
+    IMU hold, 0.25 s of sensor time, is 25 ms of wall time, and the live figures differed in
+    some runs on a loaded machine: a fix that reaches the agent after the IMU has passed its
+    time is applied late.)"""
     import dataclasses
 
     from slcp.deploy.datasets.rtklib import load_drive
@@ -381,7 +385,7 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
     try:
         out = subprocess.run([*CLI, "replay", "rtklib", str(SHARED_DRIVE), "--vehicle", str(DRIVE_PROFILE),
                               "--publish", "--duration", "120",
-                              "--speed", "10", "--connect", f"tcp/127.0.0.1:{port}", "--json"],
+                              "--speed", "5", "--connect", f"tcp/127.0.0.1:{port}", "--json"],
                              capture_output=True, text=True, timeout=150)
     finally:
         _stop(agent)
@@ -399,8 +403,9 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
     ref = outage_metrics(off.h_err[same], off.withheld[same])
     print(f"\nlive agent outage RMS {sp['outage_h_rms_m']:.3f} m, offline {ref['outage_h_rms_m']:.3f} m; "
           f"end mean {sp['outage_h_end_mean_m']:.3f} / {ref['outage_h_end_mean_m']:.3f} m")
+    counters = [ln for ln in (tmp_path / "agent.log").read_text().splitlines() if "counters" in ln]
     for k in ("outage_h_rms_m", "outage_h_end_mean_m", "outage_h_max_m"):
-        assert sp[k] == pytest.approx(ref[k], abs=0.01), k
+        assert sp[k] == pytest.approx(ref[k], abs=0.01), (k, res, counters[-1:])
 
 
 def _write_logs(tmp_path: Path, t_from: float, t_to: float, gap: tuple[float, float]) -> tuple[Path, Path, dict]:
