@@ -99,7 +99,7 @@ class JointFilter:
         #: every link's bias state from the start, none dropped: the state's size never changes
         #: (a window re-run over it needs that, :mod:`deploy.joint_window`)
         self.keep_links = keep_links
-        #: the last prediction: (x, P, F) (F None: no time passed)
+        #: the last prediction: (x, P, F) (F None: no time passed), kept with ``keep_links`` only
         self.last_pred: tuple[np.ndarray, np.ndarray, np.ndarray | None] = (self.x, self.P, None)
         if keep_links and settings.uwb_nlos is not None:
             for i, a in enumerate(ids):
@@ -154,7 +154,8 @@ class JointFilter:
         the covariance (2, 2) [m²/s⁴] of its acceleration error (None: :data:`ACC_SIGMA`)."""
         dt = t - self.t
         if dt <= 0.0:
-            self.last_pred = (self.x.copy(), self.P.copy(), None)
+            if self.keep_links:
+                self.last_pred = (self.x.copy(), self.P.copy(), None)
             return
         n = self.n
         F = np.eye(n)
@@ -197,7 +198,8 @@ class JointFilter:
                 Q[li, li] = bv * (1 - al * al)
         self.P = F @ self.P @ F.T + Q
         self.t = t
-        self.last_pred = (self.x.copy(), self.P.copy(), F)
+        if self.keep_links:  # only a window re-run reads it (:mod:`deploy.joint_window`)
+            self.last_pred = (self.x.copy(), self.P.copy(), F)
 
     def update(self, rows: list[Row], iterations: int = 3, x0: np.ndarray | None = None) -> None:
         """An iterated EKF step on ``rows`` (Gauss-Newton about the prediction, the links' biases
