@@ -36,6 +36,7 @@ from slcp.transport.rate_limit import TokenBuckets
 
 from .decision_step import first_stopped_step
 from .engine_config import AgentConfig, RangeObserver
+from .engine_imu import EngineImu
 from .engine_neighbours import EngineNeighbours
 from .engine_outputs import EngineOutputs
 from .first_stopped import FirstStoppedDetector, StopTracker
@@ -43,14 +44,14 @@ from .input_checks import InputChecks
 from .integrity import OWN_TWIN, check_separation
 from .methods import MethodFilter, MethodSpec, initial_state
 from .misbehaviour import MisbehaviourDetector
-from .nav.motion import StationarityMonitor, ZuptGate, speed_sigma
+from .nav.motion import StationarityMonitor, ZuptGate
 from .neighbours import NeighbourTable
 from .position_course import PositionCourse, has_velocity
-from .sequencer import Apply, Propagate, Sequencer
+from .sequencer import Apply, Sequencer
 
 log = logging.getLogger(__name__)
 
-class VehicleEngine(EngineOutputs, EngineNeighbours):
+class VehicleEngine(EngineImu, EngineOutputs, EngineNeighbours):
     """One vehicle's methods, sequencing, first-stopped decisions and neighbour checks.
 
     ``handle`` takes any message; what the engine sends goes to ``outbox`` (beacons unsigned:
@@ -299,74 +300,6 @@ class VehicleEngine(EngineOutputs, EngineNeighbours):
         self.counters[name] = self.counters.get(name, 0) + n
 
     # ----------------------------------------------------------------- processing
-    def _imu(self, msg: ImuBatch) -> None:
-        if not self.filters:
-            if not self._init(msg):
-                self.counters["before_init"] += 1
-                return
-        seq = self.seq
-        ts, dts = msg.t.tolist(), msg.dt.tolist()
-        ths, dvs = msg.dtheta.tolist(), msg.dvel.tolist()
-        rest_from = 0  # first sample not yet in the rest detector
-        for k in range(len(ts)):
-            t = ts[k]
-            if seq.t is not None and t <= seq.t:  # behind the filter: not used at all
-                seq.counters["imu_out_of_order"] += 1
-                continue
-            self._step(t, ths[k], dvs[k], dts[k])
-            # rest detection and ZUPT at the gate's rate, on the samples since the last check
-            if k == len(ts) - 1 or t - self._rest_checked >= self.zupt_gate.interval:
-                self._rest(t, msg, rest_from, k + 1)
-                rest_from = k + 1
-            if t >= self._timer_due:
-                self._timers(t)
-        if self._deferred:
-            self._fuse_ranges()
-
-    def _step(self, t: float, dtheta: list[float], dvel: list[float], dt: float) -> None:
-        """One IMU interval ending at ``t``, split at the measurements queued inside it."""
-        if self._held_fixes:
-            self._release_fixes(t)
-        seq = self.seq
-        gap = seq.gap_before(t, dt)
-        if gap > 0.0:  # no IMU data for a while (a frozen process, a sensor outage)
-            for f in self.filters.values():
-                f.coast_gap(gap)
-            seq.skip_gap(gap)
-        filters = self.filters.values()
-        if not seq.pending_by(t):  # the common case: no measurement inside the interval
-            span = seq.imu_plain(t, dt)
-            if span is not None:
-                for f in filters:
-                    f.propagate(dtheta, dvel, span)
-            return
-        for step in seq.imu(t, dtheta, dvel, dt):
-            if isinstance(step, Propagate):
-                for f in filters:
-                    f.propagate(step.dtheta, step.dvel, step.dt)
-            else:
-                self._apply(step)
-
-    def _rest(self, t: float, msg: ImuBatch, a: int, b: int) -> None:
-        """Rest detection on samples ``a:b`` of ``msg``, and a ZUPT of every filter if due."""
-        self._rest_checked = t
-        ref = next(iter(self.filters.values())).filter
-        self.rest.push_batch(msg.dtheta[a:b], msg.dvel[a:b], msg.dt[a:b], ref.state.dcm)
-        v = ref.state.v
-        if self.zupt_gate.due(t, self.rest, math.hypot(v[0], v[1]),
-                              lambda: speed_sigma(ref.state.v, ref.velocity_cov)):
-            for f in self.filters.values():
-                f.zupt()
-        elif self.cfg.settings.nhc_sigma is not None or self.cfg.settings.zaru_sigma is not None:
-            # at rest: the IMU shows it and the filter agrees (cruising at a steady speed looks
-            # like rest to a smooth IMU)
-            at_rest = math.hypot(v[0], v[1]) < self.zupt_gate.max_speed and self.rest.stationary
-            for f in self.filters.values():
-                if at_rest:
-                    f.own.zaru()
-                else:
-                    f.coast(True)
-
     def _init_fix(self, batch: ImuBatch) -> GnssFix | None:
         """The fix that would start the filters at the start of ``batch`` (None: none yet)."""
         t0 = float(batch.t[0] - batch.dt[0])

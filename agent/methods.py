@@ -258,6 +258,29 @@ class MethodFilter(RangeUpdates, SiteUpdates):
         if self.filter.t - self._disp_hist[-1][0] >= 0.05:
             self._disp_hist.append((self.filter.t, d[0], d[1], d[2]))
 
+    def propagate_run(self, dtheta: list, dvel: list, dt: list[float]) -> None:
+        """``n`` consecutive IMU intervals (lists of 3-lists and of lengths [s]): the same as
+        ``n`` calls of :meth:`propagate`, with one mechanisation call for the run."""
+        vel: list[tuple[float, float, float]] = []
+        t = self.filter.t
+        self.filter.propagate_run(dtheta, dvel, dt, vel)
+        d, hist = self._disp, self._disp_hist
+        d0, d1, d2 = d
+        last = hist[-1][0]
+        for k in range(len(dt)):
+            v, dt_k = vel[k], dt[k]
+            d0 += v[0] * dt_k
+            d1 += v[1] * dt_k
+            d2 += v[2] * dt_k
+            t += dt_k  # the filter's clock, added as it adds it
+            if t - last >= 0.05:
+                hist.append((t, d0, d1, d2))
+                last = t
+        d[0], d[1], d[2] = d0, d1, d2
+        if self._own_imu:
+            for k in range(len(dt)):
+                self.own.imu(dtheta[k], dvel[k], dt[k])
+
     def displacement_since(self, t: float) -> np.ndarray:
         """INS displacement [m] (NED, (3,)) from time ``t`` to the filter time (0 if ``t`` is
         not in the recent history, which spans about 3 s)."""

@@ -390,3 +390,33 @@ def test_a_declined_neighbour_is_weighed_again_only_when_its_decision_may_change
         assert every.range(useless, 30.0) == "skipped"
         _stand(every, 0.1)
     assert every.counters["ranges_skipped_held"] == 0 and every.counters["ranges_skipped"] == 3
+
+
+def test_a_run_of_intervals_is_one_call_per_interval_bit_for_bit() -> None:
+    """``MethodFilter.propagate_run`` (what the engine calls for intervals with nothing inside
+    them) leaves the filter, its INS displacement history and its own-IMU rates exactly as one
+    :meth:`propagate` per interval does, for runs that cross covariance steps and history points."""
+    rng = np.random.default_rng(7)
+    st = initial_state(np.array(ORIGIN), np.array([8.0, 1.0, 0.0]), np.array([0.0, 0.0, -9.8]))
+    settings = FilterSettings(MEMS_NOISE, gnss_lever_arm=(0.3, 0.0, -1.2))
+
+    def fresh() -> MethodFilter:
+        return MethodFilter(MethodSpec.of("SL-CP"), st.copy(), np.array([2.0, 2.0, 3.0]), settings, 0.0)
+
+    n = 700
+    dts = (0.01 + rng.uniform(-2e-4, 2e-4, n)).tolist()
+    th = (rng.normal(0.0, 1e-3, (n, 3)) + [0.0, 0.0, 2e-3]).tolist()
+    dv = (rng.normal(0.0, 2e-3, (n, 3)) + [0.01, 0.0, -0.098]).tolist()
+    a, b = fresh(), fresh()
+    assert a._own_imu
+    for k in range(n):
+        a.propagate(th[k], dv[k], dts[k])
+    for lo, hi in ((0, 1), (1, 4), (4, 333), (333, 334), (334, n)):
+        b.propagate_run(th[lo:hi], dv[lo:hi], dts[lo:hi])
+    fa, fb = a.filter, b.filter
+    assert fb.t == fa.t and fb.stats.cov_steps == fa.stats.cov_steps > 60
+    assert np.array_equal(fb.P, fa.P) and np.array_equal(fb.extra, fa.extra)
+    assert fb.state.llh.tolist() == fa.state.llh.tolist() and fb.state.q.tolist() == fa.state.q.tolist()
+    assert list(b._disp_hist) == list(a._disp_hist) and len(a._disp_hist) > 60 and b._disp == a._disp
+    assert np.array_equal(b.displacement_since(fa.t - 1.234), a.displacement_since(fa.t - 1.234))
+    assert list(b.own._w) == list(a.own._w) and list(b.own._f) == list(a.own._f)

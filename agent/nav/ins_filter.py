@@ -184,12 +184,13 @@ class InsFilter:
         self.propagate_run((th,), (dv,), (float(dt),))
 
     def propagate_run(self, dtheta: Sequence[Sequence[float]], dvel: Sequence[Sequence[float]],
-                      dt: Sequence[float]) -> None:
+                      dt: Sequence[float], velocities: list[tuple[float, float, float]] | None = None) -> None:
         """Integrate ``n`` consecutive IMU intervals: the same as ``n`` calls of
-        :meth:`propagate` (to rounding), at a fraction of the cost.
+        :meth:`propagate` (the same arithmetic in the same order), at a fraction of the cost.
 
         ``dtheta`` [rad] and ``dvel`` [m/s] are sequences of ``n`` 3-sequences (body FRD) and
-        ``dt`` of ``n`` interval lengths [s]: plain lists (or tuples) of floats.
+        ``dt`` of ``n`` interval lengths [s]: plain lists (or tuples) of floats. ``velocities``
+        (optional) gets each interval's NED velocity at its start appended.
         """
         n = len(dt)
         i = 0
@@ -211,13 +212,13 @@ class InsFilter:
                 sa0, sa1, sa2, sg0, sg1, sg2 = self.scale.tolist()
                 dv = [(x[0] * (1 - sa0), x[1] * (1 - sa1), x[2] * (1 - sa2)) for x in dv]
                 th = [(x[0] * (1 - sg0), x[1] * (1 - sg1), x[2] * (1 - sg2)) for x in th]
-            new, pth, pdv, sth, sdv = mechanize_run(self.state, th, dv, dt[i:j], self._prev_dtheta, self._prev_dvel)
+            # the interval's sums continue sample by sample (as one call per sample adds them)
+            new, pth, pdv, sth, sdv = mechanize_run(self.state, th, dv, dt[i:j], self._prev_dtheta, self._prev_dvel,
+                                                    (self._acc_dth_b, self._acc_dv_b), velocities)
             self._prev_dtheta, self._prev_dvel = pth, pdv
-            a = self._acc_dv_b
-            self._acc_dv_b = (a[0] + sdv[0], a[1] + sdv[1], a[2] + sdv[2])
+            self._acc_dv_b = sdv
             if self.n_scale:
-                b = self._acc_dth_b
-                self._acc_dth_b = (b[0] + sth[0], b[1] + sth[1], b[2] + sth[2])
+                self._acc_dth_b = sth
             self.state = new
             for k in range(i, j):  # the clock as propagate() advances it (same rounding)
                 self.t += dt[k]

@@ -81,6 +81,8 @@ def mechanize_run(
     dt: Sequence[float],
     prev_th: tuple[float, float, float] | None,
     prev_dv: tuple[float, float, float] | None,
+    sums: tuple[Sequence[float], Sequence[float]] | None = None,
+    velocities: list[tuple[float, float, float]] | None = None,
 ) -> tuple[NavState, tuple[float, float, float], tuple[float, float, float],
            tuple[float, float, float], tuple[float, float, float]]:
     """:func:`mechanize` over ``n`` consecutive IMU intervals, sample by sample.
@@ -104,6 +106,11 @@ def mechanize_run(
     prev_th, prev_dv : tuple of 3 float, optional
         Bias-corrected increments of the interval before the first (two-sample coning and
         sculling); None disables those terms for the first interval.
+    sums : pair of 3-sequences of float, optional
+        Running sums to add this run's bias-corrected increments to, sample by sample (the
+        same rounding as one call per sample); default zeros.
+    velocities : list, optional
+        Gets each interval's NED velocity [m/s] at its *start* appended, as a tuple.
 
     Returns
     -------
@@ -112,7 +119,8 @@ def mechanize_run(
     last_th, last_dv : tuple of 3 float
         The last interval's bias-corrected increments (``prev_th``/``prev_dv`` of the next call).
     sum_th, sum_dv : tuple of 3 float
-        Sums of the bias-corrected angle [rad] and velocity [m/s] increments (body frame).
+        Sums of the bias-corrected angle [rad] and velocity [m/s] increments (body frame),
+        added to ``sums`` when given.
     """
     if not len(dt):
         raise ValueError("mechanize_run needs at least one interval")
@@ -125,11 +133,13 @@ def mechanize_run(
     sin, cos, sqrt = math.sin, math.cos, math.sqrt
     A, E2, OMEGA_E = earth.A, earth.E2, earth.OMEGA_E
     GAMMA_E, K_SOM, F_, M_ = earth.GAMMA_E, earth._K_SOMIGLIANA, earth.F, earth._M
-    sth = [0.0, 0.0, 0.0]
-    sdv = [0.0, 0.0, 0.0]
+    sth = [0.0, 0.0, 0.0] if sums is None else [float(x) for x in sums[0]]
+    sdv = [0.0, 0.0, 0.0] if sums is None else [float(x) for x in sums[1]]
     ax = ay = az = ux = uy = uz = 0.0
     for k in range(len(dt)):
         dt_k = dt[k]
+        if velocities is not None:
+            velocities.append((vn, ve, vd))
         ax, ay, az = dtheta[k]
         ux, uy, uz = dvel[k]
         ax, ay, az = ax - gx * dt_k, ay - gy * dt_k, az - gz * dt_k
