@@ -82,7 +82,7 @@ def sharing(shared: Shared, ins_method: str = "SL-SP", decision_method: str = "S
     increments of ``ins_method``'s filter, its ZUPTs, and the stop-line and lane rows of
     ``decision_method``'s. (The engine does not share them yet: its methods are wrapped here,
     and restored on leaving the block.)"""
-    prop, zupt = MethodFilter.propagate, MethodFilter.zupt
+    prop, run, zupt = MethodFilter.propagate, MethodFilter.propagate_run, MethodFilter.zupt
     stop_line, lane_line = SiteUpdates.stop_line, SiteUpdates.lane_line
 
     def propagate(self: MethodFilter, dtheta: Any, dvel: Any, dt: float) -> None:
@@ -97,6 +97,13 @@ def sharing(shared: Shared, ins_method: str = "SL-SP", decision_method: str = "S
         sa = _acceleration_error(f, np.asarray(dvel, float) / dt)
         shared.ins.setdefault(self.vehicle, []).append((f.t, float(v1[0]) - n0, float(v1[1]) - e0, dt,
                                                         sa[0, 0], sa[0, 1], sa[1, 1]))
+
+    def propagate_run(self: MethodFilter, dtheta: Any, dvel: Any, dt: Any) -> None:
+        if self.spec.name != ins_method:
+            run(self, dtheta, dvel, dt)
+            return
+        for k in range(len(dt)):  # interval by interval (the same arithmetic): one shared row each
+            propagate(self, dtheta[k], dvel[k], dt[k])
 
     def zupt_(self: MethodFilter) -> UpdateResult | None:
         res = zupt(self)
@@ -118,7 +125,8 @@ def sharing(shared: Shared, ins_method: str = "SL-SP", decision_method: str = "S
             shared.lane.append((self.t, self.vehicle, ln, left_line))
         return res
 
-    patched = ((MethodFilter, "propagate", propagate, prop), (MethodFilter, "zupt", zupt_, zupt),
+    patched = ((MethodFilter, "propagate", propagate, prop), (MethodFilter, "propagate_run", propagate_run, run),
+               (MethodFilter, "zupt", zupt_, zupt),
                (SiteUpdates, "stop_line", stop_, stop_line), (SiteUpdates, "lane_line", lane_, lane_line))
     for cls, name, new, _ in patched:
         setattr(cls, name, new)
