@@ -89,6 +89,8 @@ class VehicleEngine(EngineImu, EngineOutputs, EngineNeighbours):
         #: fixes waiting for the filter time of their GNSS time (time offset estimated)
         self._held_fixes: list[tuple[float, int, GnssFix]] = []
         self._deferred: list[tuple[float, str, str, float]] = []  # (t, method, neighbour, range)
+        #: the earliest time among the deferred ranges of each (method, neighbour)
+        self._deferred_min: dict[tuple[str, str], float] = {}
         self.rest = StationarityMonitor()
         self.zupt_gate = ZuptGate()
         self._course = PositionCourse()  # velocities of position-only fixes
@@ -289,8 +291,7 @@ class VehicleEngine(EngineImu, EngineOutputs, EngineNeighbours):
         now = self.seq.t if self.seq.t is not None else msg.t
         tab.update(msg.vehicle, msg.seq, msg.t, msg.llh, msg.v_ned, msg.cov_pos, msg.method, now,
                    msg.sources, msg.constants)
-        if self._deferred:
-            self._fuse_ranges()
+        self._fuse_due(((msg.method, msg.vehicle),))
         if msg.method in self.trackers:
             self.trackers[msg.method].observe_neighbour(msg.vehicle, msg.t, float(np.hypot(*msg.v_ned[:2])),
                                                         msg.first_stopped)
@@ -366,9 +367,27 @@ class VehicleEngine(EngineImu, EngineOutputs, EngineNeighbours):
                     return
             for tr in self.trackers.values():  # who stands beside me (first-stopped decisions)
                 tr.observe_range(other, step.t, msg.range_m, self.cfg.settings.sigma_uwb)
+            keys = []
             for m, f in self.filters.items():
                 if f.spec.ranges:
                     self._deferred.append((step.t, m, other, msg.range_m))
+                    keys.append((m, other))
+                    self._deferred_min[(m, other)] = min(self._deferred_min.get((m, other), step.t), step.t)
+            self._fuse_due(keys)
+
+    def _fuse_due(self, keys) -> None:
+        """:meth:`_fuse_ranges` if a deferred range may be due: one of (method, neighbour)
+        ``keys``, whose beacons or ranges just changed, has its beacon of that time, or a range
+        has waited ``range_defer``. Nothing else makes one due, so skipping the scan otherwise
+        changes nothing; a fleet's agent holds dozens of ranges and hears hundreds of beacons
+        and ranges a second."""
+        if not self._deferred:
+            return
+        due = max(f.t for f in self.filters.values()) - min(self._deferred_min.values()) >= self.cfg.range_defer
+        for m, other in keys:
+            first, newest = self._deferred_min.get((m, other)), self.tables[m].newest_time(other)
+            due = due or (first is not None and newest is not None and newest >= first)
+        if due:
             self._fuse_ranges()
 
     def _fuse_ranges(self, final: bool = False) -> None:
@@ -395,6 +414,10 @@ class VehicleEngine(EngineImu, EngineOutputs, EngineNeighbours):
             else:
                 keep.append(item)
         self._deferred = keep
+        self._deferred_min = {}
+        for t, m, other, _ in keep:
+            k = (m, other)
+            self._deferred_min[k] = min(self._deferred_min.get(k, t), t)
 
     def _decide(self, t: float) -> None:
         for m, tab in self.tables.items():  # neighbours not heard for the table's timeout are gone

@@ -32,7 +32,7 @@ class EngineImu:
     _deferred: list
     _init: Callable[[ImuBatch], bool]
     _timers: Callable[[float], None]
-    _fuse_ranges: Callable[..., None]
+    _fuse_due: Callable[..., None]
     _release_fixes: Callable[[float], None]
     _apply: Callable[[Apply], None]
 
@@ -70,8 +70,7 @@ class EngineImu:
                 if t >= self._timer_due:
                     self._timers(t)
         self._integrate(run)
-        if self._deferred:
-            self._fuse_ranges()
+        self._fuse_due(())
 
     def _plain(self, t: float, dt: float) -> bool:
         """Whether the IMU interval ending at ``t`` needs nothing but integration: no held fix

@@ -99,8 +99,9 @@ class NeighbourTable:
         split = np.array([c for _, c in sources], float).reshape(-1, 3, 3)
         consts = tuple((str(lab), np.asarray(g, float).reshape(3)) for lab, g in constants) if labels else ()
         total = split.sum(axis=0)
-        for _, g in consts:
-            total = total + np.outer(g, g)
+        if consts:  # the constants' outer products, summed in one product (a dozen per beacon)
+            g_rows = np.array([g for _, g in consts])
+            total = total + g_rows.T @ g_rows
         if labels and float(np.abs(total - cov_pos).max()) > 1e-9 + 1e-6 * float(np.abs(cov_pos).max()):
             # a breakdown that does not add up is not used: the estimate counts as of unknown
             # composition (plain CI)

@@ -176,7 +176,8 @@ def _check_sources(name: str, fname: str, val: Any) -> tuple[tuple[tuple[str, ..
 def _check_constants(name: str, fname: str, val: Any) -> tuple[tuple[str, np.ndarray], ...]:
     if not isinstance(val, (list, tuple)) or len(val) > MAX_SOURCES:
         raise CodecError(f"{name}.constants: must be a list of at most {MAX_SOURCES} entries")
-    out: list[tuple[str, np.ndarray]] = []
+    labels: list[str] = []
+    values: list[bytes] = []
     for item in val:
         if not isinstance(item, (list, tuple)) or len(item) != 2:
             raise CodecError(f"{name}.constants: each entry must be [name, sensitivity]")
@@ -185,11 +186,15 @@ def _check_constants(name: str, fname: str, val: Any) -> tuple[tuple[str, np.nda
             raise CodecError(f"{name}.constants: a name must be a string of 1-{2 * MAX_STR + 1} characters")
         if not isinstance(g, bytes) or len(g) != 24:
             raise CodecError(f"{name}.constants: expected 3 values of float64 bytes")
-        arr = np.frombuffer(g, "<f8").astype(float)
-        if not np.isfinite(arr).all():
-            raise CodecError(f"{name}.constants: non-finite values")
-        out.append((lab, arr))
-    return tuple(out)
+        labels.append(lab)
+        values.append(g)
+    if not labels:
+        return ()
+    # every entry checked at once (a beacon carries a dozen): one array, a row per entry
+    arr = np.frombuffer(b"".join(values), "<f8").reshape(-1, 3).astype(float)
+    if not np.isfinite(arr).all():
+        raise CodecError(f"{name}.constants: non-finite values")
+    return tuple(zip(labels, arr))
 
 
 _VALIDATORS: dict[str, _Validator] = {
