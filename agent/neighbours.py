@@ -17,6 +17,20 @@ import numpy as np
 
 from slcp.geo import earth
 
+#: labels seen as sets (a beacon's labels recur at every beacon; bounded)
+_LABEL_SETS: dict[tuple[str, ...], frozenset[str]] = {}
+
+
+def _label_set(labels) -> frozenset[str]:
+    """``frozenset(labels)``, shared between the beacons that carry the same labels."""
+    key = tuple(labels)
+    got = _LABEL_SETS.get(key)
+    if got is None:
+        got = frozenset(key)
+        if len(_LABEL_SETS) < 4096:
+            _LABEL_SETS[key] = got
+    return got
+
 
 @dataclass(frozen=True)
 class NeighbourState:
@@ -95,12 +109,13 @@ class NeighbourTable:
             self.counters["duplicate_or_old"] += 1
             return False
         cov_pos = np.asarray(cov_pos, float)
-        labels = tuple(frozenset(lab) for lab, _ in sources)
+        labels = tuple(_label_set(lab) for lab, _ in sources)
         split = np.array([c for _, c in sources], float).reshape(-1, 3, 3)
-        consts = tuple((str(lab), np.asarray(g, float).reshape(3)) for lab, g in constants) if labels else ()
+        consts: tuple[tuple[str, np.ndarray], ...] = ()
         total = split.sum(axis=0)
-        if consts:  # the constants' outer products, summed in one product (a dozen per beacon)
-            g_rows = np.array([g for _, g in consts])
+        if labels and constants:  # a dozen a beacon: one array, a row each, and one product
+            g_rows = np.array([g for _, g in constants], float).reshape(-1, 3)
+            consts = tuple(zip([str(lab) for lab, _ in constants], g_rows))
             total = total + g_rows.T @ g_rows
         if labels and float(np.abs(total - cov_pos).max()) > 1e-9 + 1e-6 * float(np.abs(cov_pos).max()):
             # a breakdown that does not add up is not used: the estimate counts as of unknown
