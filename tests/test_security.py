@@ -17,9 +17,9 @@ from slcp.deploy.agent_configs import agent_config
 from slcp.deploy.processes import ConfigError, load_agent_config
 from slcp.hw_emulation.scenario import load_scenario
 from slcp.transport.bus import InMemoryNetwork
-from slcp.transport.codec import decode, encode
+from slcp.transport.codec import decode, encode, received_signed_bytes
 from slcp.transport.messages import Beacon
-from slcp.transport.security import AUTH_LEN, BeaconSigner, SecurityError, TrustStore, create_fleet
+from slcp.transport.security import AUTH_LEN, BeaconSigner, SecurityError, TrustStore, create_fleet, signed_bytes
 
 
 @pytest.fixture(scope="module")
@@ -70,6 +70,32 @@ def test_every_forgery_is_refused_with_its_reason(fleet, tmp_path) -> None:
     flipped = bytearray(signed.auth)
     flipped[20] ^= 1
     assert store.verify(dataclasses.replace(signed, auth=bytes(flipped))) == "bad_signature"
+
+
+def test_a_received_beacon_is_verified_over_its_bytes_as_sent_or_else_re_encoded(fleet) -> None:
+    """The verifier checks a decoded beacon's signature over its payload with an empty auth
+    (no re-encoding): for this codec's packer that is the canonical encoding itself. A sender
+    whose packer orders the fields otherwise still verifies (against the canonical encoding),
+    and a tampered payload fails either way."""
+    import msgpack
+
+    store = TrustStore.from_dir(fleet)
+    b = dataclasses.replace(beacon(), sources=((("V1",), np.diag([1.0, 2.0, 4.0])),),
+                            constants=(("V1~gap", np.array([0.1, 0.2, 0.0])),))
+    signed = BeaconSigner.from_file("V1", fleet / "V1.key").sign(b)
+    got = decode(encode(signed))
+    assert received_signed_bytes(got) == signed_bytes(got) and store.verify(got) == "ok"
+    assert received_signed_bytes(signed) is None and received_signed_bytes(beacon()) is None
+    # the same fields packed in reverse order: other bytes, the same beacon
+    obj = msgpack.unpackb(encode(signed), raw=False)
+    other = msgpack.packb(dict(reversed(list(obj.items()))), use_bin_type=True)
+    assert other != encode(signed)
+    got = decode(other)
+    assert received_signed_bytes(got) != signed_bytes(got) and store.verify(got) == "ok"
+    obj["t"] = 100.5
+    for packed in (msgpack.packb(obj, use_bin_type=True), msgpack.packb(dict(reversed(list(obj.items()))),
+                                                                        use_bin_type=True)):
+        assert store.verify(decode(packed)) == "bad_signature"
 
 
 def test_the_signature_covers_every_field_but_its_own(fleet) -> None:

@@ -9,6 +9,7 @@ arrays are raw little-endian float64 bytes (``bin``) of the field's fixed or lea
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Callable
 from dataclasses import MISSING, fields
 from typing import Any, cast
@@ -245,6 +246,22 @@ def _unpack(payload: bytes) -> dict[Any, Any]:
     return obj
 
 
+#: the latest decoded signed beacons, by id: (the beacon, weakly; the bytes their signature
+#: covers, as their senders packed them); messages are unhashable, and a verifier asks soon
+_WIRE_SIGNED: dict[int, tuple[weakref.ref, bytes]] = {}
+_WIRE_SIGNED_MAX = 1024
+
+
+def received_signed_bytes(beacon: Message) -> bytes | None:
+    """The bytes the signature of a beacon decoded by :func:`decode` covers as its sender
+    packed them: its payload with an empty ``auth`` (msgpack repacks what it unpacked byte
+    for byte). None for a beacon not decoded here, or unsigned. A verifier tries these first:
+    re-encoding the beacon costs several times more, and for a sender that uses this codec
+    both are the same bytes."""
+    got = _WIRE_SIGNED.get(id(beacon))
+    return got[1] if got is not None and got[0]() is beacon else None
+
+
 def decode(payload: bytes) -> Message:
     """Parse and validate a payload; raises :class:`CodecError` on anything wrong."""
     if not isinstance(payload, (bytes, bytearray, memoryview)):
@@ -271,7 +288,15 @@ def decode(payload: bytes) -> Message:
             kwargs[fname] = cast("_Validator", check)(name, fname, obj[fname])  # a scalar field has one
     if name == "uwb_round" and len(kwargs["peers"]) != len(kwargs["ranges"]):
         raise CodecError(f"uwb_round: {len(kwargs['peers'])} peers but {len(kwargs['ranges'])} ranges")
-    return cls(**kwargs)
+    msg = cls(**kwargs)
+    if name == "beacon" and obj.get("auth"):
+        if len(_WIRE_SIGNED) >= _WIRE_SIGNED_MAX:
+            try:  # the oldest (another thread's decode may have evicted it first)
+                del _WIRE_SIGNED[next(iter(_WIRE_SIGNED))]
+            except (KeyError, RuntimeError, StopIteration):
+                pass
+        _WIRE_SIGNED[id(msg)] = (weakref.ref(msg), msgpack.packb({**obj, "auth": b""}, use_bin_type=True))
+    return msg
 
 
 def peek_beacon(payload: bytes) -> tuple[str, bytes]:

@@ -42,7 +42,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.hazmat.primitives.asymmetric.utils import decode_dss_signature, encode_dss_signature
 from cryptography.x509.oid import NameOID
 
-from .codec import encode
+from .codec import encode, received_signed_bytes
 from .keys import check_name
 from .messages import Beacon
 
@@ -208,8 +208,19 @@ class TrustStore:
         _, pk = self._keys[bytes(auth[:KEY_ID_LEN])]
         r = int.from_bytes(auth[KEY_ID_LEN:KEY_ID_LEN + 32], "big")
         s = int.from_bytes(auth[KEY_ID_LEN + 32:], "big")
+        sig = encode_dss_signature(r, s)
+        # the bytes as received first (no re-encoding); the canonical encoding only if those
+        # fail and differ from it (a sender whose packer is not this codec's)
+        data = received_signed_bytes(beacon)
+        if data is not None:
+            try:
+                pk.verify(sig, data, _ALG)
+                return "ok"
+            except (InvalidSignature, ValueError):
+                if signed_bytes(beacon) == data:
+                    return "bad_signature"
         try:
-            pk.verify(encode_dss_signature(r, s), signed_bytes(beacon), _ALG)
+            pk.verify(sig, signed_bytes(beacon), _ALG)
         except (InvalidSignature, ValueError):
             return "bad_signature"
         return "ok"
