@@ -248,7 +248,7 @@ def _unpack(payload: bytes) -> dict[Any, Any]:
 
 #: the latest decoded signed beacons, by id: (the beacon, weakly; the bytes their signature
 #: covers, as their senders packed them); messages are unhashable, and a verifier asks soon
-_WIRE_SIGNED: dict[int, tuple[weakref.ref, bytes]] = {}
+_WIRE_SIGNED: dict[int, tuple[weakref.ref[Message], bytes]] = {}
 _WIRE_SIGNED_MAX = 1024
 
 
