@@ -29,7 +29,6 @@ class EngineImu:
     _held_fixes: list[tuple[float, int, GnssFix]]
     _rest_checked: float
     _timer_due: float
-    _deferred: list
     _init: Callable[[ImuBatch], bool]
     _timers: Callable[[float], None]
     _fuse_due: Callable[..., None]

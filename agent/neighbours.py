@@ -11,6 +11,7 @@ not newer than the last stored) are counted and ignored.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,7 +22,7 @@ from slcp.geo import earth
 _LABEL_SETS: dict[tuple[str, ...], frozenset[str]] = {}
 
 
-def _label_set(labels) -> frozenset[str]:
+def _label_set(labels: Iterable[str]) -> frozenset[str]:
     """``frozenset(labels)``, shared between the beacons that carry the same labels."""
     key = tuple(labels)
     got = _LABEL_SETS.get(key)

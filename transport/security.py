@@ -211,16 +211,18 @@ class TrustStore:
         sig = encode_dss_signature(r, s)
         # the bytes as received first (no re-encoding); the canonical encoding only if those
         # fail and differ from it (a sender whose packer is not this codec's)
-        data = received_signed_bytes(beacon)
-        if data is not None:
+        received = received_signed_bytes(beacon)
+        if received is not None:
             try:
-                pk.verify(sig, data, _ALG)
+                pk.verify(sig, received, _ALG)
                 return "ok"
             except (InvalidSignature, ValueError):
-                if signed_bytes(beacon) == data:
-                    return "bad_signature"
+                pass
+        canonical = signed_bytes(beacon)
+        if canonical == received:
+            return "bad_signature"
         try:
-            pk.verify(sig, signed_bytes(beacon), _ALG)
+            pk.verify(sig, canonical, _ALG)
         except (InvalidSignature, ValueError):
             return "bad_signature"
         return "ok"
