@@ -204,6 +204,12 @@ class EmulatorService:
         when every agent was away (the network went down) the clock would wait for nobody."""
         if self._away.pop(vehicle, None) is not None and vehicle not in self.agent_time:
             self.stalled.setdefault(vehicle, -np.inf)
+        elif vehicle in self.agent_time:
+            # declared again before the last token's departure was seen (a process restarted
+            # faster than its predecessor's token was withdrawn, on a busy router): the new
+            # process has no estimate before the data it missed, so waiting for it at the old
+            # time would hold the clock for stall_timeout; aside until it reports a newer one
+            self.stalled[vehicle] = self.agent_time.pop(vehicle)
 
     # ----------------------------------------------------------------- playback
     def _events(self):

@@ -140,6 +140,28 @@ def test_a_late_estimate_of_a_departed_agent_does_not_hold_the_clock() -> None:
     assert emu.agent_time["V2"] == 17.0
 
 
+def test_a_restarted_agent_declared_before_its_predecessor_left_does_not_hold_the_clock() -> None:
+    """A restarted agent's token seen before the killed one's departure: the agent is set aside
+    until it reports an estimate newer than its old one (the clock does not wait for the new
+    process at the old time; it could not report before the data it missed), then paced on."""
+    truth = build_truth(load_scenario("paper-1"))
+    emu = EmulatorService(truth, InMemoryNetwork().bus(), seed=0, stall_timeout=5.0)
+    stop = asyncio.Event()
+    for v in ("V0", "V1", "V2"):
+        emu.agent_progress(v, 8.0)
+    emu.agent_back("V2")  # the new process's token, the old one not yet withdrawn
+    assert "V2" not in emu.agent_time and emu.stalled == {"V2": 8.0}
+    for v in ("V0", "V1"):
+        emu.agent_progress(v, 10.0)
+    w = time.monotonic()
+    asyncio.run(emu._pace(10.1, w - 1e3, 0.0, stop))
+    assert time.monotonic() - w < 1.0  # not stall_timeout
+    emu.agent_progress("V2", 8.0)  # a stale estimate of the old process: still aside
+    assert "V2" not in emu.agent_time
+    emu.agent_progress("V2", 9.5)
+    assert emu.agent_time["V2"] == 9.5 and "V2" not in emu.stalled
+
+
 def test_an_agent_that_stalls_the_clock_is_waited_for_once_then_set_aside_until_it_reports() -> None:
     """Agent-paced clock: an agent whose estimates stop arriving (hung, or its messages no longer
     get through) holds the clock for ``stall_timeout`` once, not at every later event; it is paced
