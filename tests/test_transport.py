@@ -241,6 +241,33 @@ def test_in_memory_bus_delivery_drops_and_liveliness() -> None:
     asyncio.run(main())
 
 
+def test_a_drain_is_one_instant_for_every_queue() -> None:
+    """The transport's thread keeps queueing while the consumer takes the queues one after the
+    other: a fix that arrives after the GNSS queue was taken, and the IMU batch after it, both
+    wait for the next drain, so the batch is never handed over before the fix."""
+    async def main():
+        loop = asyncio.get_running_loop()
+        gnss, imu = Subscription("g", 8, loop), Subscription("i", 8, loop)
+        gnss.offer("g", b"g0")
+        imu.offer("i", b"i0")
+        take = gnss._take
+
+        def take_then_more_arrive(before=None):
+            out = take(before)
+            gnss.offer("g", b"g1")  # arrives while the IMU queue is still to be taken
+            imu.offer("i", b"i1")
+            return out
+
+        gnss._take = take_then_more_arrive
+        subs = {"gnss": gnss, "imu": imu}
+        assert [p for _, _, p in drain_in_arrival_order(subs)] == [b"g0", b"i0"]
+        gnss._take = take
+        assert [p for _, _, p in drain_in_arrival_order(subs)] == [b"g1", b"i1"]
+        assert gnss.queued_bytes == imu.queued_bytes == 0 and len(gnss) == len(imu) == 0
+
+    asyncio.run(main())
+
+
 def test_non_waking_queues_are_drained_with_the_waking_one_in_arrival_order() -> None:
     async def main():
         net = InMemoryNetwork()

@@ -140,7 +140,9 @@ class Subscription:
         """Payload bytes queued now (approximate while the other thread is at work)."""
         return self._added - self._shed - self._taken
 
-    def _take(self) -> list[tuple[int, str, bytes]]:
+    def _take(self, before: int | None = None) -> list[tuple[int, str, bytes]]:
+        """The queued items, oldest first; with ``before``, only those stamped before it (the
+        rest stay queued, in order)."""
         out = []
         items = self._items
         taken = 0
@@ -148,6 +150,9 @@ class Subscription:
             try:
                 item = items.popleft()
             except IndexError:
+                break
+            if before is not None and item[0] >= before:
+                items.appendleft(item)  # the oldest left: back in front of what came after it
                 break
             out.append(item)
             taken += len(item[2])
@@ -175,8 +180,13 @@ class Subscription:
 
 def drain_in_arrival_order(subs: dict[str, Subscription]) -> list[tuple[str, str, bytes]]:
     """Everything queued now in several subscriptions, as ``(name, key, payload)`` in the order
-    the messages arrived (``subs`` maps a name to its subscription)."""
-    runs = [[(stamp, name, key, payload) for stamp, key, payload in sub._take()] for name, sub in subs.items()]
+    the messages arrived (``subs`` maps a name to its subscription). "Now" is one instant for
+    all of them: the queues are taken one after the other while the transport's thread keeps
+    adding, so a message that arrived after the cut stays queued for the next drain (else a
+    later queue's newer messages would be handed over before an earlier queue's message that
+    arrived just after it was taken: an IMU batch before the GNSS fix that preceded it)."""
+    cut = next(_arrival)
+    runs = [[(stamp, name, key, payload) for stamp, key, payload in sub._take(cut)] for name, sub in subs.items()]
     return [(name, key, payload) for _, name, key, payload in heapq.merge(*runs)]
 
 
