@@ -34,12 +34,15 @@ import numpy as np
 from slcp.geo import earth
 
 
-@dataclass
+@dataclass(slots=True)
 class _Beacon:
+    """A checked beacon in Python floats: the tests run at every beacon and range an agent hears
+    (hundreds a second in a fleet), where numpy's per-call overhead on 3-vectors dominates."""
+
     t: float
-    llh: np.ndarray
-    v: np.ndarray
-    cov: np.ndarray
+    llh: list[float]  #: lat, lon [rad], h [m]
+    v: list[float]  #: NED [m/s]
+    cov: list[list[float]]  #: (3, 3) NED position covariance [m²]
 
 
 @dataclass
@@ -116,9 +119,11 @@ class MisbehaviourDetector:
                cov_ned: np.ndarray) -> str | None:
         """Check a beacon (``stream``: the method it belongs to); returns the failed test's name
         (``"covariance"`` or ``"motion"``) or None."""
-        b = _Beacon(float(t), np.asarray(llh, float), np.asarray(v_ned, float), np.asarray(cov_ned, float))
+        b = _Beacon(float(t), np.asarray(llh, float).tolist(), np.asarray(v_ned, float).tolist(),
+                    np.asarray(cov_ned, float).reshape(3, 3).tolist())
+        bc = b.cov
         # smallest eigenvalue of the symmetric horizontal block, in closed form
-        c00, c11, c01 = float(b.cov[0, 0]), float(b.cov[1, 1]), 0.5 * float(b.cov[0, 1] + b.cov[1, 0])
+        c00, c11, c01 = bc[0][0], bc[1][1], 0.5 * (bc[0][1] + bc[1][0])
         eig_min = 0.5 * (c00 + c11) - math.hypot(0.5 * (c00 - c11), c01)
         prev = self._last.get((vehicle, stream))
         self._last[(vehicle, stream)] = b
@@ -137,22 +142,25 @@ class MisbehaviourDetector:
         if prev is None or not 0.0 < b.t - prev.t <= 1.0:
             return None
         dt = b.t - prev.t
-        v0, v1 = float(np.hypot(*prev.v[:2])), float(np.hypot(*b.v[:2]))
+        v0, v1 = math.hypot(prev.v[0], prev.v[1]), math.hypot(b.v[0], b.v[1])
         if v0 > self.stop_from and v1 < self.stopped and v0 - v1 > self.max_accel * dt + self.velocity_step:
             # from driving to standing within one beacon period: a stop no vehicle makes (an
             # emergency stop is about 1 g), the signature of a claim frozen in place
             self.counters["acceleration_strikes"] += 1
             self._strike(vehicle, b.t, "acceleration")
             return "acceleration"
-        moved = earth.ned_offset(*b.llh, *prev.llh)[:2]
-        predicted = 0.5 * (b.v[:2] + prev.v[:2]) * dt
-        e = moved - predicted
+        # the displacement (earth.ned_offset, on the previous beacon's curvature) less the one the
+        # mean velocity predicts
+        lat0, h0 = prev.llh[0], prev.llh[2]
+        rm, rn = earth.radii(lat0)
+        e0 = (b.llh[0] - lat0) * (rm + h0) - 0.5 * (b.v[0] + prev.v[0]) * dt
+        e1 = (b.llh[1] - prev.llh[1]) * (rn + h0) * math.cos(lat0) - 0.5 * (b.v[1] + prev.v[1]) * dt
         q = (0.5 * self.accel * dt * dt) ** 2
-        s00 = float(b.cov[0, 0] + prev.cov[0, 0]) + q
-        s11 = float(b.cov[1, 1] + prev.cov[1, 1]) + q
-        s01 = float(b.cov[0, 1] + prev.cov[0, 1])
-        s10 = float(b.cov[1, 0] + prev.cov[1, 0])
-        e0, e1 = float(e[0]), float(e[1])
+        pc = prev.cov
+        s00 = bc[0][0] + pc[0][0] + q
+        s11 = bc[1][1] + pc[1][1] + q
+        s01 = bc[0][1] + pc[0][1]
+        s10 = bc[1][0] + pc[1][0]
         det = s00 * s11 - s01 * s10
         if not det > 0.0:  # only with an implausible previous covariance, flagged when it came
             return None
@@ -171,13 +179,27 @@ class MisbehaviourDetector:
         b = self._latest.get(vehicle)
         if b is None or abs(t - b.t) > self.max_extrapolation:
             return None
-        nb = earth.offset_llh(b.llh, b.v * (t - b.t))
-        d = earth.ned_offset(*nb, *own_llh)
-        dist = float(np.linalg.norm(d))
+        # the neighbour's claim moved to ``t`` with its velocity (earth.offset_llh), and its NED
+        # offset from my own estimate (earth.ned_offset, on my curvature)
+        lat, lon, h = b.llh
+        tau = t - b.t
+        rm, rn = earth.radii(lat)
+        nb_lat = lat + b.v[0] * tau / (rm + h)
+        nb_lon = lon + b.v[1] * tau / ((rn + h) * math.cos(lat))
+        nb_h = h - b.v[2] * tau
+        lat0, lon0, h0 = np.asarray(own_llh, float).tolist()
+        rm, rn = earth.radii(lat0)
+        d = ((nb_lat - lat0) * (rm + h0), (nb_lon - lon0) * (rn + h0) * math.cos(lat0), -(nb_h - h0))
+        dist = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         if dist < 1e-3:
             return None
-        u = d / dist
-        var = sigma_uwb**2 + float(u @ (np.asarray(own_cov_ned) + b.cov) @ u)
+        u = (d[0] / dist, d[1] / dist, d[2] / dist)
+        own = np.asarray(own_cov_ned, float).reshape(3, 3).tolist()
+        quad = 0.0  # uᵀ (P_own + P_nb) u
+        for i in range(3):
+            oi, ci = own[i], b.cov[i]
+            quad += u[i] * ((oi[0] + ci[0]) * u[0] + (oi[1] + ci[1]) * u[1] + (oi[2] + ci[2]) * u[2])
+        var = sigma_uwb**2 + quad
         resid = measured - dist
         # NLOS only lengthens a range: a positive residual up to nlos_bias is no evidence
         excess = resid if resid < 0 else max(resid - self.nlos_bias, 0.0)
