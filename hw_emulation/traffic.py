@@ -3,7 +3,8 @@
 Each vehicle follows its route (lanes joined by smooth Bézier turns) at a constant lateral
 offset drawn from its d_l distribution. The state is advanced on a 0.1 s grid. At a red light the
 queue head stops with its front ``d_s`` (drawn from the vehicle's stop-gap distribution) behind the
-stop line; followers queue behind it by IDM. A vehicle too close to stop comfortably when the
+stop line; followers queue behind it by IDM. A vehicle brakes by IDM to stand at the end of its
+route, as behind a standing vehicle there. A vehicle too close to stop comfortably when the
 light turns red proceeds (dilemma zone). Desired speed is capped by the path curvature ahead so
 turns are taken at ≤ 2 m/s² lateral acceleration.
 """
@@ -24,6 +25,10 @@ STEP = 0.1  #: traffic time step [s]
 LAT_ACCEL_MAX = 2.0  #: lateral acceleration used to cap speed in turns [m/s²]
 STOP_DECEL_MAX = 3.5  #: deceleration above which a driver runs the amber [m/s²]
 STOPPED_SPEED = 0.05  #: below this a vehicle counts as stopped [m/s]
+#: [m] how far ahead a driver heeds the end of its route, which stands for the edge of the
+#: emulated world, not for an obstacle: enough to stop from 15 m/s at IDM's comfortable 2 m/s²
+#: (56 m); any farther, IDM's interaction term, (s*/gap)², would slow free-flowing vehicles
+END_LOOKAHEAD = 60.0
 FIRST_STOP_GATE = 15.0  #: a stopped queue head within this of its stop line is "first stopped" [m]
 
 
@@ -143,6 +148,12 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
                 g = (o_on_me + specs[oid].l0 - specs[oid].length) - (sk + veh.l0)
                 if o_on_me > sk and g < gap:
                     gap, dv = g, vk - v[oid][k]
+            # the route's end: a standing obstacle the driver brakes for, to stand at the end (it
+            # was a wall: from cruising speed to standing in one 0.1 s step, which no vehicle does
+            # and which the neighbours' misbehaviour checks rightly took for a forged stop)
+            g = route.path.length - sk + veh.idm.s0
+            if g < min(gap, END_LOOKAHEAD):
+                gap, dv = g, vk
             # red light: virtual obstacle so that the front stops d_s before the stop line
             stop = route.next_stop_line(sk)
             if stop is not None and not scn.signals.is_green(stop.key, tk):

@@ -212,3 +212,27 @@ def test_sp_on_emulated_sensors_matches_the_papers_sp_row(name, paper1, paper2) 
     print({f"{w}/{v}": round(r, 2) for (w, v), r in ratios.items()})
     assert len(ratios) == (3 if name == "paper-1" else 6)
     assert all(0.65 <= r <= 1.35 for r in ratios.values()), ratios
+
+
+def test_a_vehicle_brakes_to_stand_at_the_end_of_its_route() -> None:
+    """The end of a route is the edge of the emulated world: a vehicle that reaches it brakes as
+    behind a standing car and stands there (it was a wall: rush-hour's N1, S1-S3 and W2 went from
+    11-12 m/s to standing in one 0.1 s step, which their neighbours' misbehaviour checks took for
+    a forged stop); and it does not heed the end from farther than it needs to stop (paper-1's V0,
+    70 m short of its end when the scenario ends, drives as it did)."""
+    from slcp.hw_emulation.traffic import END_LOOKAHEAD, STEP, simulate_traffic
+
+    scn = load_scenario("rush-hour")
+    tr = simulate_traffic(scn, np.random.default_rng(0))
+    ended = [vid for vid, r in tr.routes.items() if tr.s[vid][-1] >= r.path.length - 1e-9]
+    assert {"N1", "S1", "S2", "S3", "W2"} <= set(ended)
+    for vid in ended:
+        v = tr.v[vid]
+        k = int(np.argmax(tr.s[vid] >= tr.routes[vid].path.length - 1e-9))
+        assert v[k] == 0.0 and v[k - 1] < 0.5, (vid, v[k - 1])  # arrives at walking pace
+        # from its last cruise to the end: at most 4 m/s² (IDM's comfortable braking, not a crash)
+        j = k - int(np.argmax(v[k::-1] > 8.0))
+        assert np.min(np.diff(v[j:k]) / STEP) > -4.0, vid
+    p1 = simulate_traffic(load_scenario("paper-1"), np.random.default_rng(0))
+    left = p1.routes["V0"].path.length - p1.s["V0"][-1]
+    assert END_LOOKAHEAD < left < END_LOOKAHEAD + 15.0 and p1.v["V0"][-1] > 9.0
