@@ -7,9 +7,9 @@ run's seed also redrawing the stops as in ``slcp run --seed``); the runs are spr
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
-from concurrent.futures import ProcessPoolExecutor
+
+from .worker_pool import worker_pool
 
 #: outcomes of :meth:`agent.methods.MethodFilter.range` that count as rejected by a gate
 REJECTED_PREFIX = "gate"
@@ -29,9 +29,7 @@ def range_outcomes(scenario: str, seeds: list[int], processes: int | None = None
     """Range outcomes summed over ``seeds``: method -> injected kind -> outcome -> count."""
     total: dict[str, dict[str, dict[str, int]]] = {}
     workers = max(1, min(processes or os.cpu_count() or 1, len(seeds)))
-    # spawned, not forked: a fork of a process that runs threads (Zenoh's runtime in a test
-    # worker or a host) copies their locks without the threads, and a child can wait on them
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+    with worker_pool(workers) as pool:
         for ro in pool.map(_one_seed, [(scenario, s) for s in seeds]):
             for m, kinds in ro.items():
                 for kind, outcomes in kinds.items():

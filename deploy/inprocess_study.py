@@ -11,9 +11,7 @@ first-stopped detection of the stop-line methods, pooled over the seeds and the 
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import os
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +20,7 @@ from slcp.agent.methods import METHODS
 
 from .detection import score_first_stopped
 from .study import paired_difference
+from .worker_pool import worker_pool
 
 #: the pairs whose differences the study tests (the first is the one that should be lower)
 PAIRS = (("CP", "SP"), ("SL-CP", "CP"), ("SL-SP", "SP"))
@@ -58,8 +57,7 @@ def run_study(scenario: str, seeds: list[int], processes: int | None = None, pro
     """The study's per-seed results and their summary (:func:`summarise`)."""
     workers = max(1, min(processes or os.cpu_count() or 1, len(seeds)))
     per_seed = []
-    # spawned, not forked (see deploy.gates_study)
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+    with worker_pool(workers) as pool:
         for res in pool.map(one_seed, [(scenario, s) for s in seeds]):
             per_seed.append(res)
             if progress is not None:

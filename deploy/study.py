@@ -21,11 +21,10 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing as mp
 import os
 import shutil
 import signal
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
@@ -34,6 +33,7 @@ import numpy as np
 from slcp.agent.methods import DEFAULT_FUSION, METHODS
 
 from .study_report import PAIRS, study_markdown  # noqa: F401  (study_markdown: the study's report)
+from .worker_pool import worker_pool
 
 log = logging.getLogger(__name__)
 
@@ -139,23 +139,6 @@ def _interruptible(fn, *args):
         os._exit(130)  # a process boundary: the pool sees a worker gone, not a result
 
 
-def _stop_with_parent(period: float = 0.5) -> None:
-    """Pool-worker initializer: when the study process is gone (killed), terminate this worker
-    (a running fleet gets SIGTERM, i.e. its own cleanup; see :func:`_interruptible`) instead of running on
-    with the seeds still queued."""
-    import threading
-    import time
-
-    parent = os.getppid()
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(period)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    threading.Thread(target=watch, name="stop-with-parent", daemon=True).start()
-
-
 class StudyError(RuntimeError):
     """No seed of a study finished: there is nothing to aggregate."""
 
@@ -177,7 +160,7 @@ def run_study(scenario: str, seeds: list[int], methods: tuple[str, ...] = METHOD
     per_seed: dict[int, dict] = {}
     failed: dict[int, str] = {}
     tries = dict.fromkeys(seeds, 0)
-    pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
+    pool = worker_pool(jobs)
 
     def set_aside(s: int) -> None:
         """Keep a failed try's files (its logs say why) out of the study's ``seed-*`` runs."""

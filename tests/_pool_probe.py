@@ -1,4 +1,4 @@
-"""Helper of test_study: a process pool with the study's worker initializer.
+"""Helper of test_study: a process pool of the studies' (:func:`deploy.worker_pool.worker_pool`).
 
 ``_pool_probe.py PID_FILE``: one long job (the study process is then killed).
 ``_pool_probe.py PID_FILE SECOND_FILE``: two long jobs queued to one worker, each run as the
@@ -7,11 +7,9 @@ study runs a seed; the test sends the worker SIGTERM during the first one.
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 
 
 def job(path: str) -> None:
@@ -21,9 +19,10 @@ def job(path: str) -> None:
 
 
 if __name__ == "__main__":
-    from slcp.deploy.study import _interruptible, _stop_with_parent
+    from slcp.deploy.study import _interruptible
+    from slcp.deploy.worker_pool import worker_pool
 
-    pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_stop_with_parent)
+    pool = worker_pool(1)
     if len(sys.argv) == 2:
         pool.submit(job, sys.argv[1])
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -227,6 +228,44 @@ def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
     finally:
         if probe.poll() is None:
             probe.kill()
+
+
+@pytest.mark.fleet
+def test_an_in_process_study_killed_leaves_no_worker_running(tmp_path) -> None:
+    """``slcp scenario study`` killed with SIGKILL: its pool workers (each running a seed of
+    vehicle engines for a minute or more) stop too, instead of running on unseen on the cores."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    study = subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "scenario", "study", "paper-1", "--seeds",
+                              "4", "--jobs", "1", "--out", str(tmp_path / "study")],
+                             cwd=Path(__file__).parents[1], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 60
+        while not workers and time.monotonic() < deadline and study.poll() is None:
+            for d in Path("/proc").iterdir():
+                try:
+                    if (d.name.isdigit() and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == study.pid
+                            and b"multiprocessing.spawn" in (d / "cmdline").read_bytes()):
+                        workers.append(int(d.name))
+                except (OSError, ValueError, IndexError):
+                    continue
+            time.sleep(0.1)
+        assert workers, "the study started no pool worker"
+        study.send_signal(signal.SIGKILL)
+        study.wait(timeout=10)
+        for w in workers:
+            if not _gone_within(w, 10.0):
+                os.kill(w, signal.SIGKILL)
+                raise AssertionError("a pool worker outlived the killed study by 10 s")
+    finally:
+        if study.poll() is None:
+            study.kill()
+            study.wait(timeout=10)
 
 
 @pytest.mark.fleet
