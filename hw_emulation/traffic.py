@@ -109,6 +109,31 @@ def driver_draws(scn: Scenario, rng: np.random.Generator) -> dict[str, tuple[flo
     return {veh.id: (float(rng.normal(*veh.stop_gap)), float(rng.normal(*veh.lateral))) for veh in scn.vehicles}
 
 
+def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos: dict, specs: dict,
+            v: dict[str, np.ndarray], k: int) -> tuple[float, float]:
+    """IDM's gap [m] and closing speed [m/s] to what is ahead of vehicle ``vid`` at step ``k``:
+    the nearest vehicle ahead on a segment its route also uses, or the end of its route."""
+    gap, dv = math.inf, 0.0
+    for oid, (oseg, os_) in pos.items():
+        if oid == vid:
+            continue
+        match = [seg for seg in route.segments if seg.key == oseg.key]
+        if not match:
+            continue
+        o_on_me = match[0].s0 + (os_ - oseg.s0)
+        # other vehicle's rear relative to my front (reference points are l0 behind fronts)
+        g = (o_on_me + specs[oid].l0 - specs[oid].length) - (sk + veh.l0)
+        if o_on_me > sk and g < gap:
+            gap, dv = g, vk - v[oid][k]
+    # the route's end: a standing obstacle the driver brakes for, to stand at the end (it was a
+    # wall: from cruising speed to standing in one 0.1 s step, which no vehicle does and which
+    # the neighbours' misbehaviour checks rightly took for a forged stop)
+    g = route.path.length - sk + veh.idm.s0
+    if g < min(gap, END_LOOKAHEAD):
+        gap, dv = g, vk
+    return gap, dv
+
+
 def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
     """Run the traffic model over the scenario duration."""
     n = int(round(scn.duration / STEP)) + 1
@@ -135,25 +160,7 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
             if tk < veh.depart:  # parked until departure
                 s[vid][k + 1], v[vid][k + 1] = sk, 0.0
                 continue
-            # leader: nearest vehicle ahead on a segment this route also uses
-            gap, dv = math.inf, 0.0
-            for oid, (oseg, os_) in pos.items():
-                if oid == vid:
-                    continue
-                match = [seg for seg in route.segments if seg.key == oseg.key]
-                if not match:
-                    continue
-                o_on_me = match[0].s0 + (os_ - oseg.s0)
-                # other vehicle's rear relative to my front (reference points are l0 behind fronts)
-                g = (o_on_me + specs[oid].l0 - specs[oid].length) - (sk + veh.l0)
-                if o_on_me > sk and g < gap:
-                    gap, dv = g, vk - v[oid][k]
-            # the route's end: a standing obstacle the driver brakes for, to stand at the end (it
-            # was a wall: from cruising speed to standing in one 0.1 s step, which no vehicle does
-            # and which the neighbours' misbehaviour checks rightly took for a forged stop)
-            g = route.path.length - sk + veh.idm.s0
-            if g < min(gap, END_LOOKAHEAD):
-                gap, dv = g, vk
+            gap, dv = _leader(vid, veh, route, sk, vk, pos, specs, v, k)
             # red light: virtual obstacle so that the front stops d_s before the stop line
             stop = route.next_stop_line(sk)
             if stop is not None and not scn.signals.is_green(stop.key, tk):
