@@ -212,30 +212,36 @@ def _gone_within(pid: int, seconds: float) -> bool:
     return False
 
 
-@pytest.mark.fleet
-def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
-    """A study killed with SIGKILL must not leave its pool workers running its queued seeds."""
+def _kill_and_expect_gone(study, workers: list[int]) -> None:
+    """SIGKILL to the study process; each of its pool ``workers`` must exit within 10 s (one
+    that does not is killed, and the test fails)."""
     import os
     import signal
 
-    probe, worker = _start_probe(tmp_path / "worker.pid")
     try:
-        probe.send_signal(signal.SIGKILL)
-        probe.wait(timeout=10)
-        if not _gone_within(worker, 10.0):
-            os.kill(worker, signal.SIGKILL)
-            raise AssertionError("the pool worker outlived the study process by 10 s")
+        study.send_signal(signal.SIGKILL)
+        study.wait(timeout=10)
+        for w in workers:
+            if not _gone_within(w, 10.0):
+                os.kill(w, signal.SIGKILL)
+                raise AssertionError("a pool worker outlived the killed study by 10 s")
     finally:
-        if probe.poll() is None:
-            probe.kill()
+        if study.poll() is None:
+            study.kill()
+            study.wait(timeout=10)
+
+
+@pytest.mark.fleet
+def test_study_workers_stop_when_the_study_process_is_killed(tmp_path) -> None:
+    """A study killed with SIGKILL must not leave its pool workers running its queued seeds."""
+    probe, worker = _start_probe(tmp_path / "worker.pid")
+    _kill_and_expect_gone(probe, [worker])
 
 
 @pytest.mark.fleet
 def test_an_in_process_study_killed_leaves_no_worker_running(tmp_path) -> None:
     """``slcp scenario study`` killed with SIGKILL: its pool workers (each running a seed of
     vehicle engines for a minute or more) stop too, instead of running on unseen on the cores."""
-    import os
-    import signal
     import subprocess
     import sys
     import time
@@ -255,17 +261,12 @@ def test_an_in_process_study_killed_leaves_no_worker_running(tmp_path) -> None:
                 except (OSError, ValueError, IndexError):
                     continue
             time.sleep(0.1)
-        assert workers, "the study started no pool worker"
-        study.send_signal(signal.SIGKILL)
-        study.wait(timeout=10)
-        for w in workers:
-            if not _gone_within(w, 10.0):
-                os.kill(w, signal.SIGKILL)
-                raise AssertionError("a pool worker outlived the killed study by 10 s")
     finally:
-        if study.poll() is None:
+        if not workers:
             study.kill()
             study.wait(timeout=10)
+    assert workers, "the study started no pool worker"
+    _kill_and_expect_gone(study, workers)
 
 
 @pytest.mark.fleet
