@@ -1,0 +1,76 @@
+"""The results pages: generated from the studies' own reports, and free of the session's traces."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
+#: a commit hash: 7-40 hex digits with at least one letter and one digit (not a plain number)
+HASH = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+
+
+def _page_tool():
+    spec = importlib.util.spec_from_file_location("fleet_results_page", REPO / "tools" / "fleet_results_page.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_no_user_page_carries_a_date_or_a_commit_hash() -> None:
+    """The README and every docs page: what the code does, not when or at which commit (those
+    belong in the CHANGELOG and the closing notes)."""
+    pages = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+    assert len(pages) > 20
+    for page in pages:
+        text = page.read_text()
+        assert not DATE.search(text), f"{page.relative_to(REPO)}: a date ({DATE.search(text).group()})"
+        assert not HASH.search(text), f"{page.relative_to(REPO)}: a commit hash? ({HASH.search(text).group()})"
+
+
+def test_the_patterns_catch_what_they_are_for() -> None:
+    assert DATE.search("at 2026-11-25") and HASH.search("at c9d8d45,") and HASH.search("5898270abc")
+    assert not HASH.search("1234567 samples") and not HASH.search("deadbeef") and not DATE.search("20-11-2026")
+
+
+def _study(d: Path, study: dict, report: str) -> Path:
+    d.mkdir()
+    (d / "study.json").write_text(json.dumps(study))
+    (d / "report.md").write_text(report)
+    return d
+
+
+def test_the_fleet_page_is_the_studies_reports_under_the_commands_that_made_them(tmp_path) -> None:
+    tool = _page_tool()
+    fleet = _study(tmp_path / "paper-2-25", {"scenario": "paper-2", "seeds": list(range(25)), "fusion": "split-ci",
+                                            "lane_constraint": False},
+                   "# slcp study: paper-2\n\ntext\n\n## t_s1-t_e\n\n```\n# not a heading\n```\n")
+    inproc = _study(tmp_path / "rush", {"scenario": "rush-hour", "seeds": [0, 1, 2], "summary": {}},
+                    "# rush-hour study\n\n### deep\n")
+    page = tool.build_page([fleet, inproc])
+    assert page.startswith("# Fleet results\n") and '!!! note "Generated"' in page
+    assert "slcp run paper-2 --seeds 25 --fusion split-ci --no-lane-constraint --out runs/paper-2-25" in page
+    assert "slcp scenario study rush-hour --seeds 3 --out runs/rush" in page
+    assert "python tools/fleet_results_page.py runs/paper-2-25 runs/rush > docs/results-fleet.md" in page
+    assert "\n## slcp study: paper-2\n" in page and "\n### t_s1-t_e\n" in page and "\n# not a heading\n" in page
+    assert "\n## rush-hour study\n" in page and "\n#### deep\n" in page
+    assert page.index("paper-2\n") < page.index("rush-hour study")
+    # a folder that is not a study, or a damaged summary: a clear error, exit 2
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(tool.PageError, match="not a study folder"):
+        tool.build_page([tmp_path / "empty"])
+    bad = _study(tmp_path / "bad", {"scenario": "x"}, "# x\n")
+    with pytest.raises(tool.PageError, match="not a study's summary"):
+        tool.build_page([bad])
+    assert tool.main([str(tmp_path / "empty")]) == 2
+
+
+def test_the_fleet_results_page_in_the_docs_is_the_generated_one() -> None:
+    text = (REPO / "docs" / "results-fleet.md").read_text()
+    assert '!!! note "Generated"' in text and "python tools/fleet_results_page.py" in text
+    assert text.count("\n## ") >= 3  # a section per study
