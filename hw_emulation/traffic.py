@@ -125,9 +125,9 @@ def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos:
         g = (o_on_me + specs[oid].l0 - specs[oid].length) - (sk + veh.l0)
         if o_on_me > sk and g < gap:
             gap, dv = g, vk - v[oid][k]
-    # the route's end: a standing obstacle the driver brakes for, to stand at the end (it was a
-    # wall: from cruising speed to standing in one 0.1 s step, which no vehicle does and which
-    # the neighbours' misbehaviour checks rightly took for a forged stop)
+    # the route's end: a standing obstacle the driver brakes for, to stand at the end; without
+    # it the end is a wall, a stop from cruising speed in one 0.1 s step, which no vehicle makes
+    # (and which the neighbours' misbehaviour checks rightly take for a forged stop)
     g = route.path.length - sk + veh.idm.s0
     if g < min(gap, END_LOOKAHEAD):
         gap, dv = g, vk
