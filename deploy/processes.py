@@ -87,7 +87,11 @@ async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> i
     finally:
         reach.cancel()
         await bus.close()
-    log.info("%s: stopped; counters %s", cfg.vehicle, agent.counters)
+    # the full account (sequencer, tables, filters, misbehaviour: what its last diagnostics say),
+    # not only the engine's own counters: a late or dropped fix shows here
+    eng = agent.engine
+    last = eng.diagnostics(eng.seq.t).counters if eng.seq.t is not None else dict(eng.counters)
+    log.info("%s: stopped; counters %s", cfg.vehicle, last)
     return 0
 
 

@@ -406,7 +406,8 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
           f"end mean {sp['outage_h_end_mean_m']:.3f} / {ref['outage_h_end_mean_m']:.3f} m")
     counters = [ln for ln in (tmp_path / "agent.log").read_text().splitlines() if "counters" in ln]
     # what a failure needs first: the sequencer's account of late and out-of-order data
-    seq = re.findall(r"'(seq_[a-z_]+|queue_dropped_[a-z]+|gnss|imu_batches)': (\d+)", counters[-1]) if counters else []
+    seq = re.findall(r"'(seq_[a-z_]+|queue_dropped_[a-z]+|gnss|imu_batches|estimates_tx|SP_gnss[a-z_]*)': (\d+)",
+                     counters[-1]) if counters else []
     for k in ("outage_h_rms_m", "outage_h_end_mean_m", "outage_h_max_m"):
         assert sp[k] == pytest.approx(ref[k], abs=0.01), (k, sp[k], ref[k], res["max_late_s"], seq, sp)
 
