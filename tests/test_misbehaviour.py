@@ -295,3 +295,39 @@ def test_the_sudden_stop_test_applies_from_above_stop_from(v0: float, strike) ->
     cov = np.diag([1.0, 1.0, 1.0])
     det.beacon("V9", "CP", 0.0, at(0, 0), np.array([0.0, v0, 0.0]), cov)
     assert det.beacon("V9", "CP", 0.125, at(0, v0 * 0.0625), np.zeros(3), cov) == strike
+
+
+def test_a_moving_claim_is_judged_where_its_velocity_takes_it() -> None:
+    """A neighbour driving at (30, 10, 2) m/s NED. Its next beacon 0.2 s later and a range 0.25
+    s after a beacon are judged at the point its velocity takes it, on the ellipsoid's curvature:
+    the truth here is pymap3d's exact conversion, not the detector's first-order formulas. Each
+    check straddles its threshold by 1 % (the motion χ² along either axis, the range's 10σ), so
+    a sign, an axis or a radius of curvature wrong in either check shows (north: R_M, not R_N,
+    6 m in 0.2 s, makes 2 cm)."""
+    import pymap3d
+
+    v = np.array([30.0, 10.0, 2.0])
+    dt, tau, sig = 0.2, 0.25, 0.1
+
+    def ned(d: np.ndarray, ref: np.ndarray = ORIGIN) -> np.ndarray:
+        return np.array(pymap3d.ned2geodetic(*d, *ref, deg=False))
+
+    cov = np.diag([0.003, 0.003, 1.0])
+    s = 2 * 0.003 + (0.5 * MisbehaviourDetector().accel * dt * dt) ** 2  # per axis: diagonal S
+    for axis in (0, 1):
+        for scale, expect in ((0.99, None), (1.01, "motion")):
+            off = np.zeros(3)
+            off[axis] = np.sqrt(MisbehaviourDetector().motion_chi2 * s * scale)
+            det = MisbehaviourDetector()
+            det.beacon("V9", "CP", 0.0, ORIGIN, v, cov)
+            assert det.beacon("V9", "CP", dt, ned(v * dt + off), v, cov) == expect, (axis, scale)
+    # the range: the receiver 30 m south, 40 m west and 10 m below where the neighbour is at tau
+    there = ned(v * tau)
+    own = ned(np.array([-30.0, -40.0, 10.0]), there)
+    dist = float(np.linalg.norm(np.subtract(pymap3d.geodetic2ecef(*there, deg=False),
+                                            pymap3d.geodetic2ecef(*own, deg=False))))
+    k10 = 10.0 * np.sqrt(sig**2 + 0.04 + 0.01)  # isotropic covariances: any line of sight
+    for scale, expect in ((0.99, None), (1.01, "range")):
+        det = MisbehaviourDetector()
+        det.beacon("V9", "CP", 0.0, ORIGIN, v, np.diag([0.01, 0.01, 0.01]))
+        assert det.range("V9", tau, dist - scale * k10, own, np.diag([0.04, 0.04, 0.04]), sig) == expect, scale
