@@ -64,9 +64,10 @@ def test_the_fleet_page_is_the_studies_reports_under_the_commands_that_made_them
     (tmp_path / "empty").mkdir()
     with pytest.raises(tool.PageError, match="not a study folder"):
         tool.build_page([tmp_path / "empty"])
-    bad = _study(tmp_path / "bad", {"scenario": "x"}, "# x\n")
-    with pytest.raises(tool.PageError, match="not a study's summary"):
-        tool.build_page([bad])
+    for i, summary in enumerate(({"scenario": "x"}, {"seeds": [0]}, ["not", "a", "map"])):
+        bad = _study(tmp_path / f"bad{i}", summary, "# x\n")
+        with pytest.raises(tool.PageError, match="not a study's summary"):
+            tool.build_page([bad])
     assert tool.main([str(tmp_path / "empty")]) == 2
 
 

@@ -16,7 +16,7 @@ import json
 import sys
 from pathlib import Path
 
-DEFAULT_FUSION = "source-ci"
+from slcp.agent.methods import DEFAULT_FUSION
 
 INTRO = """\
 # Fleet results
@@ -52,16 +52,15 @@ def study_command(study_dir: Path) -> tuple[str, str]:
     try:
         study = json.loads(meta.read_text())
         seeds = [int(s) for s in study["seeds"]]
+        scenario = str(study["scenario"])
     except (ValueError, KeyError, TypeError) as exc:
-        raise PageError(f"{meta}: not a study's summary ({exc})") from exc
+        raise PageError(f"{meta}: not a study's summary ({exc!r})") from exc
     if not seeds:
         raise PageError(f"{meta}: no seeds")
     name = study_dir.name
     if "summary" in study:  # slcp scenario study (in process): seeds 0..N-1
-        scenario = study.get("scenario", name)
         cmd = f"slcp scenario study {scenario} --seeds {len(seeds)} --out runs/{name}"
     else:
-        scenario = study["scenario"]
         cmd = f"slcp run {scenario} --seeds {len(seeds)}"
         if seeds[0] != 0:
             cmd += f" --seed {seeds[0]}"
