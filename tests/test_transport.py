@@ -362,6 +362,55 @@ def test_two_zenoh_peers_on_loopback() -> None:
     asyncio.run(main())
 
 
+@pytest.mark.fleet
+@pytest.mark.timeout(60)
+def test_messages_on_several_keys_reach_their_queues_in_the_order_they_were_sent() -> None:
+    """An agent hands its queues' messages to the engine in arrival order
+    (:func:`transport.bus.drain_in_arrival_order`), and the engine's sensor timing relies on it:
+    a GNSS fix published before the IMU batches that follow it must not be queued after them.
+    20,000 messages on three keys from one client, through a router, to another client: every
+    one arrives, in the order sent, with no thread per subscription. (With zenoh-python's
+    default callbacks, each subscription's in a Python thread of its own, 450-580 were out of
+    order here.)"""
+    import struct
+
+    from slcp.transport.bus import Waker, drain_in_arrival_order
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
+
+    n = 20_000
+
+    def threads() -> int:
+        return len(os.listdir("/proc/self/task"))
+
+    async def main() -> None:
+        ep = f"tcp/127.0.0.1:{free_port()}"
+        router = ZenohBus(ZenohConfig(mode="router", listen=(ep,)))
+        pub = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
+        sub = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
+        try:
+            waker = Waker(asyncio.get_running_loop())
+            before = threads()
+            subs = {k: sub.subscribe(f"slcp/v1/test/{k}", n, wake=False, waker=waker) for k in "abc"}
+            after = threads()
+            await asyncio.sleep(0.5)  # the subscriptions reach the router
+            for i in range(n):
+                await pub.publish(f"slcp/v1/test/{'abc'[i % 3 if i % 7 else 0]}", struct.pack("<q", i))
+                if i % 500 == 0:
+                    await asyncio.sleep(0.001)
+            deadline = asyncio.get_running_loop().time() + 20
+            while sum(len(s) for s in subs.values()) < n and asyncio.get_running_loop().time() < deadline:
+                await asyncio.sleep(0.1)
+            got = [struct.unpack("<q", p)[0] for _, _, p in drain_in_arrival_order(subs)]
+            assert got == list(range(n)), (len(got), sum(1 for a, b in zip(got, got[1:]) if b < a))
+            assert after == before
+        finally:
+            await sub.close()
+            await pub.close()
+            await router.close()
+
+    asyncio.run(main())
+
+
 _RUNTIME_PROBE = """
 import asyncio, json, os, sys
 from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig

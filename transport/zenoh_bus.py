@@ -132,6 +132,16 @@ def _start_zenoh_log() -> None:
             os.environ["NO_COLOR"] = before
 
 
+def _in_zenoh_thread(callback: Any) -> zenoh.handlers.Callback:
+    """``callback`` run in the Zenoh thread that received the sample. zenoh-python's default
+    hands every subscriber's samples to a Python thread of its own, so samples of different
+    keys reach their queues in an order the OS scheduler decides: a GNSS fix overtaken by the
+    IMU batches published after it (a late fix the filters drop), and a thread and two
+    hand-offs per subscriber. slcp's callbacks only copy and queue (never a Zenoh call), which
+    is what Zenoh's own thread may run."""
+    return zenoh.handlers.Callback(callback, indirect=False)
+
+
 class ZenohBus:
     """Bus over a Zenoh session. Create inside a running event loop."""
 
@@ -188,7 +198,7 @@ class ZenohBus:
                 return
             sub.offer(str(sample.key_expr), payload.to_bytes(), threadsafe=True)
 
-        self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
+        self._subscribers.append(self.session.declare_subscriber(expr, _in_zenoh_thread(on_sample)))
         self._subs.append(sub)
         return sub
 
@@ -198,7 +208,7 @@ class ZenohBus:
         def on_sample(sample: zenoh.Sample) -> None:
             callback(str(sample.key_expr), sample.payload.to_bytes())
 
-        self._subscribers.append(self.session.declare_subscriber(expr, on_sample))
+        self._subscribers.append(self.session.declare_subscriber(expr, _in_zenoh_thread(on_sample)))
 
     def declare_alive(self, key: str) -> None:
         if key in self._tokens:  # one token per key
@@ -225,7 +235,8 @@ class ZenohBus:
             except RuntimeError:
                 pass
 
-        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, on_sample, history=True))
+        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, _in_zenoh_thread(on_sample),
+                                                                               history=True))
 
     #: [s] how long :meth:`close` lets a publication made just before it leave: closing the
     #: session drops what is still in its queues (a process's last message, such as its final
