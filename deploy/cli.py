@@ -9,6 +9,7 @@ import logging
 import signal
 import sys
 
+from . import blas_threads  # noqa: F401  (first: it sets the BLAS threads before numpy loads)
 from .commands import fleet, lab, replay, run, scenario
 from .datasets import DatasetError
 

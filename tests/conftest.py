@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+# first, before numpy loads: the test processes run BLAS as slcp's own processes do
+# (deploy/blas_threads.py), and their children inherit it
+from slcp.deploy import blas_threads  # noqa: F401
+
+# isort: split
 import atexit
 import contextlib
 import math
