@@ -18,6 +18,7 @@ import math
 import os
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -132,7 +133,7 @@ def _start_zenoh_log() -> None:
             os.environ["NO_COLOR"] = before
 
 
-def _in_zenoh_thread(callback: Any) -> zenoh.handlers.Callback:
+def _in_zenoh_thread(callback: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback[zenoh.Sample]:
     """``callback`` run in the Zenoh thread that received the sample. zenoh-python's default
     hands every subscriber's samples to a Python thread of its own, so samples of different
     keys reach their queues in an order the OS scheduler decides: a GNSS fix overtaken by the
