@@ -133,16 +133,6 @@ def _start_zenoh_log() -> None:
             os.environ["NO_COLOR"] = before
 
 
-def _in_zenoh_thread(callback: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback[zenoh.Sample]:
-    """``callback`` run in the Zenoh thread that received the sample. zenoh-python's default
-    hands every subscriber's samples to a Python thread of its own, so samples of different
-    keys reach their queues in an order the OS scheduler decides: a GNSS fix overtaken by the
-    IMU batches published after it (a late fix the filters drop), and a thread and two
-    hand-offs per subscriber. slcp's callbacks only copy and queue (never a Zenoh call), which
-    is what Zenoh's own thread may run."""
-    return zenoh.handlers.Callback(callback, indirect=False)
-
-
 class ZenohBus:
     """Bus over a Zenoh session. Create inside a running event loop."""
 
@@ -169,6 +159,18 @@ class ZenohBus:
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self._closed = False
         self._last_publish = -math.inf  #: monotonic time [s] of the latest publication
+        self._router = config.mode == "router"
+
+    def _handler(self, callback: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback[zenoh.Sample]:
+        """``callback`` as this session's subscriptions run it. A peer's or a client's run in
+        the Zenoh thread that received the sample: zenoh-python's default, a Python thread per
+        subscription, queues samples of different keys in an order the OS scheduler decides (a
+        GNSS fix overtaken by the IMU batches sent after it is a fix the filters drop late), at
+        the cost of a thread and two hand-offs per subscription. A router's keep that default:
+        its Zenoh threads route every other session's traffic, and must not wait there for this
+        process's Python lock (its subscriptions are the recorder's and the viewers', each of
+        which keeps its own stream). slcp's callbacks only copy and queue, never call Zenoh."""
+        return zenoh.handlers.Callback(callback, indirect=self._router)
 
     def connected(self) -> bool:
         """Whether the session has a link to any router or peer right now."""
@@ -199,7 +201,7 @@ class ZenohBus:
                 return
             sub.offer(str(sample.key_expr), payload.to_bytes(), threadsafe=True)
 
-        self._subscribers.append(self.session.declare_subscriber(expr, _in_zenoh_thread(on_sample)))
+        self._subscribers.append(self.session.declare_subscriber(expr, self._handler(on_sample)))
         self._subs.append(sub)
         return sub
 
@@ -209,7 +211,7 @@ class ZenohBus:
         def on_sample(sample: zenoh.Sample) -> None:
             callback(str(sample.key_expr), sample.payload.to_bytes())
 
-        self._subscribers.append(self.session.declare_subscriber(expr, _in_zenoh_thread(on_sample)))
+        self._subscribers.append(self.session.declare_subscriber(expr, self._handler(on_sample)))
 
     def declare_alive(self, key: str) -> None:
         if key in self._tokens:  # one token per key
@@ -236,7 +238,7 @@ class ZenohBus:
             except RuntimeError:
                 pass
 
-        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, _in_zenoh_thread(on_sample),
+        self._subscribers.append(self.session.liveliness().declare_subscriber(expr, self._handler(on_sample),
                                                                                history=True))
 
     #: [s] how long :meth:`close` lets a publication made just before it leave: closing the
