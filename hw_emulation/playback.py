@@ -158,6 +158,8 @@ class RadioStats:
     delivered: int = 0
     lost: int = 0
     out_of_range: int = 0
+    #: receivers in range but off the air (a vehicle not yet in the traffic, or gone from it)
+    off_air: int = 0
     stale: int = 0
     codec_errors: int = 0
     #: beacons stamped further ahead of the radio's clock than :data:`MAX_AHEAD`: dropped
@@ -209,6 +211,8 @@ class Radio:
         if self._ne_grid is not None:  # one copy: the per-vehicle rows as views of the stack
             self._ne = [self._ne_grid[:, k] for k in range(len(self.ids))]
         self._ne_at: tuple[float, np.ndarray] | None = None
+        self._may_leave = any(self.truth.vehicles[vid].present is not None for vid in self.ids)
+        self._on_air_at: tuple[float, np.ndarray] | None = None
         #: (deliver at, receiver, payload, (transmitter, receiver, method), beacon time)
         self._pending: list[tuple[float, str, Any, tuple[str, str, str], float]] = []
         #: (transmitter, receiver) -> [delivered, out of order]: a beacon is out of order when
@@ -238,6 +242,15 @@ class Radio:
             self._ne_at = (now, ne)
         return self._ne_at[1]
 
+    def on_air(self, now: float) -> np.ndarray | None:
+        """Which of ``ids`` are on the air at sensor time ``now``, shape (N,) (computed once per
+        clock value); None when every vehicle is, always."""
+        if not self._may_leave:
+            return None
+        if self._on_air_at is None or self._on_air_at[0] != now:
+            self._on_air_at = (now, np.array([self.truth.vehicles[vid].present_at(now) for vid in self.ids]))
+        return self._on_air_at[1]
+
     def send(self, b: Beacon, payload: Any, now: float, transmitter: str | None = None) -> None:
         """A beacon sent when the radio's clock reads ``now`` [s sensor time] by ``transmitter``
         (the station whose key it came on; default the vehicle it names)."""
@@ -259,8 +272,13 @@ class Radio:
                 payload = self.reencode(forged) if self.reencode is not None else forged
         ne = self.positions(now)
         d = np.hypot(*(ne - ne[self._index[b.vehicle]]).T)
-        self.stats.out_of_range += int(np.count_nonzero(d > self.model.max_range))
-        for k in np.flatnonzero(d <= self.model.max_range):  # receivers in range, in id order
+        reach = d <= self.model.max_range
+        self.stats.out_of_range += int(np.count_nonzero(~reach))
+        on = self.on_air(now)
+        if on is not None:  # a vehicle before or after its time in the traffic has no radio there
+            self.stats.off_air += int(np.count_nonzero(reach & ~on))
+            reach &= on
+        for k in np.flatnonzero(reach):  # receivers in range, in id order
             rx = self.ids[k]
             if rx != b.vehicle:
                 self._link(b, payload, rx)

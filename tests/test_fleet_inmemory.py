@@ -294,6 +294,33 @@ def test_the_radio_delivers_to_exactly_the_receivers_within_its_range() -> None:
         assert sorted(rx for _, rx, _ in radio.due(now + 1.0)) == got and radio.stats.delivered >= len(got)
 
 
+def test_the_radio_reaches_no_vehicle_before_or_after_its_time_in_the_traffic() -> None:
+    """A vehicle that has not yet entered the traffic, or has left it (a SUMO vehicle, a track
+    of imported trajectories), stands where its truth starts or ends but has no radio there: a
+    beacon in range of that spot is not delivered to it (counted ``off_air``), and is once the
+    vehicle is on the air."""
+    import dataclasses
+
+    from slcp.hw_emulation.playback import Radio
+
+    truth = build_truth(load_scenario("paper-1"))
+    late, gone = "V1", "V2"
+    t = truth.vehicles[late].truth.t
+    vehicles = dict(truth.vehicles)
+    vehicles[late] = dataclasses.replace(vehicles[late], present=t >= 20.0)
+    vehicles[gone] = dataclasses.replace(vehicles[gone], present=t < 30.0)
+    radio = Radio(dataclasses.replace(truth, vehicles=vehicles), seed=0)
+    radio.model = dataclasses.replace(radio.model, loss=0.0, ge_p_good_to_bad=0.0, stale_prob=0.0, max_range=1e6)
+    for now, receivers in ((10.0, ["V2"]), (25.0, ["V1", "V2"]), (35.0, ["V1"])):
+        radio._pending.clear()
+        off = radio.stats.off_air
+        b = Beacon("V0", 1, "SL-CP", now, np.array([0.7, 2.0, 50.0]), np.zeros(3), np.eye(3))
+        radio.send(b, b, now)
+        assert [p[1] for p in radio._pending] == receivers, now
+        assert radio.stats.off_air - off == 2 - len(receivers)
+    assert Radio(truth, seed=0).on_air(10.0) is None  # every vehicle always on the air: no check
+
+
 def test_the_radio_counts_per_link_what_it_delivers_and_what_a_late_delivery_lets_overtake() -> None:
     """The radio's per-link account (the emulator's diagnostics publish it): every delivery
     counts on its (transmitter, receiver) link, and one that reaches the receiver after a newer
