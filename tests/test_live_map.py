@@ -123,12 +123,16 @@ def test_chromium_sees_every_vehicle_of_paper_1_moving_with_the_recorded_error(t
     """#44 acceptance 2: during `slcp run paper-1 --view`, headless Chromium shows every vehicle
     moving, and the error it displays for a vehicle is the one the run's report records. The
     agents of this run are configured as deployed vehicles (`--lanelet2`: no scenario, the site
-    from a Lanelet2 map), which the page does not see, and its bag holds the inputs too."""
+    from a Lanelet2 map), which the page does not see, and its bag holds the inputs too. The run
+    plays at 2× real time, so that the page, read four times a second, shows each vehicle at
+    enough times whatever the machine's speed (as fast as the agents kept up, a fast moment left
+    fewer than ten readings of a vehicle's SL-CP estimate)."""
     exe, pw = _browser()
     scn = short_scenario(tmp_path, "paper-1", 25.0)
     port, out = free_port(), tmp_path / "run"
     run = subprocess.Popen([sys.executable, "-m", "slcp.deploy.cli", "run", str(scn), "--out", str(out),
-                            "--methods", "SP", "SL-CP", "--view", str(port), "--lanelet2", "--bag-inputs"],
+                            "--methods", "SP", "SL-CP", "--view", str(port), "--lanelet2", "--bag-inputs",
+                            "--speed", "2"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     seen: dict[str, list[tuple[float, float, float, str]]] = {}  # vehicle -> (t, e, n, error shown)
     try:
