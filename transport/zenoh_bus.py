@@ -162,9 +162,9 @@ class ZenohBus:
         self._router = config.mode == "router"
 
     def _handler(self, callback: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback[zenoh.Sample]:
-        """``callback`` as this session's subscriptions run it. A peer's or a client's run in
-        the Zenoh thread that received the sample: zenoh-python's default, a Python thread per
-        subscription, queues samples of different keys in an order the OS scheduler decides (a
+        """``callback`` as this session's subscriptions run it. A peer's or a client's callbacks
+        run in the Zenoh thread that received the sample: zenoh-python's default, a Python thread
+        per subscription, queues samples of different keys in an order the OS scheduler decides (a
         GNSS fix overtaken by the IMU batches sent after it is a fix the filters drop late), at
         the cost of a thread and two hand-offs per subscription. A router's keep that default:
         its Zenoh threads route every other session's traffic, and must not wait there for this
