@@ -149,12 +149,10 @@ class MisbehaviourDetector:
             self.counters["acceleration_strikes"] += 1
             self._strike(vehicle, b.t, "acceleration")
             return "acceleration"
-        # the displacement (earth.ned_offset, on the previous beacon's curvature) less the one the
-        # mean velocity predicts
-        lat0, h0 = prev.llh[0], prev.llh[2]
-        rm, rn = earth.radii(lat0)
-        e0 = (b.llh[0] - lat0) * (rm + h0) - 0.5 * (b.v[0] + prev.v[0]) * dt
-        e1 = (b.llh[1] - prev.llh[1]) * (rn + h0) * math.cos(lat0) - 0.5 * (b.v[1] + prev.v[1]) * dt
+        # the displacement (on the previous beacon's curvature) less the one the mean velocity predicts
+        mn, me, _ = earth.ned_offset_scalars(*b.llh, *prev.llh)
+        e0 = mn - 0.5 * (b.v[0] + prev.v[0]) * dt
+        e1 = me - 0.5 * (b.v[1] + prev.v[1]) * dt
         q = (0.5 * self.accel * dt * dt) ** 2
         pc = prev.cov
         s00 = bc[0][0] + pc[0][0] + q
@@ -179,17 +177,11 @@ class MisbehaviourDetector:
         b = self._latest.get(vehicle)
         if b is None or abs(t - b.t) > self.max_extrapolation:
             return None
-        # the neighbour's claim moved to ``t`` with its velocity (earth.offset_llh), and its NED
-        # offset from my own estimate (earth.ned_offset, on my curvature)
-        lat, lon, h = b.llh
+        # the neighbour's claim moved to ``t`` with its velocity, and its NED offset from my own
+        # estimate (on my curvature)
         tau = t - b.t
-        rm, rn = earth.radii(lat)
-        nb_lat = lat + b.v[0] * tau / (rm + h)
-        nb_lon = lon + b.v[1] * tau / ((rn + h) * math.cos(lat))
-        nb_h = h - b.v[2] * tau
-        lat0, lon0, h0 = np.asarray(own_llh, float).tolist()
-        rm, rn = earth.radii(lat0)
-        d = ((nb_lat - lat0) * (rm + h0), (nb_lon - lon0) * (rn + h0) * math.cos(lat0), -(nb_h - h0))
+        nb = earth.offset_llh_scalars(*b.llh, b.v[0] * tau, b.v[1] * tau, b.v[2] * tau)
+        d = earth.ned_offset_scalars(*nb, *np.asarray(own_llh, float).tolist())
         dist = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         if dist < 1e-3:
             return None

@@ -107,18 +107,28 @@ def ned_offset(lat: float, lon: float, h: float, lat0: float, lon0: float, h0: f
     First-order in the geodetic differences: accurate to ~1e-6 relative for offsets of a few
     kilometres. Use :func:`pymap3d.geodetic2ned` for large separations.
     """
+    return np.array(ned_offset_scalars(lat, lon, h, lat0, lon0, h0))
+
+
+def ned_offset_scalars(lat: float, lon: float, h: float, lat0: float, lon0: float,
+                       h0: float) -> tuple[float, float, float]:
+    """:func:`ned_offset` as three floats, for code that runs per message (no array)."""
     rm, rn = radii(lat0)
-    return np.array(
-        [(lat - lat0) * (rm + h0), (lon - lon0) * (rn + h0) * math.cos(lat0), -(h - h0)]
-    )
+    return (lat - lat0) * (rm + h0), (lon - lon0) * (rn + h0) * math.cos(lat0), -(h - h0)
 
 
 def offset_llh(llh: np.ndarray, d_ned: np.ndarray) -> np.ndarray:
     """The point ``d_ned`` [m] (NED, (3,)) away from ``llh`` (lat, lon [rad], h [m]): the inverse
     of :func:`ned_offset` to first order, for offsets of up to a few kilometres."""
-    lat, lon, h = float(llh[0]), float(llh[1]), float(llh[2])
+    return np.array(offset_llh_scalars(float(llh[0]), float(llh[1]), float(llh[2]),
+                                       float(d_ned[0]), float(d_ned[1]), float(d_ned[2])))
+
+
+def offset_llh_scalars(lat: float, lon: float, h: float, dn: float, de: float,
+                       dd: float) -> tuple[float, float, float]:
+    """:func:`offset_llh` as three floats, for code that runs per message (no array)."""
     rm, rn = radii(lat)
-    return np.array([lat + d_ned[0] / (rm + h), lon + d_ned[1] / ((rn + h) * math.cos(lat)), h - d_ned[2]])
+    return lat + dn / (rm + h), lon + de / ((rn + h) * math.cos(lat)), h - dd
 
 
 def ned_to_ecef_dcm(lat: float, lon: float) -> np.ndarray:
