@@ -9,8 +9,9 @@ scenario's true trajectories:
   random walk; the true acceleration is a known input and does not change the bound), GNSS
   multipath (2, Gauss-Markov with the receiver's moving/static τ following the true motion), and
   the stop gap errors (d_s, d_l) of the current stop (2, random constants drawn at each stop),
-  and the driver's lateral offset in its lanes (1, one random constant per vehicle, as the
-  emulated drivers keep it; with lane keeping it is also the stop-line fix's d_l);
+  and the driver's lateral offset in its lane (1, a random constant in each lane, correlated from
+  lane to lane as the scenario's drivers draw it; with lane keeping it is also the stop-line
+  fix's d_l);
 - shared by all vehicles: the GNSS common-mode error (2, Gauss-Markov).
 
 Information, at the GNSS rate: GNSS position (white noise on top of multipath + common mode) and
@@ -46,7 +47,7 @@ from .agent_configs import approach_lanes, lane_map
 
 _NV = 9  # per vehicle: p (2), v (2), multipath (2), stop gap (2), lane offset (1)
 #: what the driver's lateral offset in a lane is (:func:`posterior_crlb`)
-LANE_OFFSET_MODELS = ("vehicle", "lane")
+LANE_OFFSET_MODELS = ("scenario", "vehicle", "lane")
 
 
 @dataclass(frozen=True)
@@ -77,7 +78,7 @@ def map_ne(llh: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
 
 
 def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rate: float | None = None,
-                   lane_constraint: bool = True, lane_offset: str = "vehicle",
+                   lane_constraint: bool = True, lane_offset: str = "scenario",
                    vehicles: tuple[str, ...] | None = None) -> Bound:
     """The bound for ``methods`` on the scenario's truth, stepping at ``rate`` Hz (default: GNSS).
 
@@ -85,12 +86,14 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
     wherever a vehicle drives in a lane, its distance right of the left lane line is d_l, known
     to the map's error. ``lane_offset`` says what d_l is:
 
-    - ``"vehicle"`` (the bound proper): one random constant per vehicle, as the emulated drivers
-      keep it over their whole route;
-    - ``"lane"``: a new random constant in each lane, as the filters model it (real drivers do
-      not keep the same offset after a turn). This knows less than the truth allows, so it is
-      not the emulation's CRLB, but the bound of an estimator with the filters' driver model:
-      the part of the gap to the bound proper that the driver model explains.
+    - ``"scenario"`` (the bound proper): as the scenario's drivers draw it, a random constant in
+      each lane, a first-order Gauss-Markov chain from lane to lane with the vehicle's
+      ``lateral_correlation`` ρ (:func:`hw_emulation.traffic.lane_offsets`);
+    - ``"vehicle"``: one random constant per vehicle over its whole route (ρ = 1 whatever the
+      scenario says): the bound of a world whose drivers never change their offset;
+    - ``"lane"``: a new, independent constant in each lane (ρ = 0), as the filters model it: the
+      bound of an estimator with the filters' driver model (the same as ``"scenario"`` where the
+      scenario's ρ is 0, the default).
 
     ``vehicles`` restricts the fleet to these ids (default: all): the cooperative bounds then
     process only their information, as if the others were not there, which tells how much of
@@ -129,17 +132,18 @@ def posterior_crlb(truth: ScenarioTruth, methods: tuple[str, ...] = METHODS, rat
         lane[vid] = tr.segment[k]
     lanes = approach_lanes(scn)
     lmap = lane_map(scn) if lane_constraint else None
+    rho = {vid: {"scenario": specs[vid].lateral_correlation, "vehicle": 1.0, "lane": 0.0}[lane_offset] for vid in ids}
     out = {}
     for m in methods:
         spec = MethodSpec.of(m)
         if spec.ranges:  # the fleet's information, processed jointly: a bound for any distributed scheme
             covs = _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, spec.stop_line, True,
-                        lmap if spec.stop_line else None, lane_offset == "lane", present)
+                        lmap if spec.stop_line else None, rho, present)
         else:  # a vehicle on its own (the common-mode error is not learned from the others)
             covs = {}
             for vid in ids:
                 covs.update(_run(scn, specs, [vid], ts, pos, moving, first, lane, lanes, spec.stop_line, False,
-                                 lmap if spec.stop_line else None, lane_offset == "lane", present))
+                                 lmap if spec.stop_line else None, rho, present))
         for vid in ids:
             out[(m, vid)] = covs[vid]
     return Bound(ts, out)
@@ -152,7 +156,11 @@ GNSS_ROWS = np.kron(np.ones((3, 3)), I2)
 
 
 def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use_ranges: bool,
-         lmap: LaneMap | None = None, offset_per_lane: bool = False, present: dict | None = None) -> dict:
+         lmap: LaneMap | None = None, lane_correlation: dict[str, float] | None = None,
+         present: dict | None = None) -> dict:
+    """The bound's recursion over the steps ``ts`` for the vehicles ``ids`` (see the module's
+    docstring); ``lane_correlation``: per vehicle, the correlation ρ of its lateral offsets in
+    consecutive lanes (default: 1, one offset kept on the whole route)."""
     n_v = len(ids)
     n = _NV * n_v + 2
     P = _prior(scn, specs, ids)
@@ -162,8 +170,8 @@ def _run(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl: bool, use
     was_first = {vid: False for vid in ids}
     kept_lane: dict[str, str | None] = {vid: None for vid in ids}  # the lane whose offset the state is
     for k, _t in enumerate(ts):
-        if offset_per_lane and lmap is not None:
-            _redraw_lane_offsets(P, specs, ids, lane, k, lmap, kept_lane)
+        if lane_correlation is not None and lmap is not None:
+            _next_lane_offsets(P, specs, ids, lane, k, lmap, kept_lane, lane_correlation)
         if k > 0:
             P = _predict(P, scn, specs, ids, moving, k, ts[k] - ts[k - 1])
         info = np.zeros((n, n))
@@ -200,16 +208,18 @@ def _prior(scn, specs, ids) -> np.ndarray:
     return P
 
 
-def _redraw_lane_offsets(P, specs, ids, lane, k: int, lmap: LaneMap, kept_lane: dict) -> None:
-    """A vehicle entering a new lane draws a new lateral offset (the filters' model)."""
+def _next_lane_offsets(P, specs, ids, lane, k: int, lmap: LaneMap, kept_lane: dict, rho: dict[str, float]) -> None:
+    """A vehicle entering a new lane draws its offset there: o ← ρ o + w, Var w = (1 − ρ²) σ²
+    (the deviation from the mean; ρ = 0 a new independent draw, ρ = 1 the same offset)."""
     for i, vid in enumerate(ids):
         ln = str(lane[vid][k])
         if ln in lmap.marks and ln != kept_lane[vid]:
-            if kept_lane[vid] is not None:
+            r = rho[vid]
+            if kept_lane[vid] is not None and r < 1.0:
                 o = _NV * i + 8
-                P[o, :] = 0.0
-                P[:, o] = 0.0
-                P[o, o] = specs[vid].lateral[1] ** 2
+                P[o, :] *= r
+                P[:, o] *= r
+                P[o, o] += (1.0 - r * r) * specs[vid].lateral[1] ** 2
             kept_lane[vid] = ln
 
 

@@ -90,6 +90,9 @@ class VehicleSpec:
     imu: ImuModel
     gnss: GnssModel
     initial_speed: float = 0.0
+    #: correlation of the driver's d_l in one lane of its route with its d_l in the lane before:
+    #: 0, a new draw in every lane (the filters' model); 1, one offset kept on the whole route
+    lateral_correlation: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -203,6 +206,14 @@ def _check_keys(ctx: _Ctx, d: dict, allowed: set[str], path: str) -> None:
     for k in d:
         if k not in allowed:
             raise ctx.fail(f"{path}.{k}" if path else k, f"unknown field (known: {', '.join(sorted(allowed))})")
+
+
+def _correlation(ctx: _Ctx, d: dict, path: str) -> float:
+    """``d``'s ``correlation`` (default 0), a correlation coefficient in [0, 1]."""
+    rho = ctx.number(d, "correlation", path, 0.0, non_negative=True)
+    if rho > 1.0:
+        raise ctx.fail(f"{path}.correlation", f"must be within [0, 1], got {rho!r}")
+    return rho
 
 
 def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
@@ -359,7 +370,9 @@ def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: Imu
             if not getattr(idm, k) > 0:
                 raise ctx.fail(f"{p}.idm.{k}", "must be > 0")
         sgap = ctx.table(v, "stop_gap", p)
+        _check_keys(ctx, sgap, {"mean", "sigma"}, f"{p}.stop_gap")
         lat_d = ctx.table(v, "lateral", p)
+        _check_keys(ctx, lat_d, {"mean", "sigma", "correlation"}, f"{p}.lateral")
         first = lanes[route[0]]
         depart_pos = ctx.number(v, "depart_pos", p, 0.0, non_negative=True)
         if depart_pos >= polyline_length(first.centerline):
@@ -377,6 +390,7 @@ def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: Imu
                       ctx.number(sgap, "sigma", f"{p}.stop_gap", 0.3, non_negative=True)),
             lateral=(ctx.number(lat_d, "mean", f"{p}.lateral", first.width / 2),
                      ctx.number(lat_d, "sigma", f"{p}.lateral", 0.15, non_negative=True)),
+            lateral_correlation=_correlation(ctx, lat_d, f"{p}.lateral"),
             imu=ctx.model(ImuModel, ctx.table(v, "imu", p), f"{p}.imu", _profile_imu(ctx, v, p, imu_base)),
             gnss=ctx.model(GnssModel, ctx.table(v, "gnss", p), f"{p}.gnss", gnss_base),
         ))

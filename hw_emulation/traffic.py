@@ -1,17 +1,19 @@
 """Microscopic traffic: lane following, Intelligent Driver Model car following, red-light stops.
 
-Each vehicle follows its route (lanes joined by smooth Bézier turns) at a constant lateral
-offset drawn from its d_l distribution. The state is advanced on a 0.1 s grid. At a red light the
-queue head stops with its front ``d_s`` (drawn from the vehicle's stop-gap distribution) behind the
-stop line; followers queue behind it by IDM. A vehicle brakes by IDM to stand at the end of its
-route, as behind a standing vehicle there. A vehicle too close to stop comfortably when the
-light turns red proceeds (dilemma zone). Desired speed is capped by the path curvature ahead so
-turns are taken at ≤ 2 m/s² lateral acceleration.
+Each vehicle follows its route (lanes joined by smooth Bézier turns) at a lateral offset drawn
+from its d_l distribution in each lane, constant within the lane and correlated from lane to lane
+by the vehicle's ``lateral_correlation`` (:func:`lane_offsets`). The state is advanced on a
+0.1 s grid. At a red light the queue head stops with its front ``d_s`` (drawn from the vehicle's
+stop-gap distribution) behind the stop line; followers queue behind it by IDM. A vehicle brakes
+by IDM to stand at the end of its route, as behind a standing vehicle there. A vehicle too close
+to stop comfortably when the light turns red proceeds (dilemma zone). Desired speed is capped by
+the path curvature ahead so turns are taken at ≤ 2 m/s² lateral acceleration.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,14 +62,17 @@ class Route:
         return None
 
 
-def build_route(scn: Scenario, v: VehicleSpec, lateral_offset: float) -> Route:
-    """Route polyline (lanes shifted by ``lateral_offset`` right of the centre) and segments."""
+def build_route(scn: Scenario, v: VehicleSpec, lateral_offsets: Sequence[float]) -> Route:
+    """Route polyline (each lane of the route shifted right of its centre by its entry of
+    ``lateral_offsets`` [m], one per lane; turns join them) and segments."""
     pts: list[np.ndarray] = []
     segs: list[Segment] = []
     s = 0.0
     lanes = [scn.lanes[x] for x in v.route]
+    if len(lateral_offsets) != len(lanes):
+        raise ValueError(f"{len(lateral_offsets)} lateral offsets for the {len(lanes)} lanes of {v.id}'s route")
     for i, ln in enumerate(lanes):
-        cl = offset_polyline(ln.centerline, lateral_offset)
+        cl = offset_polyline(ln.centerline, float(lateral_offsets[i]))
         if i == 0:
             pts.append(cl)
         else:
@@ -94,7 +99,9 @@ class TrafficResult:
     s: dict[str, np.ndarray]
     v: dict[str, np.ndarray]
     stop_gap: dict[str, float]
-    lateral: dict[str, float]
+    lateral: dict[str, float]  #: d_l in the route's first lane
+    #: d_l in each lane of the route, the first lane's first (:func:`lane_offsets`)
+    lane_lateral: dict[str, tuple[float, ...]]
 
 
 def _idm_accel(v: float, v0: float, gap: float, dv: float, p) -> float:
@@ -107,6 +114,25 @@ def driver_draws(scn: Scenario, rng: np.random.Generator) -> dict[str, tuple[flo
     vehicle -> (stop gap d_s, lateral offset d_l) [m], from ``VehicleSpec.stop_gap`` and
     ``VehicleSpec.lateral`` (mean, σ). These are the traffic model's only random draws."""
     return {veh.id: (float(rng.normal(*veh.stop_gap)), float(rng.normal(*veh.lateral))) for veh in scn.vehicles}
+
+
+def lane_offsets(scn: Scenario, draws: dict[str, tuple[float, float]],
+                 rng: np.random.Generator) -> dict[str, tuple[float, ...]]:
+    """Each driver's d_l in every lane of its route [m] (right of the lane's left line): in the
+    first lane its draw of :func:`driver_draws`, in each next lane a new draw correlated with the
+    last by ``VehicleSpec.lateral_correlation`` ρ, a first-order Gauss-Markov chain over the
+    lanes: d_j = m + ρ (d_{j-1} − m) + √(1 − ρ²) σ ε_j, ε_j ~ N(0, 1), with (m, σ) the vehicle's
+    ``lateral``. Drawn from ``rng`` after :func:`driver_draws`, in vehicle and route order, one
+    ε per lane whatever ρ: the stop gaps and the first lanes' offsets stay those of the draws."""
+    out = {}
+    for veh in scn.vehicles:
+        m, sigma = veh.lateral
+        rho = veh.lateral_correlation
+        d = [draws[veh.id][1]]
+        for _ in veh.route[1:]:
+            d.append(m + rho * (d[-1] - m) + math.sqrt(max(0.0, 1.0 - rho * rho)) * sigma * float(rng.normal()))
+        out[veh.id] = tuple(d)
+    return out
 
 
 def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos: dict, specs: dict,
@@ -140,10 +166,12 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
     t = np.arange(n) * STEP
     routes, s, v, gaps, lats = {}, {}, {}, {}, {}
     draws = driver_draws(scn, rng)
+    per_lane = lane_offsets(scn, draws, rng)
     for veh in scn.vehicles:
         d_s, d_l = draws[veh.id]
-        width = scn.lanes[veh.route[0]].width
-        routes[veh.id] = build_route(scn, veh, d_l - width / 2.0)
+        # d_l is measured from the lane's left line: the centre line shifts by d_l - width/2
+        shifts = [d - scn.lanes[x].width / 2.0 for d, x in zip(per_lane[veh.id], veh.route)]
+        routes[veh.id] = build_route(scn, veh, shifts)
         gaps[veh.id], lats[veh.id] = max(d_s, 0.2), d_l
         s[veh.id] = np.zeros(n)
         v[veh.id] = np.zeros(n)
@@ -186,7 +214,7 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
             if sn >= route.path.length:
                 vn = 0.0
             s[vid][k + 1], v[vid][k + 1] = sn, vn
-    return TrafficResult(t, routes, s, v, gaps, lats)
+    return TrafficResult(t, routes, s, v, gaps, lats, per_lane)
 
 
 def first_stopped_flags(scn: Scenario, traffic: TrafficResult) -> dict[str, np.ndarray]:

@@ -96,18 +96,20 @@ def test_the_stop_line_information_counts_from_the_step_in_which_the_vehicle_sto
 
 @pytest.mark.timeout(180)
 def test_an_offset_redrawn_in_each_lane_knows_less_than_one_kept_by_the_driver(capsys) -> None:
-    """``--lane-offset lane`` (the filters' driver model) discards what the emulated drivers'
-    constant offset tells across lanes: paper-1's SL bounds rise where a vehicle changes lanes
-    and the bounds without lane information are unchanged."""
+    """``--lane-offset lane`` (the filters' driver model) discards what a driver's constant
+    offset (``vehicle``) tells across lanes: paper-1's SL bounds rise where a vehicle changes
+    lanes and the bounds without lane information are unchanged. Paper-1's drivers draw their
+    offset anew in each lane, so the default (``scenario``) is the filters' model."""
     from slcp.deploy.cli import main
 
     rows = {}
-    for model in ("vehicle", "lane"):
+    for model in ("scenario", "vehicle", "lane"):
         assert main(["bound", "paper-1", "--json", "--lane-offset", model]) == 0
         out = json.loads(capsys.readouterr().out)
         assert out["lane_offset"] == model
         rows[model] = {(r["window"], r["vehicle"]): r for r in out["rows"]}
-    assert rows["vehicle"].keys() == rows["lane"].keys()
+    assert rows["vehicle"].keys() == rows["lane"].keys() == rows["scenario"].keys()
+    assert rows["scenario"] == rows["lane"]
     for key, v in rows["vehicle"].items():
         per_lane = rows["lane"][key]
         for m in ("SP", "CP"):
@@ -117,7 +119,7 @@ def test_an_offset_redrawn_in_each_lane_knows_less_than_one_kept_by_the_driver(c
     # V0 changes lanes in its turn: its own stop-line fix no longer tells its offset in the next
     # lane (a small effect on its own sensors, about 1e-5 of the bound, but not none)
     assert rows["lane"][("t_s1-t_e", "V0")]["SL-SP"] > (1 + 1e-6) * rows["vehicle"][("t_s1-t_e", "V0")]["SL-SP"]
-    # V1, the first stopped vehicle: 0.11 -> 0.13 m (measured 2026-11-25)
+    # V1, the first stopped vehicle: 0.11 -> 0.13 m
     assert rows["lane"][("t_s1-t_e", "V1")]["SL-CP"] > 1.1 * rows["vehicle"][("t_s1-t_e", "V1")]["SL-CP"]
 
 

@@ -68,12 +68,12 @@ def _case(with_lanes: bool):
     return scn, specs, ["V0", "V1"], ts, pos, moving, first, lane, lanes, lmap
 
 
-def _batch(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl, use_ranges, lmap, per_lane):
+def _batch(scn, specs, ids, ts, pos, moving, first, lane, lanes, use_sl, use_ranges, lmap, rho):
     """The bound at every step, from the stacked trajectory (see the module docstring)."""
     nv = len(ids)
     n = _NV * nv + 2
     K = len(ts)
-    Fs, Qs = _transitions(scn, specs, ids, ts, moving, first, lane, lanes, use_sl, lmap, per_lane,
+    Fs, Qs = _transitions(scn, specs, ids, ts, moving, first, lane, lanes, use_sl, lmap, rho,
                           _batch_prior(scn, specs, ids))
     # L_k: x_k as a linear map of θ = (x_0, w_1, ..., w_K-1)
     L = [np.zeros((n, n * K)) for _ in range(K)]
@@ -117,7 +117,7 @@ def _batch_prior(scn, specs, ids) -> np.ndarray:
     return P0
 
 
-def _transitions(scn, specs, ids, ts, moving, first, lane, lanes, use_sl, lmap, per_lane, P0):
+def _transitions(scn, specs, ids, ts, moving, first, lane, lanes, use_sl, lmap, rho, P0):
     """Each step's transition F_k and noise Q_k (the prior as the first noise)."""
     nv = len(ids)
     n = _NV * nv + 2
@@ -148,11 +148,13 @@ def _transitions(scn, specs, ids, ts, moving, first, lane, lanes, use_sl, lmap, 
                 Q[j, j] = scn.common_mode_sigma**2 * (1 - a * a)
         for i, vid in enumerate(ids):
             s, b = specs[vid], _NV * i
-            if per_lane and lmap is not None and str(lane[vid][k]) in lmap.marks:
-                if kept[vid] is not None and kept[vid] != str(lane[vid][k]):  # a new lane: a new offset
+            if rho is not None and lmap is not None and str(lane[vid][k]) in lmap.marks:
+                if kept[vid] is not None and kept[vid] != str(lane[vid][k]):
+                    # a new lane: offset = ρ × the last one + a new draw of variance (1 - ρ²) σ²
                     F[b + 8, :] = 0.0
+                    F[b + 8, b + 8] = rho[vid]
                     Q[b + 8, :] = Q[:, b + 8] = 0.0
-                    Q[b + 8, b + 8] = s.lateral[1] ** 2
+                    Q[b + 8, b + 8] = (1.0 - rho[vid] ** 2) * s.lateral[1] ** 2
                 kept[vid] = str(lane[vid][k])
             stops = use_sl and first[vid][k] and str(lane[vid][k]) in lanes
             if stops and not in_stop[vid] and k > 0:  # a new stop: new gap errors
@@ -211,12 +213,16 @@ def _rows(scn, specs, ids, ts, pos, first, lane, lanes, use_sl, use_ranges, lmap
     return rows
 
 
-@pytest.mark.parametrize("with_lanes", [False, True], ids=["stop-line", "stop-line+lanes"])
+@pytest.mark.parametrize("lanes_rho", [None, 0.0, 0.6], ids=["stop-line", "lanes-redrawn", "lanes-correlated"])
 @pytest.mark.parametrize("use_ranges", [False, True], ids=["own", "ranges"])
-def test_the_recursion_equals_the_batch_posterior_of_the_whole_trajectory(with_lanes: bool, use_ranges: bool) -> None:
-    case = _case(with_lanes)
-    got = _run(*case[:9], True, use_ranges, case[9], with_lanes)
-    want = _batch(*case[:9], True, use_ranges, case[9], with_lanes)
+def test_the_recursion_equals_the_batch_posterior_of_the_whole_trajectory(lanes_rho: float | None,
+                                                                          use_ranges: bool) -> None:
+    """Without lanes, and with lane keeping whose offset V1 draws anew (ρ = 0) or correlated
+    (ρ = 0.6) in its second lane."""
+    case = _case(lanes_rho is not None)
+    rho = None if lanes_rho is None else {"V0": 1.0, "V1": lanes_rho}
+    got = _run(*case[:9], True, use_ranges, case[9], rho)
+    want = _batch(*case[:9], True, use_ranges, case[9], rho)
     first = case[6]["V0"]
     for vid in ("V0", "V1"):
         assert np.allclose(got[vid], want[vid], rtol=1e-6, atol=1e-12), (vid, np.abs(got[vid] - want[vid]).max())
@@ -224,7 +230,7 @@ def test_the_recursion_equals_the_batch_posterior_of_the_whole_trajectory(with_l
     sl = np.trace(got["V0"][first][-1])
     assert sl < 0.05 * np.trace(got["V0"][~first][0])
     if use_ranges:
-        own = _run(*case[:9], True, False, case[9], with_lanes)
+        own = _run(*case[:9], True, False, case[9], rho)
         assert np.trace(got["V1"][-1]) < 0.8 * np.trace(own["V1"][-1])
 
 

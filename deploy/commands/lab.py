@@ -35,9 +35,10 @@ def add_bound(sub) -> None:
     bd.add_argument("--csv", type=Path, metavar="FILE.csv", help="write the bound over time")
     bd.add_argument("--no-lane-constraint", action="store_true",
                     help="SL bounds without the lane-keeping information (as for slcp run --no-lane-constraint)")
-    bd.add_argument("--lane-offset", choices=("vehicle", "lane"), default="vehicle",
-                    help="the driver's offset in a lane: one constant per vehicle, as the emulated drivers "
-                         "keep it (the bound proper), or redrawn in each lane, as the filters model it")
+    bd.add_argument("--lane-offset", choices=("scenario", "vehicle", "lane"), default="scenario",
+                    help="the driver's offset in a lane: as the scenario's drivers draw it, correlated from "
+                         "lane to lane by their lateral.correlation (the bound proper; default), one constant "
+                         "per vehicle on its whole route, or drawn anew in each lane, as the filters model it")
     bd.add_argument("--vehicles", metavar="ID,ID,...",
                     help="a sub-fleet: the cooperative bounds process only these vehicles' information "
                          "(how much of a bound comes from which neighbours; default: all)")
