@@ -7,7 +7,9 @@ by the vehicle's ``lateral_correlation`` (:func:`lane_offsets`). The state is ad
 stop-gap distribution) behind the stop line; followers queue behind it by IDM. A vehicle brakes
 by IDM to stand at the end of its route, as behind a standing vehicle there. A vehicle too close
 to stop comfortably when the light turns red proceeds (dilemma zone). Desired speed is capped by
-the path curvature ahead so turns are taken at ≤ 2 m/s² lateral acceleration.
+the path curvature (2 m/s² lateral acceleration in turns), and a driver brakes for a turn ahead
+at the rate it needs once that reaches IDM's comfortable deceleration; a driver faster than its
+desired speed slows at most at that comfortable rate.
 """
 
 from __future__ import annotations
@@ -105,8 +107,34 @@ class TrafficResult:
 
 
 def _idm_accel(v: float, v0: float, gap: float, dv: float, p) -> float:
+    """IDM's acceleration, its free-road term bounded below by −b: a driver above the desired
+    speed (a turn ahead, a start faster than wanted) slows at most at the comfortable rate, as
+    in Treiber and Kesting's improved IDM; plain IDM's a (1 − (v/v0)^δ) asks for 9 m/s² at 1.7
+    times v0. The interaction term (a leader, a red light) is unbounded, as in IDM."""
     s_star = p.s0 + max(0.0, v * p.T + v * dv / (2.0 * math.sqrt(p.a * p.b)))
-    return p.a * (1.0 - (v / v0) ** p.delta - (s_star / max(gap, 0.1)) ** 2)
+    free = max(p.a * (1.0 - (v / v0) ** p.delta), -p.b)
+    return free - p.a * (s_star / max(gap, 0.1)) ** 2
+
+
+def _turn_braking(route: Route, sk: float, vk: float, veh: VehicleSpec) -> tuple[float, float]:
+    """The turns' hold on a driver at arc length ``sk`` and speed ``vk``: the speed it may drive
+    here, √(a_lat / |κ|) capped by its desired speed [m/s], and the deceleration it needs to be
+    down to that speed at every point of the turns ahead [m/s²] (0 if none). A cap on the next
+    metres alone arrives as a step when a turn comes into view (IDM then brakes at 9 m/s², and
+    still enters a 3 m radius at 6 m/s); a driver brakes instead, as for a stop, at the rate
+    the turn needs once it reaches IDM's comfortable deceleration b."""
+    b, v_d = veh.idm.b, veh.desired_speed
+    horizon = max(30.0, v_d * v_d / (2.0 * b) + 10.0)  # enough to slow from the desired speed
+    ahead = np.linspace(sk, sk + horizon, int(horizon / 1.0) + 1)
+    kappa = np.abs(route.path.curvature(ahead))
+    here = v_d if kappa[0] <= 1e-6 else min(v_d, math.sqrt(LAT_ACCEL_MAX / kappa[0]))
+    bend = kappa > 1e-6
+    if not bend.any():
+        return here, 0.0
+    vc2 = LAT_ACCEL_MAX / kappa[bend]
+    dist = np.maximum(ahead[bend] - sk, 0.5)
+    need = float(np.max((vk * vk - vc2) / (2.0 * dist)))
+    return here, max(need, 0.0)
 
 
 def driver_draws(scn: Scenario, rng: np.random.Generator) -> dict[str, tuple[float, float]]:
@@ -136,12 +164,14 @@ def lane_offsets(scn: Scenario, draws: dict[str, tuple[float, float]],
 
 
 def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos: dict, specs: dict,
-            v: dict[str, np.ndarray], k: int) -> tuple[float, float]:
-    """IDM's gap [m] and closing speed [m/s] to what is ahead of vehicle ``vid`` at step ``k``:
-    the nearest vehicle ahead on a segment its route also uses, or the end of its route."""
+            v: dict[str, np.ndarray], k: int, t: float) -> tuple[float, float]:
+    """IDM's gap [m] and closing speed [m/s] to what is ahead of vehicle ``vid`` at step ``k``
+    (time ``t`` [s]): the nearest departed vehicle ahead on a segment its route also uses, or the
+    end of its route. A vehicle waiting for its departure is parked off the lane: it joins the
+    lane, and becomes a leader, when it departs."""
     gap, dv = math.inf, 0.0
     for oid, (oseg, os_) in pos.items():
-        if oid == vid:
+        if oid == vid or t < specs[oid].depart:  # not yet departed: parked off the lane
             continue
         match = [seg for seg in route.segments if seg.key == oseg.key]
         if not match:
@@ -188,7 +218,7 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
             if tk < veh.depart:  # parked until departure
                 s[vid][k + 1], v[vid][k + 1] = sk, 0.0
                 continue
-            gap, dv = _leader(vid, veh, route, sk, vk, pos, specs, v, k)
+            gap, dv = _leader(vid, veh, route, sk, vk, pos, specs, v, k, tk)
             # red light: virtual obstacle so that the front stops d_s before the stop line
             stop = route.next_stop_line(sk)
             if stop is not None and not scn.signals.is_green(stop.key, tk):
@@ -202,11 +232,10 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
                         gap, dv = g, vk
             elif stop is not None:
                 committed.pop((vid, stop.key), None)
-            # curvature cap on the desired speed over the next 30 m
-            ahead = np.linspace(sk, sk + 30.0, 16)
-            kmax = float(np.max(np.abs(route.path.curvature(ahead))))
-            v0 = min(veh.desired_speed, math.sqrt(LAT_ACCEL_MAX / kmax)) if kmax > 1e-6 else veh.desired_speed
-            acc = _idm_accel(vk, max(v0, 0.1), gap, dv, veh.idm)
+            v_here, need = _turn_braking(route, sk, vk, veh)
+            acc = _idm_accel(vk, max(v_here, 0.1), gap, dv, veh.idm)
+            if need >= veh.idm.b:  # a turn ahead: brake at the rate it needs
+                acc = min(acc, -need)
             acc = max(acc, -9.0)
             vn = max(0.0, vk + acc * STEP)
             ds = 0.5 * (vk + vn) * STEP

@@ -53,10 +53,15 @@ def test_fleet_on_the_in_memory_bus() -> None:
         assert a.counters["imu_batches"] > 400 and a.counters["gnss"] > 100 and a.counters["beacons_rx"] > 100
         c = a.filters["CP"].counters
         # every range reaches the filter: fused, skipped by node selection (little expected gain)
-        # or gated; a good share is fused
+        # or gated; a good share is fused (V0 has the fewest, about 240: it turns away from the
+        # queue it ranges with)
         handled = c["ranges"] + c["ranges_skipped"] + c["ranges_skipped_near"]
-        assert handled + c["ranges_rejected"] > 300, c
-        assert c["ranges"] >= 1 and c["ranges_rejected"] < 0.05 * handled, c
+        assert handled + c["ranges_rejected"] > 150, c
+        # the gate refuses the biased ranges (UWB NLOS episodes and outliers, which come in runs:
+        # V0's few ranges can be an eighth biased) and few others
+        biased = sum(int(np.count_nonzero(r.nlos | r.outlier)) for pair, r in emu.playback.ranges.items()
+                     if a.cfg.vehicle in pair)
+        assert c["ranges"] >= 1 and c["ranges_rejected"] <= biased + 0.05 * handled, (c, biased)
         assert all(d == 0 for d in a.dropped.values()), a.dropped
     # V1 decided it is first stopped; V2 (behind it) never did
     assert any(r.first_stopped for r in records if r.vehicle == "V1" and r.method == "SL-SP")

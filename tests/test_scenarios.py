@@ -40,8 +40,11 @@ def test_shipped_scenarios_are_listed() -> None:
 
 
 @pytest.mark.slow
-def test_rush_hour_has_three_queues_of_three(rush) -> None:
-    """Departed vehicles standing still on the same approach lane at the same time."""
+def test_rush_hour_queues_on_every_approach(rush) -> None:
+    """Departed vehicles standing still on the same approach lane at the same time: a queue on
+    each of the four approaches, of three or more on two of them and of four on one (the
+    vehicles that depart later join the lane then: parked on it, they held up the vehicles
+    behind them for a minute, 140 m before the stop line)."""
     scn = rush.scenario
     depart = {v.id: v.depart for v in scn.vehicles}
     best: dict[str, int] = {}
@@ -55,7 +58,8 @@ def test_rush_hour_has_three_queues_of_three(rush) -> None:
         for seg, c in count.items():
             best[seg] = max(best.get(seg, 0), c)
     assert len(scn.vehicles) >= 12
-    assert sum(c >= 3 for c in best.values()) >= 3, best
+    assert sum(c >= 3 for c in best.values()) >= 2 and max(best.values()) >= 4, best
+    assert {seg[:2] for seg, c in best.items() if c >= 2} == {"NB", "SB", "EB", "WB"}, best
     # all four approaches used, turns in every direction
     approaches = {r.route[0][:2] for r in scn.vehicles}
     assert approaches == {"NB", "SB", "EB", "WB"}
@@ -219,13 +223,15 @@ def test_a_vehicle_brakes_to_stand_at_the_end_of_its_route() -> None:
     behind a standing car and stands there (it was a wall: rush-hour's N1, S1-S3 and W2 went from
     11-12 m/s to standing in one 0.1 s step, which their neighbours' misbehaviour checks took for
     a forged stop); and it does not heed the end from farther than it needs to stop (paper-1's V0,
-    70 m short of its end when the scenario ends, drives as it did)."""
+    about 70 m short of its end 43 s into the drive, cruises)."""
+    import dataclasses
+
     from slcp.hw_emulation.traffic import END_LOOKAHEAD, STEP, simulate_traffic
 
     scn = load_scenario("rush-hour")
     tr = simulate_traffic(scn, np.random.default_rng(0))
     ended = [vid for vid, r in tr.routes.items() if tr.s[vid][-1] >= r.path.length - 1e-9]
-    assert {"N1", "S1", "S2", "S3", "W2"} <= set(ended)
+    assert {"N2", "N3", "S2", "S3", "W1", "W3"} <= set(ended)
     for vid in ended:
         v = tr.v[vid]
         k = int(np.argmax(tr.s[vid] >= tr.routes[vid].path.length - 1e-9))
@@ -233,6 +239,6 @@ def test_a_vehicle_brakes_to_stand_at_the_end_of_its_route() -> None:
         # from its last cruise to the end: at most 4 m/s² (IDM's comfortable braking, not a crash)
         j = k - int(np.argmax(v[k::-1] > 8.0))
         assert np.min(np.diff(v[j:k]) / STEP) > -4.0, vid
-    p1 = simulate_traffic(load_scenario("paper-1"), np.random.default_rng(0))
+    p1 = simulate_traffic(dataclasses.replace(load_scenario("paper-1"), duration=43.0), np.random.default_rng(0))
     left = p1.routes["V0"].path.length - p1.s["V0"][-1]
-    assert END_LOOKAHEAD < left < END_LOOKAHEAD + 15.0 and p1.v["V0"][-1] > 9.0
+    assert END_LOOKAHEAD < left < END_LOOKAHEAD + 15.0 and p1.v["V0"][-1] > 10.5, (left, p1.v["V0"][-1])
