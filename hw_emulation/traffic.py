@@ -215,7 +215,7 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
         for vid, veh in specs.items():
             sk, vk = s[vid][k], v[vid][k]
             route = routes[vid]
-            if tk < veh.depart:  # parked until departure
+            if tk < veh.depart:  # parked off the lane until departure
                 s[vid][k + 1], v[vid][k + 1] = sk, 0.0
                 continue
             gap, dv = _leader(vid, veh, route, sk, vk, pos, specs, v, k, tk)
@@ -247,19 +247,22 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
 
 
 def first_stopped_flags(scn: Scenario, traffic: TrafficResult) -> dict[str, np.ndarray]:
-    """Per vehicle and traffic step: stopped, on an approach lane within the gate of its stop
-    line, and no other vehicle on that lane between it and the stop line."""
+    """Per vehicle and traffic step: departed, stopped, on an approach lane within the gate of
+    its stop line, and no other departed vehicle on that lane between it and the stop line (a
+    vehicle waiting to depart is parked off the lane)."""
+    depart = {veh.id: veh.depart for veh in scn.vehicles}
     out = {}
     for vid, route in traffic.routes.items():
         flags = np.zeros(len(traffic.t), bool)
         for k in range(len(traffic.t)):
             sk = traffic.s[vid][k]
             seg = route.segment_at(sk)
-            if traffic.v[vid][k] > STOPPED_SPEED or not seg.stop_line or seg.s1 - sk > FIRST_STOP_GATE + 5.0:
+            if (traffic.t[k] < depart[vid] or traffic.v[vid][k] > STOPPED_SPEED or not seg.stop_line
+                    or seg.s1 - sk > FIRST_STOP_GATE + 5.0):
                 continue
             ahead = False
             for oid, oroute in traffic.routes.items():
-                if oid == vid:
+                if oid == vid or traffic.t[k] < depart[oid]:
                     continue
                 oseg = oroute.segment_at(traffic.s[oid][k])
                 if oseg.key == seg.key and traffic.s[oid][k] - oseg.s0 > sk - seg.s0:

@@ -60,3 +60,25 @@ def test_a_vehicle_waiting_to_depart_holds_nobody_up(traffic) -> None:
     for vid in ("N5", "N6", "N7"):
         k = int(round(spec[vid].depart / STEP))
         assert np.all(tr.s[vid][:k] == spec[vid].depart_pos) and tr.s[vid][-1] > spec[vid].depart_pos + 50.0
+
+
+def test_a_vehicle_parked_by_the_stop_line_is_not_the_queue_head() -> None:
+    """Paper-1 with V2 parked 3 m short of NB_in's stop line until after the scenario: V1 drives
+    past it to the line and is the first stopped vehicle; V2, parked off the lane, never is."""
+    import tomllib
+
+    from slcp.hw_emulation.geometry import polyline_length
+    from slcp.hw_emulation.scenario import parse_scenario, shipped_scenario_text
+    from slcp.hw_emulation.traffic import first_stopped_flags
+
+    data = tomllib.loads(shipped_scenario_text("paper-1"))
+    scn = parse_scenario(data, "paper-1.toml")
+    line = polyline_length(scn.lanes["NB_in"].centerline)
+    vehicles = [dict(v) for v in data["vehicles"]]
+    v2 = next(v for v in vehicles if v["id"] == "V2")
+    v2.update(depart=1000.0, depart_pos=line - 3.0, initial_speed=0.0)
+    scn = parse_scenario(dict(data, vehicles=vehicles, events=[], windows={}, paper={}), "parked.toml")
+    tr = simulate_traffic(scn, np.random.default_rng(0))
+    flags = first_stopped_flags(scn, tr)
+    assert flags["V1"].any() and not flags["V2"].any()
+    assert tr.s["V1"][-1] > line - 10.0 and np.all(tr.s["V2"] == line - 3.0)
