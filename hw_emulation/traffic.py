@@ -101,9 +101,14 @@ class TrafficResult:
     s: dict[str, np.ndarray]
     v: dict[str, np.ndarray]
     stop_gap: dict[str, float]
-    lateral: dict[str, float]  #: d_l in the route's first lane
     #: d_l in each lane of the route, the first lane's first (:func:`lane_offsets`)
     lane_lateral: dict[str, tuple[float, ...]]
+
+    @property
+    def lateral(self) -> dict[str, float]:
+        """d_l in each route's first lane [m] (NaN where no offset was drawn: external
+        trajectories)."""
+        return {vid: d[0] if d else math.nan for vid, d in self.lane_lateral.items()}
 
 
 def _idm_accel(v: float, v0: float, gap: float, dv: float, p) -> float:
@@ -194,15 +199,15 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
     """Run the traffic model over the scenario duration."""
     n = int(round(scn.duration / STEP)) + 1
     t = np.arange(n) * STEP
-    routes, s, v, gaps, lats = {}, {}, {}, {}, {}
+    routes, s, v, gaps = {}, {}, {}, {}
     draws = driver_draws(scn, rng)
     per_lane = lane_offsets(scn, draws, rng)
     for veh in scn.vehicles:
-        d_s, d_l = draws[veh.id]
+        d_s = draws[veh.id][0]
         # d_l is measured from the lane's left line: the centre line shifts by d_l - width/2
         shifts = [d - scn.lanes[x].width / 2.0 for d, x in zip(per_lane[veh.id], veh.route)]
         routes[veh.id] = build_route(scn, veh, shifts)
-        gaps[veh.id], lats[veh.id] = max(d_s, 0.2), d_l
+        gaps[veh.id] = max(d_s, 0.2)
         s[veh.id] = np.zeros(n)
         v[veh.id] = np.zeros(n)
         s[veh.id][0] = veh.depart_pos
@@ -243,7 +248,7 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
             if sn >= route.path.length:
                 vn = 0.0
             s[vid][k + 1], v[vid][k + 1] = sn, vn
-    return TrafficResult(t, routes, s, v, gaps, lats, per_lane)
+    return TrafficResult(t, routes, s, v, gaps, per_lane)
 
 
 def first_stopped_flags(scn: Scenario, traffic: TrafficResult) -> dict[str, np.ndarray]:

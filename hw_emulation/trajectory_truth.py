@@ -195,6 +195,5 @@ def build_trajectory_truth(scn: Scenario) -> ScenarioTruth:
         if len(stop_at) and tr.detailed:
             i = int(k[stop_at[0]])
             gaps[vid] = polyline_length(scn.lanes[str(tr.lane[i])].centerline) - float(tr.lane_pos[i])
-    traffic = TrafficResult(t_grid, routes, s_grid, v_grid, gaps, {vid: float("nan") for vid in tracks},
-                            {vid: () for vid in tracks})
+    traffic = TrafficResult(t_grid, routes, s_grid, v_grid, gaps, {vid: () for vid in tracks})
     return ScenarioTruth(scn, traffic, out)
