@@ -23,7 +23,7 @@ import numpy as np
 from slcp.geo.site import offset_polyline
 
 from .geometry import Path, bezier_turn
-from .scenario import Scenario, VehicleSpec
+from .scenario import Idm, Scenario, VehicleSpec
 
 STEP = 0.1  #: traffic time step [s]
 LAT_ACCEL_MAX = 2.0  #: lateral acceleration used to cap speed in turns [m/s²]
@@ -111,14 +111,14 @@ class TrafficResult:
         return {vid: d[0] if d else math.nan for vid, d in self.lane_lateral.items()}
 
 
-def _idm_accel(v: float, v0: float, gap: float, dv: float, p) -> float:
+def _idm_accel(v: float, v0: float, gap: float, dv: float, p: Idm) -> float:
     """IDM's acceleration, its free-road term bounded below by −b: a driver above the desired
     speed (a turn ahead, a start faster than wanted) slows at most at the comfortable rate, as
     in Treiber and Kesting's improved IDM; plain IDM's a (1 − (v/v0)^δ) asks for 9 m/s² at 1.7
     times v0. The interaction term (a leader, a red light) is unbounded, as in IDM."""
     s_star = p.s0 + max(0.0, v * p.T + v * dv / (2.0 * math.sqrt(p.a * p.b)))
     free = max(p.a * (1.0 - (v / v0) ** p.delta), -p.b)
-    return free - p.a * (s_star / max(gap, 0.1)) ** 2
+    return float(free - p.a * (s_star / max(gap, 0.1)) ** 2)
 
 
 def _turn_braking(route: Route, sk: float, vk: float, veh: VehicleSpec) -> tuple[float, float]:
@@ -168,8 +168,8 @@ def lane_offsets(scn: Scenario, draws: dict[str, tuple[float, float]],
     return out
 
 
-def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos: dict, specs: dict,
-            v: dict[str, np.ndarray], k: int, t: float) -> tuple[float, float]:
+def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos: dict[str, tuple[Segment, float]],
+            specs: dict[str, VehicleSpec], v: dict[str, np.ndarray], k: int, t: float) -> tuple[float, float]:
     """IDM's gap [m] and closing speed [m/s] to what is ahead of vehicle ``vid`` at step ``k``
     (time ``t`` [s]): the nearest departed vehicle ahead on a segment its route also uses, or the
     end of its route. A vehicle waiting for its departure is parked off the lane: it joins the
