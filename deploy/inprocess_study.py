@@ -5,7 +5,10 @@ emulator's own messages and radio, without the bus), spread over the cores.
 It answers what a fleet study (``slcp run --seeds``) does, per vehicle and method, for a fleet too
 large to run as processes seed after seed on one machine: the RMSE over the times each vehicle is
 on the air (mean and sd over the seeds), the paired differences CP - SP and SL-CP - CP, and the
-first-stopped detection of the stop-line methods, pooled over the seeds and the fleet.
+first-stopped detection of the stop-line methods, pooled over the seeds and the fleet. With
+``bound``, also each seed's posterior CRLB (:func:`deploy.bound.posterior_crlb`) and the
+estimates' horizontal NEES, on the air and while each vehicle truly stands: the RMSE over the
+bound and the ANEES, as the fleet study reports them.
 """
 
 from __future__ import annotations
@@ -26,17 +29,30 @@ from .worker_pool import worker_pool
 PAIRS = (("CP", "SP"), ("SL-CP", "CP"), ("SL-SP", "SP"))
 
 
-def one_seed(args: tuple[str, int]) -> dict:
-    """One seed: vehicle -> method -> RMSE [m] on the air, and the detection per SL method."""
+#: the windows of the study's bound: every vehicle's times on the air, and those it truly stands
+BOUND_WINDOWS = ("on the air", "standing")
+
+
+def one_seed(args: tuple[str, int] | tuple[str, int, bool]) -> dict:
+    """One seed: vehicle -> method -> RMSE [m] on the air, and the detection per SL method; with
+    the third element true, also ``bound``: window -> vehicle -> method -> the RMSE, the bound's
+    RMS [m], the mean horizontal NEES and the number of estimates (:data:`BOUND_WINDOWS`)."""
     from slcp.hw_emulation.scenario import load_scenario
     from slcp.hw_emulation.truth import build_truth
 
     from .inprocess import run_inprocess
 
-    scenario, seed = args
+    scenario, seed = args[0], args[1]
+    with_bound = len(args) > 2 and bool(args[2])
     truth = build_truth(load_scenario(scenario), stop_seed=seed)
     r = run_inprocess(truth, seed)
     out: dict = {"seed": seed, "rmse": {}, "first_stopped": {}}
+    b = None
+    if with_bound:
+        from .bound import posterior_crlb
+
+        b = posterior_crlb(truth, METHODS)
+        out["bound"] = {}
     for vid, vt in truth.vehicles.items():
         k = vt.samples_over(r.t)
         on = vt.present_over(r.t)
@@ -45,6 +61,11 @@ def one_seed(args: tuple[str, int]) -> dict:
             e = e[np.isfinite(e)]
             if len(e):
                 out["rmse"].setdefault(vid, {})[m] = float(np.sqrt(np.mean(e**2)))
+            if b is not None:
+                for w, sel in zip(BOUND_WINDOWS, (on, on & vt.stopped[k])):
+                    cell = _against_bound(r.err[(vid, m)][sel], r.nees[(vid, m)][sel], b.at(m, vid, r.t[sel]))
+                    if cell is not None:
+                        out["bound"].setdefault(w, {}).setdefault(vid, {})[m] = cell
             if m.startswith("SL-"):
                 sc = score_first_stopped(r.t[on], vt.first_stopped[k][on], r.first[(vid, m)][on],
                                          zone=vt.first_stop_zone[k][on])
@@ -53,12 +74,24 @@ def one_seed(args: tuple[str, int]) -> dict:
     return out
 
 
-def run_study(scenario: str, seeds: list[int], processes: int | None = None, progress=None) -> dict:
-    """The study's per-seed results and their summary (:func:`summarise`)."""
+def _against_bound(err: np.ndarray, nees: np.ndarray, bound: np.ndarray) -> dict | None:
+    """A window's RMSE [m], the bound's RMS over the same estimates [m], their mean horizontal
+    NEES and their number (None for a window without a scored estimate)."""
+    ok = np.isfinite(err) & np.isfinite(nees)
+    if not ok.any():
+        return None
+    return {"rmse_m": float(np.sqrt(np.mean(err[ok] ** 2))), "bound_rms_m": float(np.sqrt(np.mean(bound[ok] ** 2))),
+            "nees_h": float(np.mean(nees[ok])), "n": int(ok.sum())}
+
+
+def run_study(scenario: str, seeds: list[int], processes: int | None = None, progress=None,
+              bound: bool = False) -> dict:
+    """The study's per-seed results and their summary (:func:`summarise`); ``bound``: also each
+    seed's posterior CRLB and the estimates' NEES (:func:`one_seed`)."""
     workers = max(1, min(processes or os.cpu_count() or 1, len(seeds)))
     per_seed = []
     with worker_pool(workers) as pool:
-        for res in pool.map(one_seed, [(scenario, s) for s in seeds]):
+        for res in pool.map(one_seed, [(scenario, s, bound) for s in seeds]):
             per_seed.append(res)
             if progress is not None:
                 progress(res["seed"], len(per_seed), len(seeds))
@@ -95,8 +128,32 @@ def summarise(per_seed: list[dict]) -> dict:
         acc["recall"] = acc["covered_s"] / acc["truth_s"] if acc["truth_s"] else None
     order = {f"{a} <= {b}": [v for v in vehicles if rmse[v].get(a, {}).get("mean_m", np.inf)
                              > rmse[v].get(b, {}).get("mean_m", -np.inf)] for a, b in PAIRS}
-    return {"vehicles": vehicles, "rmse": rmse, "paired": paired, "first_stopped": detection,
-            "not_ordered": order}
+    out = {"vehicles": vehicles, "rmse": rmse, "paired": paired, "first_stopped": detection,
+           "not_ordered": order}
+    if all("bound" in s for s in per_seed):
+        out["bound"] = _bound_summary(per_seed, vehicles)
+    return out
+
+
+def _bound_summary(per_seed: list[dict], vehicles: list[str]) -> dict:
+    """Window -> vehicle -> method -> the RMSE's and the bound's means over the seeds, their
+    ratio, and the window's ANEES over every estimate of every seed with its band (as the fleet
+    study's, :func:`deploy.study._window_anees`)."""
+    from .study import _window_anees
+
+    out: dict = {}
+    for w in BOUND_WINDOWS:
+        for vid in vehicles:
+            for m in METHODS:
+                cells = [s["bound"][w][vid][m] for s in per_seed if m in s["bound"].get(w, {}).get(vid, {})]
+                if not cells:
+                    continue
+                rmse = float(np.mean([c["rmse_m"] for c in cells]))
+                bound = float(np.mean([c["bound_rms_m"] for c in cells]))
+                out.setdefault(w, {}).setdefault(vid, {})[m] = {
+                    "mean_rmse_m": rmse, "bound_rms_m": bound, "ratio": rmse / bound if bound > 0 else None,
+                    "anees": _window_anees(cells), "n_seeds": len(cells)}
+    return out
 
 
 def study_markdown(study: dict, title: str) -> str:
@@ -123,7 +180,33 @@ def study_markdown(study: dict, title: str) -> str:
             d = s["paired"][vid][pair]
             diffs.append("–" if d["mean_m"] is None else f"{d['mean_m']:+.2f} ({d['verdict']})")
         lines.append(f"| {vid} | " + " | ".join(cells) + " | " + " | ".join(diffs) + " |")
+    if "bound" in s:
+        lines += _bound_markdown(s["bound"])
     return "\n".join(lines) + "\n"
+
+
+def _bound_markdown(bound: dict) -> list[str]:
+    """The bound's tables: per window, vehicle and method the RMSE over the bound (means over the
+    seeds) and the ANEES (n = 2; marked when outside its two-sided 95 % band)."""
+    lines = ["", "## Against the bound", "",
+             "The mean RMSE over the mean posterior CRLB (RMS over the same estimates) and the horizontal "
+             "ANEES (n = 2) over every estimate of every seed, marked when outside its 95 % band; "
+             "*standing*: the times each vehicle truly stands."]
+    for w, cells in bound.items():
+        lines += ["", f"### {w}", "", "| vehicle | " + " | ".join(METHODS) + " |", "|---|" + "---|" * len(METHODS)]
+        for vid, ms in cells.items():
+            row = []
+            for m in METHODS:
+                c = ms.get(m)
+                if c is None or c["ratio"] is None:
+                    row.append("–")
+                    continue
+                a = c["anees"]
+                mark = "" if a is None or a["inside"] else " (outside)"
+                row.append(f"{c['ratio']:.2f}× ({c['mean_rmse_m']:.2f} / {c['bound_rms_m']:.2f} m)"
+                           + ("" if a is None else f", ANEES {a['anees']:.2f}{mark}"))
+            lines.append(f"| {vid} | " + " | ".join(row) + " |")
+    return lines
 
 
 def write_study(study: dict, out: Path, title: str) -> Path:

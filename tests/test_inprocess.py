@@ -151,3 +151,54 @@ def test_the_in_process_studys_summary_closed_form() -> None:
     assert fs["recall"] == pytest.approx(24.0 / 30.0)
     page = study_markdown({"seeds": [0, 1, 2], "summary": s}, "t")
     assert "mean RMSE SL-CP <= CP: not for V2" in page and "| V1 | 4.00 ± 1.00 |" in page
+
+
+def test_the_in_process_studys_bound_summary_closed_form() -> None:
+    """With the bound, per window the mean RMSE over the mean bound and the ANEES over every
+    estimate of every seed (a seed weighs by its estimates), marked against the band of as many
+    runs; a study without it has no such section."""
+    from slcp.deploy.inprocess_study import study_markdown, summarise
+    from slcp.deploy.study import anees_band
+
+    def seed(s: int, rmse: float, nees: float, n: int) -> dict:
+        cell = {"rmse_m": rmse, "bound_rms_m": 0.1 * (1 + s), "nees_h": nees, "n": n}
+        return {"seed": s, "rmse": {"V1": {"SL-CP": rmse}}, "first_stopped": {},
+                "bound": {"on the air": {"V1": {"SL-CP": cell}}, "standing": {"V1": {"SL-CP": dict(cell, nees_h=9.0)}}}}
+
+    per_seed = [seed(0, 0.3, 1.0, 100), seed(1, 0.5, 4.0, 300)]
+    b = summarise(per_seed)["bound"]
+    cell = b["on the air"]["V1"]["SL-CP"]
+    assert cell["ratio"] == pytest.approx(0.4 / 0.15) and cell["n_seeds"] == 2
+    assert cell["anees"]["anees"] == pytest.approx((1.0 * 100 + 4.0 * 300) / 400)
+    assert cell["anees"]["band"] == pytest.approx(list(anees_band(2))) and cell["anees"]["inside"]
+    assert not b["standing"]["V1"]["SL-CP"]["anees"]["inside"]  # 9 is above the band of two runs
+    page = study_markdown({"seeds": [0, 1], "summary": summarise(per_seed)}, "t")
+    assert "## Against the bound" in page and "| V1 | – | – | – | 2.67× (0.40 / 0.15 m), ANEES 3.25 |" in page
+    assert "ANEES 9.00 (outside)" in page
+    plain = [{k: v for k, v in s.items() if k != "bound"} for s in per_seed]
+    assert "bound" not in summarise(plain) and "Against the bound" not in study_markdown(
+        {"seeds": [0, 1], "summary": summarise(plain)}, "t")
+
+
+@pytest.mark.slow
+def test_one_seed_of_the_in_process_study_with_the_bound() -> None:
+    """A seed of paper-1 with the bound: on the air, the RMSE is the study's own (two paths to
+    the same figure), the bound is the posterior CRLB at the estimates' times, and the first
+    stopped vehicle V1 has a standing window with SL-CP near its bound (well within 5×)."""
+    from slcp.agent.methods import METHODS
+    from slcp.deploy.bound import posterior_crlb
+    from slcp.deploy.inprocess_study import one_seed
+
+    res = one_seed(("paper-1", 0, True))
+    on_air = res["bound"]["on the air"]
+    for vid, ms in res["rmse"].items():
+        for m in METHODS:
+            assert on_air[vid][m]["rmse_m"] == pytest.approx(ms[m], rel=1e-12)
+    sl = res["bound"]["standing"]["V1"]["SL-CP"]
+    assert sl["n"] > 100 and 0.5 < sl["rmse_m"] / sl["bound_rms_m"] < 5.0 and 0.1 < sl["nees_h"] < 10.0
+    # the estimates cover the run: the bound's RMS over them is its RMS over its own steps
+    b = posterior_crlb(build_truth(load_scenario("paper-1"), stop_seed=0), ("SP",))
+    assert on_air["V2"]["SP"]["bound_rms_m"] == pytest.approx(float(np.sqrt(np.mean(b.sigma_h("SP", "V2") ** 2))),
+                                                              rel=0.05)
+    plain = one_seed(("paper-1", 0))
+    assert plain["rmse"] == res["rmse"] and "bound" not in plain
