@@ -130,7 +130,7 @@ def summarise(per_seed: list[dict]) -> dict:
                              > rmse[v].get(b, {}).get("mean_m", -np.inf)] for a, b in PAIRS}
     out = {"vehicles": vehicles, "rmse": rmse, "paired": paired, "first_stopped": detection,
            "not_ordered": order}
-    if all("bound" in s for s in per_seed):
+    if per_seed and all("bound" in s for s in per_seed):
         out["bound"] = _bound_summary(per_seed, vehicles)
     return out
 
