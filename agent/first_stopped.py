@@ -26,6 +26,18 @@ fix, so the decision is conservative:
    queues on multi-lane approaches, where the beacon positions cannot tell the lanes apart and
    each head would otherwise hold the other off its stop line.
 
+   A neighbour is "stopped" when its beacon says so (speed below ``neighbour_stop_speed``), or
+   when its UWB ranges stayed still while I stood: over the last ``still_window`` seconds (at
+   least ``still_min_ranges`` ranges spanning three quarters of it) they spread by no more than
+   their noise allows (``k_sigma`` range σ either way, one range at each end left out). Two
+   vehicles at rest keep their distance, and a passing one cannot hold it for seconds; the range
+   is relative, so a neighbour whose own estimate drifts (a GNSS outage while it stands, its INS
+   velocity running away) still counts as standing where its beacon puts it, instead of as a
+   car driving by, which is what let the second of a queue claim the head's stop line. Until I
+   have stood for ``still_window``, a neighbour whose beacon says "moving" but whose ranges I
+   hear is *unsure*: where a stopped one would hold me off, it makes me wait (no claim, and no
+   veto for the stop), and the ranges decide once the window is full.
+
 :class:`StopTracker` keeps the bookkeeping around the detector (own stationarity, when each
 neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
 
@@ -81,6 +93,9 @@ class DetectorSettings:
     #: distance behind my front: 2.1 + 2.0 + 2.5 = 6.6 m for the scenarios' 4.6 m cars)
     min_queue_spacing: float = 5.0
     range_window: float = 1.0  #: [s] UWB ranges this recent say whether a neighbour is beside me
+    #: [s] UWB ranges this recent, all within their noise while I stand, say a neighbour stands
+    still_window: float = 2.0
+    still_min_ranges: int = 5
 
 
 @dataclass(frozen=True)
@@ -96,6 +111,9 @@ class NeighbourView:
     cov_ne: np.ndarray | None = None  #: (2, 2) [m²] its beacon's horizontal covariance
     #: its recent UWB ranges prove it closer than two vehicles queued in one lane can stand
     beside: bool = False
+    #: its beacon says moving, and its ranges cannot tell yet whether it stands (see the module
+    #: docstring): it may hold me back for now, but not veto the stop
+    unsure: bool = False
 
 
 @dataclass(frozen=True)
@@ -164,8 +182,11 @@ class FirstStoppedDetector:
             named = [c for c in cands if consistent(self.marks[c[0]], markings)]
             cands = named or cands
         reach = self.s.neighbour_range + self.s.k_sigma * math.sqrt(max(float(np.trace(cov_ne)), 0.0))
-        for nb in neighbours:
-            if not nb.stopped or nb.beside or float(np.hypot(*(nb.ne - ne))) > reach:
+        waiting = None  # an unsure neighbour that may be ahead: no claim yet, but no veto
+        for nb in sorted(neighbours, key=lambda n: n.unsure and not n.stopped):  # the stopped first
+            if waiting is not None and not nb.stopped:
+                break
+            if not (nb.stopped or nb.unsure) or nb.beside or float(np.hypot(*(nb.ne - ne))) > reach:
                 continue
             if (stopped_since is not None and nb.stopped_since is not None
                     and nb.stopped_since > stopped_since + self.s.order_tol):
@@ -188,7 +209,12 @@ class FirstStoppedDetector:
                 # difference), and never when it is behind_margin or more farther back
                 ahead_by = min(self.s.behind_margin, self.s.ahead_k_sigma * s_diff - self.s.min_queue_spacing)
                 if nb.claims_first or nb_behind < behind + ahead_by:
+                    if not nb.stopped:
+                        waiting = nb.vehicle
+                        break
                     return Decision(False, None, False, f"neighbour {nb.vehicle} may be ahead", nb.vehicle)
+        if waiting is not None:
+            return Decision(False, None, False, f"neighbour {waiting} may be ahead (moving?)")
         lid = min(cands, key=lambda c: c[1])[0]
         return Decision(True, lid, len(cands) > 1, "first stopped" + (" (lane ambiguous)" if len(cands) > 1 else ""))
 
@@ -219,6 +245,7 @@ class StopTracker:
         self.vetoed: str | None = None  #: neighbour that was ahead of me during this stop
         self._nb: dict[str, _NeighbourStop] = {}
         self._ranges: dict[str, deque[tuple[float, float]]] = {}  #: vehicle -> (t, range + k σ)
+        self._range_sigma: dict[str, float] = {}  #: vehicle -> its ranges' noise σ [m]
         self.markings = MarkingWindow()  #: the camera's recent lane-marking reports
         self._stop_marks: tuple[int, int] | None = None  #: markings that named this stop's lane
 
@@ -230,9 +257,10 @@ class StopTracker:
         """A UWB range [m] to ``vehicle`` at sensor time ``t`` [s] with noise σ ``sigma`` [m]."""
         if not math.isfinite(range_m):
             return
-        q = self._ranges.setdefault(vehicle, deque(maxlen=32))
+        q = self._ranges.setdefault(vehicle, deque(maxlen=64))
         q.append((t, range_m + self.s.k_sigma * sigma))
-        while q and q[0][0] < t - self.s.range_window:
+        self._range_sigma[vehicle] = sigma
+        while q and q[0][0] < t - max(self.s.range_window, self.s.still_window):
             q.popleft()
 
     def beside(self, vehicle: str, t: float) -> bool:
@@ -246,6 +274,18 @@ class StopTracker:
             return False
         median = recent[n // 2] if n % 2 else (recent[n // 2 - 1] + recent[n // 2]) / 2
         return median < self.s.min_queue_spacing
+
+    def still(self, vehicle: str, t: float) -> bool:
+        """Whether ``vehicle``'s UWB ranges of the last ``still_window`` seconds show it at rest
+        relative to me while I stood through them (see the module docstring)."""
+        window = self.s.still_window
+        if self.since is None or t - self.since < window:
+            return False
+        recent = [(tr, r) for tr, r in self._ranges.get(vehicle, ()) if t - window <= tr <= t + 0.5]
+        if len(recent) < self.s.still_min_ranges or recent[-1][0] - recent[0][0] < 0.75 * window:
+            return False
+        values = sorted(r for _, r in recent)[1:-1]  # a gross outlier at either end cannot decide
+        return values[-1] - values[0] <= 2.0 * self.s.k_sigma * self._range_sigma[vehicle]
 
     def observe_neighbour(self, vehicle: str, t: float, speed: float, claims_first: bool) -> None:
         """A beacon of ``vehicle`` at sensor time ``t`` [s] with horizontal ``speed`` [m/s]."""
@@ -267,6 +307,7 @@ class StopTracker:
         keeps its place in the order of the queue (a short radio gap made the second of a queue
         "first heard at rest", i.e. stopped before the head, and held the head off)."""
         self._ranges.pop(vehicle, None)
+        self._range_sigma.pop(vehicle, None)
 
     def moving_decision(self, t: float, speed: float) -> tuple[Decision, bool] | None:
         """Update the rest bookkeeping with the own filter speed [m/s] at sensor time ``t`` [s];
@@ -310,8 +351,11 @@ class StopTracker:
         for v, p in neighbour_ne.items():
             st = self._nb.get(v)
             if st is not None:
-                nbs.append(NeighbourView(v, p, st.stopped_since is not None, st.claims_first, st.stopped_since,
-                                         (neighbour_cov or {}).get(v), self.beside(v, t)))
+                stopped = st.stopped_since is not None or self.still(v, t)
+                unsure = (not stopped and v in self._ranges and self.since is not None
+                          and t - self.since < self.s.still_window)
+                nbs.append(NeighbourView(v, p, stopped, st.claims_first, st.stopped_since,
+                                         (neighbour_cov or {}).get(v), self.beside(v, t), unsure))
         # a claim ends as soon as the vehicle moves (the stop itself has hysteresis): a vehicle
         # whose veto the ranges just lifted may be creeping within that hysteresis
         still = t - self.since if self.since is not None and speed < self.s.stop_speed else 0.0

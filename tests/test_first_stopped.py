@@ -409,3 +409,66 @@ def test_each_agents_diagnostics_say_why_it_claims_first_stopped_or_not(tmp_path
     assert reasons["V0"][0] == "moving" and "first stopped" not in reasons["V0"]
     assert reasons["V1"][-1] == "first stopped"
     assert "V1" in reasons["V2"][-1] and "first stopped" not in reasons["V2"]
+
+
+def _stand_behind_a_drifting_leader(ranges) -> tuple[StopTracker, list]:
+    """I stand at ``b`` on NB (σ 3 m along, so the leader's beacon at ``a``, 7 m ahead, is inside
+    my gates); the leader's beacons say it drives at 1 m/s (its own estimate runs away) while
+    ``ranges(t)`` gives the UWB range to it at 10 Hz. Returns the tracker and the decisions."""
+    a, b, _ = _queue(err_ahead=0.0)
+    cov = np.diag([9.0, 1.0])
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    out = []
+    for k in range(40):
+        t = 0.1 * k
+        tr.observe_neighbour("A", t, 1.0, False)
+        tr.observe_range("A", t, ranges(t), 0.1)
+        out.append(tr.decide(t, b, cov, 0.0, 0.0, {"A": a})[0])
+    return tr, out
+
+
+def test_a_leader_whose_beacon_drifts_but_whose_ranges_stand_still_holds_me_off() -> None:
+    """A leader standing at the line in a GNSS outage may report a velocity that runs away; its
+    range to me, relative, shows it standing. Until I have stood for ``still_window`` it makes
+    me wait (no claim, no veto); then its ranges, within their noise, count it as stopped and it
+    holds me off for the stop. Without the range rule, the beacon's "moving" let the second of
+    the queue claim the head's stop line (rush-hour seed 15, S2: 6 m off at a σ of 0.3 m)."""
+    rng = np.random.default_rng(3)
+    noise = {round(0.1 * k, 1): float(rng.normal(0.0, 0.1)) for k in range(40)}
+    tr, decisions = _stand_behind_a_drifting_leader(lambda t: 7.0 + noise[round(t, 1)])
+    w = tr.s.still_window
+    early = [d for k, d in enumerate(decisions) if tr.s.min_stationary <= 0.1 * k < w]
+    assert early and all(not d.first and d.reason == "neighbour A may be ahead (moving?)" for d in early)
+    assert not any(d.first for d in decisions)
+    assert tr.vetoed == "A" and decisions[-1].reason == "stopped behind A"
+    # one gross outlier in the window changes nothing (one range at each end is left out)
+    tr2, decisions2 = _stand_behind_a_drifting_leader(lambda t: 7.0 + (25.0 if abs(t - 3.0) < 0.05 else 0.0))
+    assert tr2.vetoed == "A" and not any(d.first for d in decisions2)
+
+
+def test_a_neighbour_driving_away_is_waited_for_then_let_go() -> None:
+    """A neighbour ahead whose beacon says moving and whose range grows (it really drives off,
+    0.5 m/s): I wait while my ranges cannot tell, then claim; it never vetoes the stop."""
+    tr, decisions = _stand_behind_a_drifting_leader(lambda t: 7.0 + 0.5 * t)
+    w = tr.s.still_window
+    assert all(not d.first for k, d in enumerate(decisions) if 0.1 * k < w - 1e-9)
+    assert decisions[-1].first and tr.vetoed is None
+
+
+def test_still_needs_enough_ranges_over_the_window_and_my_own_rest() -> None:
+    """``still``: false before I have stood for ``still_window``, with too few ranges or ranges
+    spanning too little of the window, and for a spread beyond 2 k σ; true otherwise."""
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    w, k_sigma = tr.s.still_window, tr.s.k_sigma
+    assert tr.moving_decision(0.0, 0.0) is not None and tr.since == 0.0
+    for i in range(21):
+        tr.observe_range("A", 0.1 * i, 7.0 + (0.0 if i % 2 else 2.0 * k_sigma * 0.1 - 0.01), 0.1)  # within 2 k σ
+    assert tr.still("A", w) and not tr.still("A", w - 0.1)  # not yet stood for the window
+    assert not tr.still("B", w)
+    tr.observe_range("C", 1.9, 7.0, 0.1)
+    for i in range(5):
+        tr.observe_range("C", 1.9 + 0.02 * i, 7.0, 0.1)  # five ranges over 0.08 s: too short a span
+    assert not tr.still("C", w)
+    for i in range(21):
+        tr.observe_range("D", 0.1 * i, 7.0 + (0.0 if i % 2 else 2.0 * k_sigma * 0.1 + 0.02), 0.1)
+    assert not tr.still("D", w)
