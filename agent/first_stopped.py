@@ -34,9 +34,10 @@ fix, so the decision is conservative:
    is relative, so a neighbour whose own estimate drifts (a GNSS outage while it stands, its INS
    velocity running away) still counts as standing where its beacon puts it, instead of as a
    car driving by, which is what let the second of a queue claim the head's stop line. Until I
-   have stood for ``still_window``, a neighbour whose beacon says "moving" but whose ranges I
-   hear is *unsure*: where a stopped one would hold me off, it makes me wait (no claim, and no
-   veto for the stop), and the ranges decide once the window is full.
+   have stood for ``still_window``, a neighbour whose beacon says "moving" and whose ranges
+   since I came to rest stay within their noise is *unsure*: where a stopped one would hold me
+   off, it makes me wait (no claim, and no veto for the stop), until its ranges say "still"
+   or show it moving relative to me (a follower closing in behind me, a car driving off).
 
 :class:`StopTracker` keeps the bookkeeping around the detector (own stationarity, when each
 neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
@@ -275,17 +276,27 @@ class StopTracker:
         median = recent[n // 2] if n % 2 else (recent[n // 2 - 1] + recent[n // 2]) / 2
         return median < self.s.min_queue_spacing
 
-    def still(self, vehicle: str, t: float) -> bool:
-        """Whether ``vehicle``'s UWB ranges of the last ``still_window`` seconds show it at rest
-        relative to me while I stood through them (see the module docstring)."""
+    def range_motion(self, vehicle: str, t: float) -> str:
+        """What ``vehicle``'s UWB ranges since I came to rest (the last ``still_window`` seconds
+        of them) say of it: ``"still"`` (enough ranges over the window, within their noise, and I
+        stood through it), ``"moving"`` (they spread beyond their noise: it moves relative to
+        me), ``"unsure"`` (within their noise so far, too few to tell) or ``""`` (none, or I
+        am not at rest). See the module docstring."""
         window = self.s.still_window
-        if self.since is None or t - self.since < window:
-            return False
-        recent = [(tr, r) for tr, r in self._ranges.get(vehicle, ()) if t - window <= tr <= t + 0.5]
-        if len(recent) < self.s.still_min_ranges or recent[-1][0] - recent[0][0] < 0.75 * window:
-            return False
-        values = sorted(r for _, r in recent)[1:-1]  # a gross outlier at either end cannot decide
-        return values[-1] - values[0] <= 2.0 * self.s.k_sigma * self._range_sigma[vehicle]
+        if self.since is None:
+            return ""
+        start = max(self.since, t - window)
+        recent = [(tr, r) for tr, r in self._ranges.get(vehicle, ()) if start <= tr <= t + 0.5]
+        if not recent:
+            return ""
+        values = sorted(r for _, r in recent)
+        if len(values) >= self.s.still_min_ranges:
+            values = values[1:-1]  # a gross outlier at either end cannot decide
+        if values[-1] - values[0] > 2.0 * self.s.k_sigma * self._range_sigma[vehicle]:
+            return "moving"
+        mature = (t - self.since >= window and len(recent) >= self.s.still_min_ranges
+                  and recent[-1][0] - recent[0][0] >= 0.75 * window)
+        return "still" if mature else "unsure"
 
     def observe_neighbour(self, vehicle: str, t: float, speed: float, claims_first: bool) -> None:
         """A beacon of ``vehicle`` at sensor time ``t`` [s] with horizontal ``speed`` [m/s]."""
@@ -351,9 +362,8 @@ class StopTracker:
         for v, p in neighbour_ne.items():
             st = self._nb.get(v)
             if st is not None:
-                stopped = st.stopped_since is not None or self.still(v, t)
-                unsure = (not stopped and v in self._ranges and self.since is not None
-                          and t - self.since < self.s.still_window)
+                motion = "" if st.stopped_since is not None else self.range_motion(v, t)
+                stopped, unsure = st.stopped_since is not None or motion == "still", motion == "unsure"
                 nbs.append(NeighbourView(v, p, stopped, st.claims_first, st.stopped_since,
                                          (neighbour_cov or {}).get(v), self.beside(v, t), unsure))
         # a claim ends as soon as the vehicle moves (the stop itself has hysteresis): a vehicle

@@ -58,7 +58,8 @@ def motion_heading(track: Track) -> np.ndarray:
     for i in range(1, n):  # standing at the end: the last move's heading
         if np.isnan(out[i]):
             out[i] = out[i - 1]
-    return np.nan_to_num(out, nan=0.0)
+    result: np.ndarray = np.nan_to_num(out, nan=0.0)
+    return result
 
 
 def reference_positions(track: Track, heading: np.ndarray, l0: float, point: str) -> np.ndarray:
@@ -180,7 +181,8 @@ def build_trajectory_truth(scn: Scenario) -> ScenarioTruth:
         prof = PathProfile(path, t_grid, s)
         ne = path.position(s[0])
         llh0 = pymap3d.ned2geodetic(ne[0], ne[1], 0.0, *scn.origin_llh, deg=False)
-        truth = generate(prof, scn.duration, rate=scn.imu_rate, origin_llh=tuple(float(x) for x in llh0))
+        lat0, lon0, h0 = (float(x) for x in llh0)
+        truth = generate(prof, scn.duration, rate=scn.imu_rate, origin_llh=(lat0, lon0, h0))
         present = (truth.t >= tr.t[0] - 1e-6) & (truth.t <= tr.t[-1] + 1e-6)
         k = np.clip(np.searchsorted(tr.t, truth.t - 1e-6), 0, len(tr.t) - 1)
         segment = np.where(present, lanes_of[vid][0][k], "").astype(str)

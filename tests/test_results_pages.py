@@ -60,6 +60,10 @@ def test_the_fleet_page_is_the_studies_reports_under_the_commands_that_made_them
     assert "\n## slcp study: paper-2\n" in page and "\n### t_s1-t_e\n" in page and "\n# not a heading\n" in page
     assert "\n## rush-hour study\n" in page and "\n#### deep\n" in page
     assert page.index("paper-2\n") < page.index("rush-hour study")
+    # an in-process study with the bound (its seeds carry it) names --bound
+    bound = _study(tmp_path / "rush-b", {"scenario": "rush-hour", "seeds": [0], "summary": {},
+                                         "per_seed": [{"seed": 0, "bound": {}}]}, "# rush-hour study\n")
+    assert "slcp scenario study rush-hour --seeds 1 --bound --out runs/rush-b" in tool.build_page([bound])
     # a folder that is not a study, or a damaged summary: a clear error, exit 2
     (tmp_path / "empty").mkdir()
     with pytest.raises(tool.PageError, match="not a study folder"):

@@ -59,7 +59,8 @@ def study_command(study_dir: Path) -> tuple[str, str]:
         raise PageError(f"{meta}: no seeds")
     name = study_dir.name
     if "summary" in study:  # slcp scenario study (in process): seeds 0..N-1
-        cmd = f"slcp scenario study {scenario} --seeds {len(seeds)} --out runs/{name}"
+        bound = any(isinstance(s, dict) and "bound" in s for s in study.get("per_seed", []))
+        cmd = f"slcp scenario study {scenario} --seeds {len(seeds)}{' --bound' if bound else ''} --out runs/{name}"
     else:
         cmd = f"slcp run {scenario} --seeds {len(seeds)}"
         if seeds[0] != 0:
