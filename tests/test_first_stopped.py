@@ -411,20 +411,26 @@ def test_each_agents_diagnostics_say_why_it_claims_first_stopped_or_not(tmp_path
     assert "V1" in reasons["V2"][-1] and "first stopped" not in reasons["V2"]
 
 
-def _stand_behind_a_drifting_leader(ranges) -> tuple[StopTracker, list]:
-    """I stand at ``b`` on NB (σ 3 m along, so the leader's beacon at ``a``, 7 m ahead, is inside
-    my gates); the leader's beacons say it drives at 1 m/s (its own estimate runs away) while
-    ``ranges(t)`` gives the UWB range to it at 10 Hz. Returns the tracker and the decisions."""
-    a, b, _ = _queue(err_ahead=0.0)
+def _stand_near(me: np.ndarray, other: np.ndarray, speed, ranges, steps: int = 40) -> tuple[StopTracker, list]:
+    """I stand at ``me`` on NB (σ 3 m along) and hear neighbour "A" at ``other`` (beacon) with
+    beacon speed ``speed(t)`` and UWB range ``ranges(t)``, at 10 Hz from t = 0. Returns the
+    tracker and the decisions."""
     cov = np.diag([9.0, 1.0])
     tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
     out = []
-    for k in range(40):
+    for k in range(steps):
         t = 0.1 * k
-        tr.observe_neighbour("A", t, 1.0, False)
+        tr.observe_neighbour("A", t, speed(t), False)
         tr.observe_range("A", t, ranges(t), 0.1)
-        out.append(tr.decide(t, b, cov, 0.0, 0.0, {"A": a})[0])
+        out.append(tr.decide(t, me, cov, 0.0, 0.0, {"A": other})[0])
     return tr, out
+
+
+def _stand_behind_a_drifting_leader(ranges) -> tuple[StopTracker, list]:
+    """I stand at ``b``, the leader's beacon at ``a`` 7 m ahead is inside my gates; its beacons
+    say it drives at 1 m/s (its own estimate runs away) while ``ranges(t)`` gives the range."""
+    a, b, _ = _queue(err_ahead=0.0)
+    return _stand_near(b, a, lambda t: 1.0, ranges)
 
 
 def test_a_leader_whose_beacon_drifts_but_whose_ranges_stand_still_holds_me_off() -> None:
@@ -461,16 +467,9 @@ def test_a_follower_closing_in_does_not_hold_the_head_back() -> None:
     """The second of a queue still rolling in behind the head (its beacon moving, its estimate
     beside the head's: GNSS errors) is behind by the queue order once it stands; while it rolls
     in, its closing range shows it moving relative to the head, so the head does not wait."""
-    a, b, _ = _queue(err_ahead=0.0)
-    cov = np.diag([9.0, 1.0])
-    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
-    claims = []
-    for k in range(10):
-        t = 0.1 * k
-        tr.observe_neighbour("B", t, 1.0 - 0.1 * k, False)
-        tr.observe_range("B", t, 8.2 - 0.12 * k, 0.1)
-        claims.append(tr.decide(t, a, cov, 0.0, 0.0, {"B": a + np.array([-1.3, 0.0])})[0].first)
-    assert claims[-1] and tr.range_motion("B", 0.9) == "moving"
+    a, _, _ = _queue(err_ahead=0.0)
+    tr, decisions = _stand_near(a, a + np.array([-1.3, 0.0]), lambda t: 1.0 - t, lambda t: 8.2 - 1.2 * t, steps=10)
+    assert decisions[-1].first and tr.range_motion("A", 0.9) == "moving"
 
 
 def test_range_motion_needs_enough_ranges_since_my_stop_and_my_own_rest() -> None:
