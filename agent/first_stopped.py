@@ -184,9 +184,7 @@ class FirstStoppedDetector:
             cands = named or cands
         reach = self.s.neighbour_range + self.s.k_sigma * math.sqrt(max(float(np.trace(cov_ne)), 0.0))
         waiting = None  # an unsure neighbour that may be ahead: no claim yet, but no veto
-        for nb in sorted(neighbours, key=lambda n: n.unsure and not n.stopped):  # the stopped first
-            if waiting is not None and not nb.stopped:
-                break
+        for nb in neighbours:
             if not (nb.stopped or nb.unsure) or nb.beside or float(np.hypot(*(nb.ne - ne))) > reach:
                 continue
             if (stopped_since is not None and nb.stopped_since is not None
@@ -210,10 +208,10 @@ class FirstStoppedDetector:
                 # difference), and never when it is behind_margin or more farther back
                 ahead_by = min(self.s.behind_margin, self.s.ahead_k_sigma * s_diff - self.s.min_queue_spacing)
                 if nb.claims_first or nb_behind < behind + ahead_by:
-                    if not nb.stopped:
-                        waiting = nb.vehicle
-                        break
-                    return Decision(False, None, False, f"neighbour {nb.vehicle} may be ahead", nb.vehicle)
+                    if nb.stopped:
+                        return Decision(False, None, False, f"neighbour {nb.vehicle} may be ahead", nb.vehicle)
+                    waiting = waiting or nb.vehicle  # a stopped neighbour further on still vetoes
+                    break
         if waiting is not None:
             return Decision(False, None, False, f"neighbour {waiting} may be ahead (moving?)")
         lid = min(cands, key=lambda c: c[1])[0]
