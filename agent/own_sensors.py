@@ -174,11 +174,15 @@ class OwnSensors:
             self.counters["zaru"] = self.counters.get("zaru", 0) + 1
 
     def nhc(self) -> Measurement:
-        """No sideways or vertical body velocity; the lateral σ grows with the yaw rate times
-        the unknown distance from the IMU to the rear axle."""
+        """No sideways or vertical body velocity at the rear axle. The IMU sits an unknown
+        distance l ahead of or behind it, where the body's rotation adds ω × (l, 0, 0) =
+        (0, ω_z l, −ω_y l): the lateral σ grows with the yaw rate and the vertical σ with the
+        pitch rate (braking, bumps, crests), each times that unknown distance."""
         s = self.settings
-        sig = math.hypot(s.nhc_sigma or 0.0, abs(float(self.w_b[2])) * s.nhc_lever_uncertainty)
-        return non_holonomic(self.filter.state, sig, s.nhc_vertical_sigma)
+        w = self._w_last
+        sig = math.hypot(s.nhc_sigma or 0.0, abs(w[2]) * s.nhc_lever_uncertainty)
+        sig_v = math.hypot(s.nhc_vertical_sigma, abs(w[1]) * s.nhc_lever_uncertainty)
+        return non_holonomic(self.filter.state, sig, sig_v)
 
     def coast(self, moving: bool, heading_known: bool) -> None:
         """Between fixes: the non-holonomic constraint on its own once no fix came for

@@ -370,6 +370,32 @@ def test_vehicle_pseudo_measurements_in_closed_form() -> None:
     assert np.allclose(non_holonomic(s, 0.1).z, [0.5, -0.2])
 
 
+def test_the_nhc_widens_its_rows_by_the_rotation_at_the_unknown_lever() -> None:
+    """The IMU sits an unknown distance l from the rear axle, whose velocity the constraint
+    knows: the body's rotation adds ω × (l, 0, 0) = (0, ω_z l, −ω_y l), so the lateral σ grows
+    with the yaw rate and the vertical σ with the pitch rate (the roll rate adds nothing)."""
+    from slcp.agent.nav.ins_filter import InsFilter
+    from slcp.agent.own_sensors import OwnSensors
+    from slcp.agent.settings import FilterSettings
+
+    from conftest import MEMS_NOISE
+
+    lever, w = 2.0, np.array([0.3, 0.04, -0.03])  # [m], roll, pitch, yaw rates [rad/s]
+    s = moving_state()
+    s.v = s.dcm @ np.array([10.0, 0.0, 0.0])  # the rear axle's velocity, forward only
+    settings = FilterSettings(MEMS_NOISE, nhc_sigma=0.1, nhc_vertical_sigma=0.05, nhc_lever_uncertainty=lever)
+    own = OwnSensors(InsFilter(s, np.eye(N_STATES), MEMS_NOISE), settings, slice(0, 0), None, {})
+    dt = 0.01
+    own.imu(w * dt, np.zeros(3), dt)
+    m = own.nhc()
+    added = np.cross(w, [lever, 0.0, 0.0])  # what the rotation adds at the IMU
+    assert np.allclose(added, [0.0, w[2] * lever, -w[1] * lever])
+    assert np.allclose(m.R, np.diag([0.1**2 + added[1] ** 2, 0.05**2 + added[2] ** 2]), rtol=1e-12)
+    # at rest from rotation, the plain σ
+    own.imu(np.zeros(3), np.zeros(3), dt)
+    assert np.allclose(own.nhc().R, np.diag([0.1**2, 0.05**2]), rtol=1e-12)
+
+
 def test_stacking_keeps_each_block_and_the_name() -> None:
     a = Measurement(np.array([1.0]), np.ones((1, 4)), np.array([[2.0]]), "a")
     b = Measurement(np.array([3.0, 4.0]), np.arange(8.0).reshape(2, 4), np.array([[5.0, 0.5], [0.5, 6.0]]), "b")

@@ -221,7 +221,8 @@ class ConstraintSpec:
     nhc_sigma_mps: float = 0.1
     #: its vertical σ [m/s]
     nhc_vertical_sigma_mps: float = 0.1
-    #: the unknown distance from the IMU to the rear axle (widens the lateral σ by the yaw rate) [m]
+    #: the unknown distance from the IMU to the rear axle (widens the lateral σ by the yaw rate and
+    #: the vertical σ by the pitch rate) [m]
     nhc_lever_uncertainty_m: float = 1.0
     #: without a fix for this long, the constraint is applied on its own [s]
     nhc_coast_after_s: float = 1.0
