@@ -45,6 +45,7 @@ def test_ruff_passes() -> None:
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_mypy_passes_on_the_typed_core() -> None:
     out = _run(_tool("mypy"), "--no-incremental")
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]

@@ -224,6 +224,7 @@ def _synthetic_step(f: JointFilter, t: float, data: dict, r: float | None, x0: n
     f.update(rows, iterations=3 if x0 is None else 1, x0=x0)
 
 
+@pytest.mark.slow
 def test_the_filter_is_consistent_on_data_drawn_from_its_model() -> None:
     """Seeded Monte-Carlo, 16 runs of 30 s in one lane. The normalised NEES of both vehicles'
     positions averages 1 (0.84 measured: their errors, the slow multipath and common mode, give

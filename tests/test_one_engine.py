@@ -54,6 +54,7 @@ async def _play_to_agents(scn, inputs: dict[str, list]) -> dict[str, list[Estima
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_the_in_process_runner_and_the_asyncio_agents_send_identical_estimates(tmp_path) -> None:
     from conftest import short_scenario

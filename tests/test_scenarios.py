@@ -218,6 +218,7 @@ def test_sp_on_emulated_sensors_matches_the_papers_sp_row(name, paper1, paper2) 
     assert all(0.65 <= r <= 1.35 for r in ratios.values()), ratios
 
 
+@pytest.mark.slow
 def test_a_vehicle_brakes_to_stand_at_the_end_of_its_route() -> None:
     """The end of a route is the edge of the emulated world: a vehicle that reaches it brakes as
     behind a standing car and stands there (it was a wall: rush-hour's N1, S1-S3 and W2 went from
