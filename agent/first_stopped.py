@@ -39,6 +39,14 @@ fix, so the decision is conservative:
    off, it makes me wait (no claim, and no veto for the stop), until its ranges say "still"
    or show it moving relative to me (a follower closing in behind me, a car driving off).
 
+The same ranges witness my own rest (:meth:`StopTracker.rest_witness`): a neighbour whose
+beacon says it stands, whose ranges stayed still over ``still_window`` and whose line of sight
+is within ``witness_angle`` of my heading axis, with no trend in them. A car moves along its
+heading, so moving at speed v I would change those ranges by at least v cos(``witness_angle``)
+a second. The engine
+takes it for a zero-velocity update where its IMU shows rest but the filter's own speed does
+not (a long GNSS outage at a red light, the INS velocity running away).
+
 :class:`StopTracker` keeps the bookkeeping around the detector (own stationarity, when each
 neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
 
@@ -97,6 +105,16 @@ class DetectorSettings:
     #: [s] UWB ranges this recent, all within their noise while I stand, say a neighbour stands
     still_window: float = 2.0
     still_min_ranges: int = 5
+    #: a neighbour at rest whose ranges stand still over ``still_window`` is a witness of my
+    #: own rest when its line of sight is within this angle of my heading axis (ahead or
+    #: behind): a car moves along its heading, so its motion would show in those ranges
+    witness_angle: float = math.radians(45.0)
+    #: [s] the witness's beacon (saying it stands) at most this old
+    witness_beacon_age: float = 1.0
+    #: [σ] the witness's ranges have no trend: their slope within this many σ of a fitted
+    #: slope. Strict, as a false witness pins a creeping vehicle's velocity to zero, and a
+    #: standing one is witnessed at most checks of its stop all the same
+    witness_trend_k: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -280,10 +298,15 @@ class StopTracker:
         stood through it), ``"moving"`` (they spread beyond their noise: it moves relative to
         me), ``"unsure"`` (within their noise so far, too few to tell) or ``""`` (none, or I
         am not at rest). See the module docstring."""
-        window = self.s.still_window
         if self.since is None:
             return ""
-        start = max(self.since, t - window)
+        return self._stillness(vehicle, self.since, t)
+
+    def _stillness(self, vehicle: str, since: float, t: float) -> str:
+        """:meth:`range_motion` over the ranges of the last ``still_window`` seconds from
+        ``since`` on [s]."""
+        window = self.s.still_window
+        start = max(since, t - window)
         recent = [(tr, r) for tr, r in self._ranges.get(vehicle, ()) if start <= tr <= t + 0.5]
         if not recent:
             return ""
@@ -292,9 +315,44 @@ class StopTracker:
             values = values[1:-1]  # a gross outlier at either end cannot decide
         if values[-1] - values[0] > 2.0 * self.s.k_sigma * self._range_sigma[vehicle]:
             return "moving"
-        mature = (t - self.since >= window and len(recent) >= self.s.still_min_ranges
+        mature = (t - since >= window and len(recent) >= self.s.still_min_ranges
                   and recent[-1][0] - recent[0][0] >= 0.75 * window)
         return "still" if mature else "unsure"
+
+    def rest_witness(self, t: float, ne: np.ndarray, yaw: float, neighbour_ne: dict[str, np.ndarray]) -> str | None:
+        """A neighbour that witnesses my rest at sensor time ``t`` [s] (module docstring), or
+        None: its latest beacon, at most ``witness_beacon_age`` old, says it stands; its UWB
+        ranges of the last ``still_window`` seconds are still, with no trend; and its beacon position in
+        ``neighbour_ne`` (map NED [m]) lies within ``witness_angle`` of my heading ``yaw``
+        [rad] seen from my position ``ne``, ahead or behind."""
+        cos_max = math.cos(self.s.witness_angle)
+        for v, st in self._nb.items():
+            if st.stopped_since is None or t - st.t > self.s.witness_beacon_age or v not in neighbour_ne:
+                continue
+            d = neighbour_ne[v] - ne
+            dist = math.hypot(float(d[0]), float(d[1]))
+            if dist <= 0.0 or abs(float(d[0]) * math.cos(yaw) + float(d[1]) * math.sin(yaw)) < cos_max * dist:
+                continue
+            if self._stillness(v, -math.inf, t) == "still" and self._steady(v, t):
+                return v
+        return None
+
+    def _steady(self, vehicle: str, t: float) -> bool:
+        """Whether the range to ``vehicle`` has no trend over the last ``still_window`` seconds:
+        its Theil-Sen slope (the median of the pairwise slopes: one gross range cannot move it)
+        within ``witness_trend_k`` of a fitted slope's σ, σ_r √(12 / (n T²)) for n ranges over
+        T s (4 cm/s for 20 ranges of σ 0.1 m over 2 s). A steady creep that keeps within the
+        spread test (a quarter of a metre a second over the window) shows here."""
+        recent = [(tr, r) for tr, r in self._ranges.get(vehicle, ()) if t - self.s.still_window <= tr <= t + 0.5]
+        n = len(recent)
+        span = recent[-1][0] - recent[0][0] if n else 0.0
+        if n < self.s.still_min_ranges or span <= 0.0:
+            return False
+        slopes = sorted((rj - ri) / (tj - ti) for i, (ti, ri) in enumerate(recent) for tj, rj in recent[i + 1:]
+                        if tj > ti)
+        m = len(slopes)
+        median = slopes[m // 2] if m % 2 else 0.5 * (slopes[m // 2 - 1] + slopes[m // 2])
+        return abs(median) <= self.s.witness_trend_k * self._range_sigma[vehicle] * math.sqrt(12.0 / (n * span * span))
 
     def observe_neighbour(self, vehicle: str, t: float, speed: float, claims_first: bool) -> None:
         """A beacon of ``vehicle`` at sensor time ``t`` [s] with horizontal ``speed`` [m/s]."""
