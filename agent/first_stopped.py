@@ -60,6 +60,7 @@ markings, is kept until the vehicle moves (a camera error later in the stop cann
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -70,6 +71,10 @@ from slcp.geo.lane_markings import UNSEEN, LaneEdges, MarkingWindow, consistent,
 
 from .nav.measurements.stop_line import StopGapModel, StopLineApproach
 from .nav.rotation import wrap_angle
+
+#: ranges kept for a neighbour's still run (:meth:`StopTracker.observe_range`; a minute at 10 Hz):
+#: a longer run keeps its start, and its spread is that of its first ranges
+STILL_RUN_MAX = 600
 
 
 @dataclass(frozen=True)
@@ -263,6 +268,9 @@ class StopTracker:
         self._nb: dict[str, _NeighbourStop] = {}
         self._ranges: dict[str, deque[tuple[float, float]]] = {}  #: vehicle -> (t, range + k σ)
         self._range_sigma: dict[str, float] = {}  #: vehicle -> its ranges' noise σ [m]
+        #: vehicle -> (sensor time [s] since which its ranges have kept within their noise,
+        #: those ranges sorted): the current "still run" (:meth:`observe_range`)
+        self._still_run: dict[str, tuple[float, list[float]]] = {}
         self.markings = MarkingWindow()  #: the camera's recent lane-marking reports
         self._stop_marks: tuple[int, int] | None = None  #: markings that named this stop's lane
 
@@ -275,8 +283,18 @@ class StopTracker:
         if not math.isfinite(range_m):
             return
         q = self._ranges.setdefault(vehicle, deque(maxlen=64))
-        q.append((t, range_m + self.s.k_sigma * sigma))
+        r = range_m + self.s.k_sigma * sigma
+        q.append((t, r))
         self._range_sigma[vehicle] = sigma
+        # the still run: a range that takes the run's spread (one range at each end left out
+        # once there are enough) beyond the noise band starts a new run
+        since, run = self._still_run.get(vehicle, (t, []))
+        if len(run) < STILL_RUN_MAX:
+            bisect.insort(run, r)
+        trim = 1 if len(run) >= self.s.still_min_ranges else 0
+        if run[-1 - trim] - run[trim] > 2.0 * self.s.k_sigma * sigma:
+            since, run = t, [r]
+        self._still_run[vehicle] = (since, run)
         while q and q[0][0] < t - max(self.s.range_window, self.s.still_window):
             q.popleft()
 
@@ -354,6 +372,18 @@ class StopTracker:
         median = slopes[m // 2] if m % 2 else 0.5 * (slopes[m // 2 - 1] + slopes[m // 2])
         return abs(median) <= self.s.witness_trend_k * self._range_sigma[vehicle] * math.sqrt(12.0 / (n * span * span))
 
+    def _came_to_rest(self, vehicle: str, beacon_since: float | None) -> float | None:
+        """When ``vehicle`` came to rest, for the queue-order rule: when its beacon began to say
+        so (``beacon_since``), or earlier if its ranges have kept still since I came to rest
+        (then it stood since then at the latest). A leader whose own estimate did not see its
+        stop (a GNSS outage, its INS speed running away) says so only when something else
+        pins its velocity, perhaps after its follower has stopped behind it; by its beacon
+        alone the follower would take it for a vehicle that stopped after itself."""
+        run = self._still_run.get(vehicle)
+        if beacon_since is None or self.since is None or run is None:
+            return beacon_since
+        return min(beacon_since, max(run[0], self.since))
+
     def observe_neighbour(self, vehicle: str, t: float, speed: float, claims_first: bool) -> None:
         """A beacon of ``vehicle`` at sensor time ``t`` [s] with horizontal ``speed`` [m/s]."""
         old = self._nb.get(vehicle)
@@ -375,6 +405,7 @@ class StopTracker:
         "first heard at rest", i.e. stopped before the head, and held the head off)."""
         self._ranges.pop(vehicle, None)
         self._range_sigma.pop(vehicle, None)
+        self._still_run.pop(vehicle, None)
 
     def moving_decision(self, t: float, speed: float) -> tuple[Decision, bool] | None:
         """Update the rest bookkeeping with the own filter speed [m/s] at sensor time ``t`` [s];
@@ -420,7 +451,7 @@ class StopTracker:
             if st is not None:
                 motion = "" if st.stopped_since is not None else self.range_motion(v, t)
                 stopped, unsure = st.stopped_since is not None or motion == "still", motion == "unsure"
-                nbs.append(NeighbourView(v, p, stopped, st.claims_first, st.stopped_since,
+                nbs.append(NeighbourView(v, p, stopped, st.claims_first, self._came_to_rest(v, st.stopped_since),
                                          (neighbour_cov or {}).get(v), self.beside(v, t), unsure))
         # a claim ends as soon as the vehicle moves (the stop itself has hysteresis): a vehicle
         # whose veto the ranges just lifted may be creeping within that hysteresis

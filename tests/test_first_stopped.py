@@ -549,3 +549,49 @@ def test_no_witness_from_a_moving_neighbour_or_a_silent_one() -> None:
     assert set(_witness(me, 0.0, behind, lambda t: 1.5, const)) == {None}
     # its last beacon is more than a second old
     assert _witness(me, 0.0, behind, lambda t: 0.0, const, beacon_until=1.5)[-1] is None
+
+
+def _follow_in(leader_beacon_stops: float, ranges, steps: int = 50) -> list:
+    """I drive in behind leader "A" and stop at t = 1 s, 7 m behind it (``_queue``); A's beacon
+    says it drives at 1 m/s until ``leader_beacon_stops``, then stands; ``ranges(t)`` gives my
+    UWB range to A. My decisions at 10 Hz."""
+    a, b, cov = _queue(err_ahead=0.0)
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    out = []
+    for k in range(steps):
+        t = 0.1 * k
+        tr.observe_neighbour("A", t, 1.0 if t < leader_beacon_stops else 0.0, False)
+        tr.observe_range("A", t, ranges(t), 0.1)
+        out.append(tr.decide(t, b, cov, 0.0, 2.0 if t < 1.0 else 0.0, {"A": a})[0])
+    return out
+
+
+def test_a_leader_whose_beacon_says_it_stopped_after_me_but_whose_ranges_stood_still_holds_me_off() -> None:
+    """A leader whose own estimate did not see its stop (a GNSS outage, its INS speed running
+    away) says "stopped" only once something pins its velocity, perhaps after I stopped behind
+    it. By its beacon it came to rest after me (the queue-order rule's "behind me"); its ranges,
+    still since I came to rest, say it stood since then at the latest. Without this, the
+    follower claimed the leader's stop line again when the leader's ZUPT came late."""
+    rng = np.random.default_rng(9)
+    noise = {round(0.1 * k, 1): float(rng.normal(0.0, 0.1)) for k in range(60)}
+    closing = lambda t: 7.0 + 2.0 * max(1.0 - t, 0.0) + noise[round(t, 1)]  # noqa: E731
+    late = _follow_in(2.5, closing)
+    assert not any(d.first for d in late) and late[-1].reason == "stopped behind A"
+    # a leader whose beacon said it stood before I stopped: the same, as before
+    assert not any(d.first for d in _follow_in(0.0, closing))
+
+
+def test_a_follower_rolling_in_after_my_stop_stays_behind_me_by_its_ranges_too() -> None:
+    """From the head's side: a follower closes in and stops 2 s after me. Its ranges kept
+    changing until it stopped, so their still run begins then: it came to rest after me, and I
+    claim my line as before (the follower's beacon may even look ahead of me)."""
+    a, b, cov = _queue(err_ahead=8.0)  # B's beacon is 1 m *ahead* of A
+    rng = np.random.default_rng(11)
+    noise = {round(0.2 * k, 1): float(rng.normal(0.0, 0.1)) for k in range(30)}
+    tr = StopTracker(FirstStoppedDetector(_lanes(), GAP))
+    for k in range(30):  # 6 s at 5 Hz: A (me) at rest from t = 0; B closing in until t = 2 s
+        t = 0.2 * k
+        tr.observe_neighbour("B", t, 2.0 if t < 2.0 else 0.0, False)
+        tr.observe_range("B", t, 7.0 + 2.0 * max(2.0 - t, 0.0) + noise[round(t, 1)], 0.1)
+        dec, _ = tr.decide(t, a, cov, 0.0, 0.0, {"B": b})
+    assert dec.first and tr.claim
