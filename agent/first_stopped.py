@@ -40,12 +40,13 @@ fix, so the decision is conservative:
    or show it moving relative to me (a follower closing in behind me, a car driving off).
 
 The same ranges witness my own rest (:meth:`StopTracker.rest_witness`): a neighbour whose
-beacon says it stands, whose ranges stayed still over ``still_window`` and whose line of sight
-is within ``witness_angle`` of my heading axis, with no trend in them. A car moves along its
-heading, so moving at speed v I would change those ranges by at least v cos(``witness_angle``)
-a second. The engine
-takes it for a zero-velocity update where its IMU shows rest but the filter's own speed does
-not (a long GNSS outage at a red light, the INS velocity running away).
+beacon says it stands, whose ranges stayed still over ``still_window`` with no trend, and whose
+line of sight is within ``witness_angle`` of my heading axis. A car moves along its heading, so
+moving at speed v I would change those ranges by at least v cos(``witness_angle``) a second.
+The engine takes it for a zero-velocity update where its IMU shows rest but the filter's own
+speed does not (a long GNSS outage at a red light, the INS velocity running away). When a
+neighbour came to rest, for the queue-order rule, its ranges may tell earlier than its beacon
+(:meth:`StopTracker._came_to_rest`).
 
 :class:`StopTracker` keeps the bookkeeping around the detector (own stationarity, when each
 neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
@@ -268,9 +269,9 @@ class StopTracker:
         self._nb: dict[str, _NeighbourStop] = {}
         self._ranges: dict[str, deque[tuple[float, float]]] = {}  #: vehicle -> (t, range + k σ)
         self._range_sigma: dict[str, float] = {}  #: vehicle -> its ranges' noise σ [m]
-        #: vehicle -> (sensor time [s] since which its ranges have kept within their noise,
-        #: those ranges sorted): the current "still run" (:meth:`observe_range`)
-        self._still_run: dict[str, tuple[float, list[float]]] = {}
+        #: vehicle -> (sensor time [s] since which its ranges have kept within their noise, the
+        #: time of the latest, those ranges sorted): the current "still run" (:meth:`observe_range`)
+        self._still_run: dict[str, tuple[float, float, list[float]]] = {}
         self.markings = MarkingWindow()  #: the camera's recent lane-marking reports
         self._stop_marks: tuple[int, int] | None = None  #: markings that named this stop's lane
 
@@ -288,13 +289,13 @@ class StopTracker:
         self._range_sigma[vehicle] = sigma
         # the still run: a range that takes the run's spread (one range at each end left out
         # once there are enough) beyond the noise band starts a new run
-        since, run = self._still_run.get(vehicle, (t, []))
+        since, _, run = self._still_run.get(vehicle, (t, t, []))
         if len(run) < STILL_RUN_MAX:
             bisect.insort(run, r)
         trim = 1 if len(run) >= self.s.still_min_ranges else 0
         if run[-1 - trim] - run[trim] > 2.0 * self.s.k_sigma * sigma:
             since, run = t, [r]
-        self._still_run[vehicle] = (since, run)
+        self._still_run[vehicle] = (since, t, run)
         while q and q[0][0] < t - max(self.s.range_window, self.s.still_window):
             q.popleft()
 
@@ -340,8 +341,8 @@ class StopTracker:
     def rest_witness(self, t: float, ne: np.ndarray, yaw: float, neighbour_ne: dict[str, np.ndarray]) -> str | None:
         """A neighbour that witnesses my rest at sensor time ``t`` [s] (module docstring), or
         None: its latest beacon, at most ``witness_beacon_age`` old, says it stands; its UWB
-        ranges of the last ``still_window`` seconds are still, with no trend; and its beacon position in
-        ``neighbour_ne`` (map NED [m]) lies within ``witness_angle`` of my heading ``yaw``
+        ranges of the last ``still_window`` seconds are still, with no trend; and its beacon
+        position in ``neighbour_ne`` (map NED [m]) lies within ``witness_angle`` of my heading ``yaw``
         [rad] seen from my position ``ne``, ahead or behind."""
         cos_max = math.cos(self.s.witness_angle)
         for v, st in self._nb.items():
@@ -372,15 +373,17 @@ class StopTracker:
         median = slopes[m // 2] if m % 2 else 0.5 * (slopes[m // 2 - 1] + slopes[m // 2])
         return abs(median) <= self.s.witness_trend_k * self._range_sigma[vehicle] * math.sqrt(12.0 / (n * span * span))
 
-    def _came_to_rest(self, vehicle: str, beacon_since: float | None) -> float | None:
-        """When ``vehicle`` came to rest, for the queue-order rule: when its beacon began to say
-        so (``beacon_since``), or earlier if its ranges have kept still since I came to rest
-        (then it stood since then at the latest). A leader whose own estimate did not see its
-        stop (a GNSS outage, its INS speed running away) says so only when something else
-        pins its velocity, perhaps after its follower has stopped behind it; by its beacon
-        alone the follower would take it for a vehicle that stopped after itself."""
+    def _came_to_rest(self, vehicle: str, beacon_since: float | None, t: float) -> float | None:
+        """When ``vehicle`` came to rest, for the queue-order rule, at sensor time ``t`` [s]:
+        when its beacon began to say so (``beacon_since``), or earlier if its ranges (the
+        latest within ``still_window``) have kept still since a time T while I stood: it stood
+        since T, or since I came to rest if that is later, at the latest. A leader whose own
+        estimate did not see its stop (a GNSS outage, its INS speed running away) says so only
+        when something else pins its velocity, perhaps after its follower has stopped behind
+        it; by its beacon alone the follower would take it for a vehicle that stopped after
+        itself."""
         run = self._still_run.get(vehicle)
-        if beacon_since is None or self.since is None or run is None:
+        if beacon_since is None or self.since is None or run is None or t - run[1] > self.s.still_window:
             return beacon_since
         return min(beacon_since, max(run[0], self.since))
 
@@ -451,7 +454,7 @@ class StopTracker:
             if st is not None:
                 motion = "" if st.stopped_since is not None else self.range_motion(v, t)
                 stopped, unsure = st.stopped_since is not None or motion == "still", motion == "unsure"
-                nbs.append(NeighbourView(v, p, stopped, st.claims_first, self._came_to_rest(v, st.stopped_since),
+                nbs.append(NeighbourView(v, p, stopped, st.claims_first, self._came_to_rest(v, st.stopped_since, t),
                                          (neighbour_cov or {}).get(v), self.beside(v, t), unsure))
         # a claim ends as soon as the vehicle moves (the stop itself has hysteresis): a vehicle
         # whose veto the ranges just lifted may be creeping within that hysteresis
