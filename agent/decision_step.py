@@ -45,12 +45,13 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
     (llh (3,), NED covariance (3, 3) [m²]): they count as standing there, so that a vehicle that
     cannot hear the queue ahead of it does not take the stop line."""
     st = f.filter.state
-    known = _known(table, ghosts)
-    heard = set(table.vehicles())
-    for o in [o for o in known if o not in heard]:
-        # a ghost, standing there: since it was last seen coming to rest, since now if it was
-        # last seen moving, or "forever" if it was never seen (observe_neighbour's rules)
-        tracker.observe_neighbour(o, t, 0.0, False)
+    known = {o: (table.entries[o].llh, table.entries[o].cov) for o in table.vehicles()}
+    for o, (llh, cov) in (ghosts or {}).items():
+        if o not in known:
+            known[o] = (llh, cov)
+            # standing there: since it was last seen coming to rest, since now if it was last
+            # seen moving, or "forever" if it was never seen (observe_neighbour's rules)
+            tracker.observe_neighbour(o, t, 0.0, False)
     speed = float(np.hypot(st.v[0], st.v[1]))
     # driving: "moving" needs no geometry (the same decision, for a fraction of the cost)
     quick = tracker.moving_decision(t, speed)
@@ -58,7 +59,11 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
         dec, changed = quick
     else:
         ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
-        nb_ne = _map_ne(known, origin_llh)
+        nb_ne = {}
+        if known:  # one vectorised conversion for all neighbours
+            llh = np.array([v[0] for v in known.values()])
+            n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], *origin_llh, deg=False)
+            nb_ne = {o: np.array([n[i], e[i]]) for i, o in enumerate(known)}
         nb_cov = {o: cov[:2, :2] for o, (_, cov) in known.items()}
         dec, changed = tracker.decide(t, ne, f.position_cov[:2, :2], float(quat_to_euler(st.q)[2]),
                                       speed, nb_ne, nb_cov)
@@ -75,34 +80,3 @@ def first_stopped_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTa
                               lane_row_markings(tracker.markings, t), f.yaw_sigma, current=f.lane)
         f.lane_line(hit.lane if hit else None, hit.left_line if hit else None)
     return dec, changed
-
-
-def _known(table: NeighbourTable, ghosts: dict | None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The neighbours heard (``table``) and the ghosts not heard again: vehicle -> (llh (3,),
-    NED covariance (3, 3))."""
-    known = {o: (table.entries[o].llh, table.entries[o].cov) for o in table.vehicles()}
-    for o, (llh, cov) in (ghosts or {}).items():
-        known.setdefault(o, (llh, cov))
-    return known
-
-
-def _map_ne(known: dict[str, tuple[np.ndarray, np.ndarray]],
-            origin_llh: tuple[float, float, float]) -> dict[str, np.ndarray]:
-    """Their positions in the map's NED frame [m], (2,) each (one vectorised conversion)."""
-    if not known:
-        return {}
-    llh = np.array([v[0] for v in known.values()])
-    n, e, _ = pymap3d.geodetic2ned(llh[:, 0], llh[:, 1], llh[:, 2], *origin_llh, deg=False)
-    return {o: np.array([n[i], e[i]]) for i, o in enumerate(known)}
-
-
-def rest_witness_step(tracker: StopTracker, f: MethodFilter, table: NeighbourTable,
-                      origin_llh: tuple[float, float, float], t: float) -> str | None:
-    """The neighbour (of ``table``) that witnesses the rest of filter ``f``'s vehicle at sensor
-    time ``t`` [s] (:meth:`StopTracker.rest_witness`), or None."""
-    known = _known(table, None)
-    if not known:
-        return None
-    st = f.filter.state
-    ne = np.array(pymap3d.geodetic2ned(st.lat, st.lon, st.h, *origin_llh, deg=False)[:2])
-    return tracker.rest_witness(t, ne, float(quat_to_euler(st.q)[2]), _map_ne(known, origin_llh))

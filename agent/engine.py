@@ -34,7 +34,7 @@ from slcp.transport.messages import (
 )
 from slcp.transport.rate_limit import TokenBuckets
 
-from .decision_step import first_stopped_step, rest_witness_step
+from .decision_step import first_stopped_step
 from .engine_config import AgentConfig, RangeObserver
 from .engine_imu import EngineImu
 from .engine_neighbours import EngineNeighbours
@@ -418,12 +418,6 @@ class VehicleEngine(EngineImu, EngineOutputs, EngineNeighbours):
         for t, m, other, _ in keep:
             k = (m, other)
             self._deferred_min[k] = min(self._deferred_min.get(k, t), t)
-
-    def _rest_witnessed(self, t: float) -> list[str]:
-        """The stop-line methods whose filters a neighbour at rest witnesses at rest
-        (:func:`agent.decision_step.rest_witness_step`)."""
-        return [m for m, tr in self.trackers.items()
-                if rest_witness_step(tr, self.filters[m], self.tables[m], self.cfg.origin_llh, t) is not None]
 
     def _decide(self, t: float) -> None:
         for m, tab in self.tables.items():  # neighbours not heard for the table's timeout are gone

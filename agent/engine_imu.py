@@ -34,7 +34,6 @@ class EngineImu:
     _fuse_due: Callable[..., None]
     _release_fixes: Callable[[float], None]
     _apply: Callable[[Apply], None]
-    _rest_witnessed: Callable[[float], list[str]]
 
     def _imu(self, msg: ImuBatch) -> None:
         if not self.filters:
@@ -123,20 +122,11 @@ class EngineImu:
                               lambda: speed_sigma(ref.state.v, ref.velocity_cov)):
             for f in self.filters.values():
                 f.zupt()
-            return
-        # the filter's speed is not sure enough of rest, but a neighbour at rest may witness it
-        # (the stop-line methods' trackers hold the ranges and the neighbours' stops)
-        witnessed = self._rest_witnessed(t) if self.rest.stationary and self.zupt_gate.quiet(t) else ()
-        for m in witnessed:
-            self.filters[m].zupt()
-            self.counters["zupt_witnessed"] = self.counters.get("zupt_witnessed", 0) + 1
-        if self.cfg.settings.nhc_sigma is not None or self.cfg.settings.zaru_sigma is not None:
+        elif self.cfg.settings.nhc_sigma is not None or self.cfg.settings.zaru_sigma is not None:
             # at rest: the IMU shows it and the filter agrees (cruising at a steady speed looks
             # like rest to a smooth IMU)
             at_rest = math.hypot(v[0], v[1]) < self.zupt_gate.max_speed and self.rest.stationary
-            for m, f in self.filters.items():
-                if m in witnessed:
-                    continue
+            for f in self.filters.values():
                 if at_rest:
                     f.own.zaru()
                 else:

@@ -39,15 +39,6 @@ fix, so the decision is conservative:
    off, it makes me wait (no claim, and no veto for the stop), until its ranges say "still"
    or show it moving relative to me (a follower closing in behind me, a car driving off).
 
-The same ranges witness my own rest (:meth:`StopTracker.rest_witness`): a neighbour whose
-beacon says it stands, whose ranges stayed still over ``still_window`` with no trend, and whose
-line of sight is within ``witness_angle`` of my heading axis. A car moves along its heading, so
-moving at speed v I would change those ranges by at least v cos(``witness_angle``) a second.
-The engine takes it for a zero-velocity update where its IMU shows rest but the filter's own
-speed does not (a long GNSS outage at a red light, the INS velocity running away). When a
-neighbour came to rest, for the queue-order rule, its ranges may tell earlier than its beacon
-(:meth:`StopTracker._came_to_rest`).
-
 :class:`StopTracker` keeps the bookkeeping around the detector (own stationarity, when each
 neighbour came to rest, the current claim); the agent runtime and the in-process runner share it.
 
@@ -61,7 +52,6 @@ markings, is kept until the vehicle moves (a camera error later in the stop cann
 
 from __future__ import annotations
 
-import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -72,10 +62,6 @@ from slcp.geo.lane_markings import UNSEEN, LaneEdges, MarkingWindow, consistent,
 
 from .nav.measurements.stop_line import StopGapModel, StopLineApproach
 from .nav.rotation import wrap_angle
-
-#: ranges kept for a neighbour's still run (:meth:`StopTracker.observe_range`; a minute at 10 Hz):
-#: a longer run keeps its start, and its spread is that of its first ranges
-STILL_RUN_MAX = 600
 
 
 @dataclass(frozen=True)
@@ -111,16 +97,6 @@ class DetectorSettings:
     #: [s] UWB ranges this recent, all within their noise while I stand, say a neighbour stands
     still_window: float = 2.0
     still_min_ranges: int = 5
-    #: a neighbour at rest whose ranges stand still over ``still_window`` is a witness of my
-    #: own rest when its line of sight is within this angle of my heading axis (ahead or
-    #: behind): a car moves along its heading, so its motion would show in those ranges
-    witness_angle: float = math.radians(45.0)
-    #: [s] the witness's beacon (saying it stands) at most this old
-    witness_beacon_age: float = 1.0
-    #: [σ] the witness's ranges have no trend: their slope within this many σ of a fitted
-    #: slope. Strict, as a false witness pins a creeping vehicle's velocity to zero, and a
-    #: standing one is witnessed at most checks of its stop all the same
-    witness_trend_k: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -269,9 +245,6 @@ class StopTracker:
         self._nb: dict[str, _NeighbourStop] = {}
         self._ranges: dict[str, deque[tuple[float, float]]] = {}  #: vehicle -> (t, range + k σ)
         self._range_sigma: dict[str, float] = {}  #: vehicle -> its ranges' noise σ [m]
-        #: vehicle -> (sensor time [s] since which its ranges have kept within their noise, the
-        #: time of the latest, those ranges sorted): the current "still run" (:meth:`observe_range`)
-        self._still_run: dict[str, tuple[float, float, list[float]]] = {}
         self.markings = MarkingWindow()  #: the camera's recent lane-marking reports
         self._stop_marks: tuple[int, int] | None = None  #: markings that named this stop's lane
 
@@ -284,18 +257,8 @@ class StopTracker:
         if not math.isfinite(range_m):
             return
         q = self._ranges.setdefault(vehicle, deque(maxlen=64))
-        r = range_m + self.s.k_sigma * sigma
-        q.append((t, r))
+        q.append((t, range_m + self.s.k_sigma * sigma))
         self._range_sigma[vehicle] = sigma
-        # the still run: a range that takes the run's spread (one range at each end left out
-        # once there are enough) beyond the noise band starts a new run
-        since, _, run = self._still_run.get(vehicle, (t, t, []))
-        if len(run) < STILL_RUN_MAX:
-            bisect.insort(run, r)
-        trim = 1 if len(run) >= self.s.still_min_ranges else 0
-        if run[-1 - trim] - run[trim] > 2.0 * self.s.k_sigma * sigma:
-            since, run = t, [r]
-        self._still_run[vehicle] = (since, t, run)
         while q and q[0][0] < t - max(self.s.range_window, self.s.still_window):
             q.popleft()
 
@@ -317,15 +280,10 @@ class StopTracker:
         stood through it), ``"moving"`` (they spread beyond their noise: it moves relative to
         me), ``"unsure"`` (within their noise so far, too few to tell) or ``""`` (none, or I
         am not at rest). See the module docstring."""
+        window = self.s.still_window
         if self.since is None:
             return ""
-        return self._stillness(vehicle, self.since, t)
-
-    def _stillness(self, vehicle: str, since: float, t: float) -> str:
-        """:meth:`range_motion` over the ranges of the last ``still_window`` seconds from
-        ``since`` on [s]."""
-        window = self.s.still_window
-        start = max(since, t - window)
+        start = max(self.since, t - window)
         recent = [(tr, r) for tr, r in self._ranges.get(vehicle, ()) if start <= tr <= t + 0.5]
         if not recent:
             return ""
@@ -334,58 +292,9 @@ class StopTracker:
             values = values[1:-1]  # a gross outlier at either end cannot decide
         if values[-1] - values[0] > 2.0 * self.s.k_sigma * self._range_sigma[vehicle]:
             return "moving"
-        mature = (t - since >= window and len(recent) >= self.s.still_min_ranges
+        mature = (t - self.since >= window and len(recent) >= self.s.still_min_ranges
                   and recent[-1][0] - recent[0][0] >= 0.75 * window)
         return "still" if mature else "unsure"
-
-    def rest_witness(self, t: float, ne: np.ndarray, yaw: float, neighbour_ne: dict[str, np.ndarray]) -> str | None:
-        """A neighbour that witnesses my rest at sensor time ``t`` [s] (module docstring), or
-        None: its latest beacon, at most ``witness_beacon_age`` old, says it stands; its UWB
-        ranges of the last ``still_window`` seconds are still, with no trend; and its beacon
-        position in ``neighbour_ne`` (map NED [m]) lies within ``witness_angle`` of my heading ``yaw``
-        [rad] seen from my position ``ne``, ahead or behind."""
-        cos_max = math.cos(self.s.witness_angle)
-        for v, st in self._nb.items():
-            if st.stopped_since is None or t - st.t > self.s.witness_beacon_age or v not in neighbour_ne:
-                continue
-            d = neighbour_ne[v] - ne
-            dist = math.hypot(float(d[0]), float(d[1]))
-            if dist <= 0.0 or abs(float(d[0]) * math.cos(yaw) + float(d[1]) * math.sin(yaw)) < cos_max * dist:
-                continue
-            if self._stillness(v, -math.inf, t) == "still" and self._steady(v, t):
-                return v
-        return None
-
-    def _steady(self, vehicle: str, t: float) -> bool:
-        """Whether the range to ``vehicle`` has no trend over the last ``still_window`` seconds:
-        its Theil-Sen slope (the median of the pairwise slopes: one gross range cannot move it)
-        within ``witness_trend_k`` of a fitted slope's σ, σ_r √(12 / (n T²)) for n ranges over
-        T s (4 cm/s for 20 ranges of σ 0.1 m over 2 s). A steady creep that keeps within the
-        spread test (a quarter of a metre a second over the window) shows here."""
-        recent = [(tr, r) for tr, r in self._ranges.get(vehicle, ()) if t - self.s.still_window <= tr <= t + 0.5]
-        n = len(recent)
-        span = recent[-1][0] - recent[0][0] if n else 0.0
-        if n < self.s.still_min_ranges or span <= 0.0:
-            return False
-        slopes = sorted((rj - ri) / (tj - ti) for i, (ti, ri) in enumerate(recent) for tj, rj in recent[i + 1:]
-                        if tj > ti)
-        m = len(slopes)
-        median = slopes[m // 2] if m % 2 else 0.5 * (slopes[m // 2 - 1] + slopes[m // 2])
-        return abs(median) <= self.s.witness_trend_k * self._range_sigma[vehicle] * math.sqrt(12.0 / (n * span * span))
-
-    def _came_to_rest(self, vehicle: str, beacon_since: float | None, t: float) -> float | None:
-        """When ``vehicle`` came to rest, for the queue-order rule, at sensor time ``t`` [s]:
-        when its beacon began to say so (``beacon_since``), or earlier if its ranges (the
-        latest within ``still_window``) have kept still since a time T while I stood: it stood
-        since T, or since I came to rest if that is later, at the latest. A leader whose own
-        estimate did not see its stop (a GNSS outage, its INS speed running away) says so only
-        when something else pins its velocity, perhaps after its follower has stopped behind
-        it; by its beacon alone the follower would take it for a vehicle that stopped after
-        itself."""
-        run = self._still_run.get(vehicle)
-        if beacon_since is None or self.since is None or run is None or t - run[1] > self.s.still_window:
-            return beacon_since
-        return min(beacon_since, max(run[0], self.since))
 
     def observe_neighbour(self, vehicle: str, t: float, speed: float, claims_first: bool) -> None:
         """A beacon of ``vehicle`` at sensor time ``t`` [s] with horizontal ``speed`` [m/s]."""
@@ -408,7 +317,6 @@ class StopTracker:
         "first heard at rest", i.e. stopped before the head, and held the head off)."""
         self._ranges.pop(vehicle, None)
         self._range_sigma.pop(vehicle, None)
-        self._still_run.pop(vehicle, None)
 
     def moving_decision(self, t: float, speed: float) -> tuple[Decision, bool] | None:
         """Update the rest bookkeeping with the own filter speed [m/s] at sensor time ``t`` [s];
@@ -454,7 +362,7 @@ class StopTracker:
             if st is not None:
                 motion = "" if st.stopped_since is not None else self.range_motion(v, t)
                 stopped, unsure = st.stopped_since is not None or motion == "still", motion == "unsure"
-                nbs.append(NeighbourView(v, p, stopped, st.claims_first, self._came_to_rest(v, st.stopped_since, t),
+                nbs.append(NeighbourView(v, p, stopped, st.claims_first, st.stopped_since,
                                          (neighbour_cov or {}).get(v), self.beside(v, t), unsure))
         # a claim ends as soon as the vehicle moves (the stop itself has hysteresis): a vehicle
         # whose veto the ranges just lifted may be creeping within that hysteresis

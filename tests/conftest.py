@@ -36,11 +36,13 @@ if not (os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("SLCP_TEST_CACH
     os.environ["SLCP_CACHE_DIR"] = _SPLINE_CACHE
     os.environ["SLCP_TEST_CACHE_OWNER"] = str(os.getpid())
     atexit.register(shutil.rmtree, _SPLINE_CACHE, ignore_errors=True)
-    # The processes the tests start (some 250 agents, emulators and commands) import slcp from
-    # this folder; with PYTHONDONTWRITEBYTECODE set, each compiled it anew, a third of its import
-    # time. Their bytecode goes to the session's folder instead, nothing into the checkout.
+    # The processes the tests start (some 250 agents, emulators and commands) import slcp and
+    # its dependencies; with PYTHONDONTWRITEBYTECODE set, each compiled slcp anew, a third of
+    # its import time. They keep their bytecode where Python keeps it (__pycache__, ignored by
+    # git): a session folder for it (PYTHONPYCACHEPREFIX) would also hide the bytecode that pip
+    # wrote for the dependencies, which every session then compiled again (about 2.5 s of CPU
+    # for an agent's imports, in each worker and process that got there first).
     os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
-    os.environ["PYTHONPYCACHEPREFIX"] = os.path.join(_SPLINE_CACHE, "pycache")
 SHARED_DRIVE = REPO.parent / "shared" / "data" / "rtklibexplorer_drive_0708"
 #: the vehicle profile of the shared drive's car
 DRIVE_PROFILE = REPO / "deploy" / "vehicles" / "rtklibexplorer-drive.toml"

@@ -93,10 +93,6 @@ class ZuptGate:
         """A GNSS fix arrived for time ``t`` [s]."""
         self._gnss_t = max(self._gnss_t, t)
 
-    def quiet(self, t: float) -> bool:
-        """Whether no fix came for ``gnss_gap`` s at time ``t`` [s] (a ZUPT may be of use)."""
-        return t - self._gnss_t >= self.gnss_gap
-
     def due(self, t: float, monitor: StationarityMonitor, filter_speed: float,
             speed_sigma: Callable[[], float] | float = 0.0) -> bool:
         """Whether to apply ZUPT at time ``t`` [s], given the filter's horizontal speed [m/s]
