@@ -154,8 +154,8 @@ class FilterSettings:
     #: non-holonomic constraint (no sideways or vertical velocity of the body): its lateral σ
     #: [m/s] (None: off), vertical σ, and the unknown IMU-to-rear-axle distance [m] whose
     #: yaw-rate term widens the lateral σ and pitch-rate term the vertical σ; with fixes it
-    #: rides on their updates, without, it is
-    #: applied on its own once no fix came for ``nhc_coast_after`` s
+    #: rides on their updates, without, it is applied on its own once no fix came for
+    #: ``nhc_coast_after`` s
     nhc_sigma: float | None = None
     nhc_vertical_sigma: float = 0.1
     nhc_lever_uncertainty: float = 1.0

@@ -391,7 +391,7 @@ def test_the_nhc_widens_its_rows_by_the_rotation_at_the_unknown_lever() -> None:
     added = np.cross(w, [lever, 0.0, 0.0])  # what the rotation adds at the IMU
     assert np.allclose(added, [0.0, w[2] * lever, -w[1] * lever])
     assert np.allclose(m.R, np.diag([0.1**2 + added[1] ** 2, 0.05**2 + added[2] ** 2]), rtol=1e-12)
-    # at rest from rotation, the plain σ
+    # without rotation, the plain σ
     own.imu(np.zeros(3), np.zeros(3), dt)
     assert np.allclose(own.nhc().R, np.diag([0.1**2, 0.05**2]), rtol=1e-12)
 
