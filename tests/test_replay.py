@@ -119,10 +119,19 @@ def test_outage_phases_pool_their_runs(replay_result, tmp_path, capsys) -> None:
     assert all(p.period == 45.0 and p.length == 15.0 for p in protocols)
     with pytest.raises(ValueError):
         phase_protocols(OutageProtocol(), 0)
+    other = tmp_path / "other.toml"  # another filter: far worse at phase 40, far better at 62.5
+    other.write_text("name = 'X'\n[[phase]]\nfirst_outage_s = 40.0\noutage_h_rms_m = 99.0\noutage_h_end_mean_m = 99.0"
+                     "\n[[phase]]\nfirst_outage_s = 62.5\noutage_h_rms_m = 0.01\noutage_h_end_mean_m = 0.01\n")
     rc = main(["replay", "rtklib", str(SHARED_DRIVE), "--vehicle", str(DRIVE_PROFILE), "--phases", "2",
-               "--out", str(tmp_path), "--json"])
+               "--compare", str(other), "--out", str(tmp_path), "--json"])
     assert rc == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    report = (tmp_path / "report.md").read_text()
+    for ph in out["phases_pooled"]["phases"]:  # the report's rows are the run's own figures
+        assert (f"| {ph['first_outage_s']:g} | {ph['n_outages']} | {ph['outage_h_rms_m']:.2f} | "
+                f"{ph['outage_h_end_mean_m']:.2f} |") in report
+    assert "| 40 |" in report and "99.00 / 99.00 |" in report and "0.01 / 0.01 |" in report
+    assert "at 1 of the 2 phases the comparison gives" in report
     pooled, base = out["phases_pooled"], replay_result.metrics
     first, second = pooled["phases"]
     assert first["first_outage_s"] == pytest.approx(40.0) and second["first_outage_s"] == pytest.approx(62.5)

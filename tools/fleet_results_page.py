@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from slcp.agent.methods import DEFAULT_FUSION
+from slcp.deploy.markdown_pages import demote
 
 INTRO = """\
 # Fleet results
@@ -71,16 +72,6 @@ def study_command(study_dir: Path) -> tuple[str, str]:
             cmd += " --no-lane-constraint"
         cmd += f" --out runs/{name}"
     return cmd, report.read_text()
-
-
-def demote(markdown: str) -> str:
-    """Every heading one level down (a report's title becomes a section of the page)."""
-    out, fenced = [], False
-    for line in markdown.splitlines():
-        if line.startswith("```"):
-            fenced = not fenced
-        out.append("#" + line if line.startswith("#") and not fenced else line)
-    return "\n".join(out).rstrip() + "\n"
 
 
 def build_page(study_dirs: list[Path]) -> str:

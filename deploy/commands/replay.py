@@ -40,6 +40,9 @@ def add_replay(sub) -> None:
                     help="keep the IMU time offset fixed at --imu-time-offset")
     rp.add_argument("--imu-time-offset", type=T.finite_float, default=None,
                     help="prior of the IMU time offset [s] (default: the profile's)")
+    rp.add_argument("--compare", type=Path, default=None, metavar="TOML",
+                    help="another filter's outage figures on the same recording and protocol, reported beside "
+                         "ours in report.md (a TOML file: docs/recording-formats.md#figures-to-compare-with)")
     rp.add_argument("--out", type=Path, default=Path("runs/replay"), help="output directory")
     rp.add_argument("--json", action="store_true", help="print one JSON object with the metrics")
     pg = rp.add_argument_group("publishing onto the sensor topics (a live agent runs on the drive)")
@@ -113,6 +116,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         outage=OutageProtocol(first=args.first_outage, period=length + gap, length=length,
                               end_margin=args.end_margin),
     )
+    from ..replay_report import load_comparison, replay_command, replay_report
+
+    other = load_comparison(args.compare) if args.compare is not None else None
     drive = load_recording(args.format, args.path)
     if args.phases > 1 and (args.no_outage or args.publish):
         raise ValueError("--phases needs outages and the offline replay (not --no-outage or --publish)")
@@ -146,31 +152,37 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         plot_replay_error(res, out / "error.png")
     except ImportError:  # matplotlib is a dependency; this only guards stripped installs
         logging.getLogger(__name__).warning("matplotlib not available: no error.png")
-    m = res.metrics
+    report = replay_report(replay_command(args), metrics, other, title=f"SP replay of {args.path.name}")
+    (out / "report.md").write_text(report)
     if args.json:
-        print(json.dumps({**m, **({"phases_pooled": pooled} if pooled is not None else {})}))
+        print(json.dumps({**res.metrics, **({"phases_pooled": pooled} if pooled is not None else {})}))
     else:
-        print(f"SP replay of {args.path} ({args.format}, vehicle {cfg.profile.name}; {m['imu_span_s']:.1f} s of IMU, "
-              f"{m['n_outages']} outages, {m['n_withheld_fixes']} withheld fixes)")
-        print(f"  outage horizontal RMS      {m['outage_h_rms_m']:.2f} m")
-        print(f"  end-of-outage mean / max   {m['outage_h_end_mean_m']:.2f} / {m['outage_h_end_max_m']:.2f} m")
-        print(f"  outage max                 {m['outage_h_max_m']:.2f} m")
-        print(f"  GNSS-on RMS                {m['gnss_on_h_rms_m']:.2f} m")
-        print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
-        print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
-        if pooled is not None:
-            print("  outage phases (first outage after t0 [s]: outages, RMS, end mean / max, max [m])")
-            for ph in pooled["phases"]:
-                first = "-" if ph["first_outage_s"] is None else f"{ph['first_outage_s']:.1f}"
-                print(f"    {first:>7}: {ph['n_outages']:3d}  {ph['outage_h_rms_m']:.2f}  "
-                      f"{ph['outage_h_end_mean_m']:.2f} / {ph['outage_h_end_max_m']:.2f}  {ph['outage_h_max_m']:.2f}")
-            print(
-                f"    pooled : {pooled['n_outages']:3d}  {pooled['outage_h_rms_m']:.2f}  "
-                f"{pooled['outage_h_end_mean_m']:.2f} / {pooled['outage_h_end_max_m']:.2f}  "
-                f"{pooled['outage_h_max_m']:.2f}"
-            )
-        print(f"  wrote {out}/trajectory.csv, metrics.json, error.png (the first phase)")
+        _print_summary(args, cfg, res.metrics, pooled, out)
     return 0
+
+
+def _print_summary(args: argparse.Namespace, cfg, m: dict, pooled: dict | None, out: Path) -> None:
+    """The replay's figures as text (the default output)."""
+    print(f"SP replay of {args.path} ({args.format}, vehicle {cfg.profile.name}; {m['imu_span_s']:.1f} s of IMU, "
+          f"{m['n_outages']} outages, {m['n_withheld_fixes']} withheld fixes)")
+    print(f"  outage horizontal RMS      {m['outage_h_rms_m']:.2f} m")
+    print(f"  end-of-outage mean / max   {m['outage_h_end_mean_m']:.2f} / {m['outage_h_end_max_m']:.2f} m")
+    print(f"  outage max                 {m['outage_h_max_m']:.2f} m")
+    print(f"  GNSS-on RMS                {m['gnss_on_h_rms_m']:.2f} m")
+    print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
+    print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
+    if pooled is not None:
+        print("  outage phases (first outage after t0 [s]: outages, RMS, end mean / max, max [m])")
+        for ph in pooled["phases"]:
+            first = "-" if ph["first_outage_s"] is None else f"{ph['first_outage_s']:.1f}"
+            print(f"    {first:>7}: {ph['n_outages']:3d}  {ph['outage_h_rms_m']:.2f}  "
+                  f"{ph['outage_h_end_mean_m']:.2f} / {ph['outage_h_end_max_m']:.2f}  {ph['outage_h_max_m']:.2f}")
+        print(
+            f"    pooled : {pooled['n_outages']:3d}  {pooled['outage_h_rms_m']:.2f}  "
+            f"{pooled['outage_h_end_mean_m']:.2f} / {pooled['outage_h_end_max_m']:.2f}  "
+            f"{pooled['outage_h_max_m']:.2f}"
+        )
+    print(f"  wrote {out}/trajectory.csv, metrics.json, report.md, error.png (the first phase)")
 
 
 def _no_reference(args: argparse.Namespace, metrics: dict, out: Path) -> int:
