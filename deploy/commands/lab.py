@@ -54,8 +54,12 @@ def add_bench(sub) -> None:
                     help="rtklibexplorer drive for the replay factor (skipped if absent)")
     bn.add_argument("--quick", action="store_true", help="fewer repetitions")
     bn.add_argument("--json", action="store_true", help="print one JSON object")
-    bn.add_argument("--fleet", default=None, metavar="N,N,...",
+    fg = bn.add_mutually_exclusive_group()
+    fg.add_argument("--fleet", default=None, metavar="N,N,...",
                     help="also run the fleet scaling benchmark with these agent counts (e.g. 10,25,50,75)")
+    fg.add_argument("--fleet-capacity", nargs="?", const="10:100", default=None, metavar="START:MOST",
+                    help="also find the largest fleet this machine holds within the performance targets: "
+                         "counts from START doubled, then bisected to 5 agents, at most MOST (default 10:100)")
     bn.add_argument(
         "--fleet-duration",
         type=T.positive_float,
@@ -217,33 +221,21 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     from ..bench import micro_benchmarks, replay_factor
 
-    counts: list[int] = []
-    if args.fleet:
-        try:
-            counts = [int(x) for x in args.fleet.split(",")]
-        except ValueError:
-            counts = [0]
-        if not counts or min(counts) < 1:
-            raise ValueError(f"--fleet {args.fleet!r}: expected positive agent counts, e.g. 10,25,50,75")
+    counts, search = _fleet_counts(args)
+    if counts or search:
         if not args.fleet_duration > 5:
             raise ValueError("--fleet-duration must be > 5 s")
         MethodSpec.of(args.fleet_method)
     out = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
            "steps": micro_benchmarks(args.quick), "replay": replay_factor(args.drive, 1 if args.quick else 3)}
     if counts:
-        from ..fleet_bench import run_fleet_point
+        out["fleet"] = [_fleet_point(args, n) for n in counts]
+    if search:
+        from ..fleet_capacity import capacity_search
 
-        out["fleet"] = []
-        for n in counts:
-            if not args.json:
-                print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
-            point = run_fleet_point(n, args.fleet_duration, args.fleet_method, zenoh_mode=args.fleet_zenoh_mode,
-                                    imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion, view=args.fleet_view)
-            # the machine's speed drifts within a run too: the costs of the agents' main steps,
-            # measured again right after the point, tell a slow moment from a regression
-            steps = micro_benchmarks(quick=True)
-            point["steps"] = {k: steps[k] for k in FLEET_POINT_STEPS}
-            out["fleet"].append(point)
+        found = capacity_search(lambda n: _fleet_point(args, n), start=search[0], most=search[1])
+        out["fleet"] = found.pop("points")
+        out["capacity"] = found
     if args.json:
         print(json.dumps(out))
         return 0
@@ -260,7 +252,57 @@ def _cmd_bench(args: argparse.Namespace) -> int:
               f"outage RMS {r['outage_h_rms_m']:.2f} m)")
     for f in out.get("fleet", []):
         _print_fleet_point(f)
+    if "capacity" in out:
+        from ..fleet_capacity import BEACON_P99_MAX_MS, REALTIME_MIN, RSS_MAX_MB
+
+        c = out["capacity"]
+        print(f"  capacity: {c['capacity']} agents meet the targets (real-time factor >= {REALTIME_MIN:g}, beacon p99 "
+              f"< {BEACON_P99_MAX_MS:g} ms, no sensor sample dropped, RSS <= {RSS_MAX_MB:g} MB)"
+              + ("" if c["first_missed"] is None else f"; {c['first_missed']} did not")
+              + " (one run each: near the boundary, a run again may differ)")
     return 0
+
+
+def _fleet_counts(args: argparse.Namespace) -> tuple[list[int], tuple[int, int] | None]:
+    """The agent counts of ``--fleet``, and ``--fleet-capacity``'s START and MOST."""
+    counts: list[int] = []
+    if args.fleet:
+        try:
+            counts = [int(x) for x in args.fleet.split(",")]
+        except ValueError:
+            counts = [0]
+        if not counts or min(counts) < 1:
+            raise ValueError(f"--fleet {args.fleet!r}: expected positive agent counts, e.g. 10,25,50,75")
+    search = None
+    if args.fleet_capacity is not None:
+        try:
+            start, most = (int(x) for x in args.fleet_capacity.split(":"))
+        except ValueError:
+            start = most = 0
+        if not 1 <= start <= most:
+            raise ValueError(f"--fleet-capacity {args.fleet_capacity!r}: expected START:MOST agent counts with "
+                             "1 <= START <= MOST, e.g. 10:100")
+        search = (start, most)
+    return counts, search
+
+
+def _fleet_point(args: argparse.Namespace, n: int) -> dict:
+    """One fleet point of ``slcp bench``, with the step costs measured right after it and what it
+    misses of the performance targets."""
+    from ..bench import micro_benchmarks
+    from ..fleet_bench import run_fleet_point
+    from ..fleet_capacity import missed_targets
+
+    if not args.json:
+        print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
+    point = run_fleet_point(n, args.fleet_duration, args.fleet_method, zenoh_mode=args.fleet_zenoh_mode,
+                            imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion, view=args.fleet_view)
+    # the machine's speed drifts within a run too: the costs of the agents' main steps,
+    # measured again right after the point, tell a slow moment from a regression
+    steps = micro_benchmarks(quick=True)
+    point["steps"] = {k: steps[k] for k in FLEET_POINT_STEPS}
+    point["missed"] = missed_targets(point)
+    return point
 
 
 #: the step costs ``slcp bench`` measures again beside each fleet point
@@ -276,6 +318,8 @@ def _print_fleet_point(f: dict) -> None:
     if f.get("steps"):
         print("    step costs right after it: " + ", ".join(
             f"{k.removesuffix('_us').replace('_', ' ')} {v:.1f} µs" for k, v in f["steps"].items()))
+    if "missed" in f:
+        print("    performance targets: " + ("met" if not f["missed"] else "missed: " + "; ".join(f["missed"])))
 
 
 def _print_fleet_figures(f: dict) -> None:
