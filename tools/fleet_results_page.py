@@ -12,12 +12,10 @@ typed in by hand, so the page says what the code does today and nothing else.
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
 from slcp.agent.methods import DEFAULT_FUSION
-from slcp.deploy.markdown_pages import demote
+from slcp.deploy.markdown_pages import PageError, demote, report_and_json, write_page
 
 INTRO = """\
 # Fleet results
@@ -41,17 +39,11 @@ from the first vehicle's stop to the end; *standing*: the times each vehicle tru
 """
 
 
-class PageError(ValueError):
-    """A folder that is not a study's output (the message says which and why)."""
-
-
 def study_command(study_dir: Path) -> tuple[str, str]:
     """The command that wrote the study in ``study_dir``, and its report (markdown)."""
-    report, meta = study_dir / "report.md", study_dir / "study.json"
-    if not (report.is_file() and meta.is_file()):
-        raise PageError(f"{study_dir}: not a study folder (no report.md and study.json)")
+    text, study = report_and_json(study_dir, "study.json", "study", "summary")
+    meta = study_dir / "study.json"
     try:
-        study = json.loads(meta.read_text())
         seeds = [int(s) for s in study["seeds"]]
         scenario = str(study["scenario"])
     except (ValueError, KeyError, TypeError) as exc:
@@ -71,7 +63,7 @@ def study_command(study_dir: Path) -> tuple[str, str]:
         if study.get("lane_constraint") is False:
             cmd += " --no-lane-constraint"
         cmd += f" --out runs/{name}"
-    return cmd, report.read_text()
+    return cmd, text
 
 
 def build_page(study_dirs: list[Path]) -> str:
@@ -91,12 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("studies", nargs="+", type=Path,
                     help="study output folders (slcp run --seeds, slcp scenario study)")
     args = ap.parse_args(argv)
-    try:
-        sys.stdout.write(build_page(args.studies))
-    except (PageError, OSError) as exc:
-        print(f"fleet_results_page: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return write_page(lambda: build_page(args.studies), "fleet_results_page")
 
 
 if __name__ == "__main__":

@@ -12,11 +12,9 @@ gives the commands that remake it; nothing is typed in by hand.
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
-from slcp.deploy.markdown_pages import demote
+from slcp.deploy.markdown_pages import PageError, demote, report_and_json, write_page
 
 INTRO = """\
 # Results on the real drive
@@ -46,24 +44,16 @@ again by the command above. What the figures show, what holds them back and what
 """
 
 
-class PageError(ValueError):
-    """A folder that is not a replay's output (the message says which and why)."""
-
-
 def replay_report(run_dir: Path) -> tuple[str, str]:
     """The command that wrote the replay in ``run_dir``, and its report (markdown)."""
-    report, metrics = run_dir / "report.md", run_dir / "metrics.json"
-    if not (report.is_file() and metrics.is_file()):
-        raise PageError(f"{run_dir}: not a replay folder (no report.md and metrics.json)")
+    text, m = report_and_json(run_dir, "metrics.json", "replay", "metrics")
     try:
-        m = json.loads(metrics.read_text())
         float(m["outage_h_rms_m"])
     except (ValueError, KeyError, TypeError) as exc:
-        raise PageError(f"{metrics}: not a replay's metrics ({exc!r})") from exc
-    text = report.read_text()
+        raise PageError(f"{run_dir / 'metrics.json'}: not a replay's metrics ({exc!r})") from exc
     commands = [line.strip("`") for line in text.splitlines() if line.startswith("`slcp replay ")]
     if len(commands) != 1:
-        raise PageError(f"{report}: not a replay's report (no `slcp replay ...` line)")
+        raise PageError(f"{run_dir / 'report.md'}: not a replay's report (no `slcp replay ...` line)")
     return commands[0], text
 
 
@@ -77,12 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run_dir", type=Path, help="the output folder of slcp replay (--out)")
     args = ap.parse_args(argv)
-    try:
-        sys.stdout.write(build_page(args.run_dir))
-    except (PageError, OSError) as exc:
-        print(f"real_drive_page: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return write_page(lambda: build_page(args.run_dir), "real_drive_page")
 
 
 if __name__ == "__main__":
