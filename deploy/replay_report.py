@@ -126,13 +126,17 @@ def replay_report(command: str, metrics: dict, other: Comparison | None = None, 
     pooled = metrics.get("phases_pooled")
     phases = pooled["phases"] if pooled else [{"first_outage_s": outage.get("first"), **metrics}]
     lines = [f"# {title}", "", f"`{command}`", ""]
+    if metrics["n_outages"]:
+        protocol = (f"{metrics['n_outages']} GNSS outages of {outage.get('length', 0):g} s every "
+                    f"{outage.get('period', 0):g} s, the first {outage.get('first', 0):g} s after the first fix "
+                    f"({metrics['n_withheld_fixes']} fixes withheld); the estimates are scored at the antenna "
+                    "against the withheld fixes")
+    else:
+        protocol = "no GNSS outage: every fix is used, and each scores the estimate before its update"
     lines.append(
-        f"Vehicle profile: {prof.get('name', '?')}. {metrics['imu_span_s']:.0f} s of IMU; "
-        f"{metrics['n_outages']} GNSS outages of {outage.get('length', 0):g} s every {outage.get('period', 0):g} s, "
-        f"the first {outage.get('first', 0):g} s after the first fix ({metrics['n_withheld_fixes']} fixes withheld); "
-        f"the estimates are scored at the antenna against the withheld fixes. The estimated IMU time offset: "
-        f"{metrics['imu_time_offset_s']:+.3f} s. The filter loop took {metrics['wall_s']:.2f} s "
-        f"({metrics['realtime_factor']:.0f}× real time) on the machine that wrote this.")
+        f"Vehicle profile: {prof.get('name', '?')}. {metrics['imu_span_s']:.0f} s of IMU; {protocol}. The "
+        f"estimated IMU time offset: {metrics['imu_time_offset_s']:+.3f} s. The filter loop took "
+        f"{metrics['wall_s']:.2f} s ({metrics['realtime_factor']:.0f}× real time) on the machine that wrote this.")
     lines.append("")
     ref0 = other.at(outage.get("first")) if other is not None else {}
     head = "| metric [m] | slcp |" + (f" {other.name} |" if other is not None else "")
@@ -140,7 +144,10 @@ def replay_report(command: str, metrics: dict, other: Comparison | None = None, 
     rows = [*METRICS[:2], ("outage_h_end_max_m", "end-of-outage maximum"), METRICS[2],
             ("gnss_on_h_rms_m", "RMS with GNSS on")]
     for key, label in rows:
-        cell = f"| {label} | {_m(metrics.get(key))} |"
+        ours = metrics.get(key)
+        if (ours is None or not math.isfinite(ours)) and key not in ref0:
+            continue  # not measured (no outage) and not compared
+        cell = f"| {label} | {_m(ours)} |"
         lines.append(cell + (f" {_m(ref0.get(key))} |" if other is not None else ""))
     if pooled:
         lines += ["", f"## The protocol at {pooled['n_phases']} phases", "",

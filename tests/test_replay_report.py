@@ -78,6 +78,13 @@ def test_the_report_puts_the_other_filters_figures_beside_ours_phase_by_phase(tm
     plain = replay_report("c", _metrics(), title="SP replay of drive")
     assert plain.startswith("# SP replay of drive\n") and "| metric [m] | slcp |\n|---|---|\n" in plain
     assert "phases" not in plain and "Compared" not in plain and "lower RMS" not in plain
+    # no outage (--no-outage): the outage rows are not measured and not shown
+    nan = float("nan")
+    every_fix = {**_metrics(), "n_outages": 0, "n_withheld_fixes": 0, "outage_h_rms_m": nan,
+                 "outage_h_end_mean_m": nan, "outage_h_end_max_m": nan, "outage_h_max_m": nan}
+    text = replay_report("c", every_fix)
+    assert "no GNSS outage: every fix is used" in text and "| RMS with GNSS on | 0.20 |" in text
+    assert "outage horizontal RMS" not in text and "nan" not in text
 
 
 @pytest.mark.parametrize(("text", "match"), [
@@ -105,6 +112,8 @@ def test_a_bad_comparison_stops_the_replay_before_it_reads_the_recording(tmp_pat
     assert main(["replay", "rtklib", str(tmp_path / "no-such-drive"), "--compare", str(f)]) == 2
     err = capsys.readouterr().err
     assert "at least one [[phase]]" in err and "no-such-drive" not in err
+    assert main(["replay", "rtklib", str(tmp_path / "no-such-drive"), "--compare", str(f), "--publish"]) == 2
+    assert "--compare reports beside the offline replay's figures" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("argv", [

@@ -118,6 +118,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     )
     from ..replay_report import load_comparison, replay_command, replay_report
 
+    if args.compare is not None and args.publish:
+        raise ValueError("--compare reports beside the offline replay's figures (not --publish, which scores the "
+                         "live agent's)")
     other = load_comparison(args.compare) if args.compare is not None else None
     drive = load_recording(args.format, args.path)
     if args.phases > 1 and (args.no_outage or args.publish):
