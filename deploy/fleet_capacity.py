@@ -65,7 +65,8 @@ def capacity_search(run_point: Callable[[int], dict], start: int = 10, most: int
         points.append(point)
         return not point["missed"]
 
-    good, bad = 0, None  # type: int, int | None
+    good: int = 0
+    bad: int | None = None
     n = start
     while True:
         if meets(n):
