@@ -90,16 +90,19 @@ def load_comparison(path: Path) -> Comparison:
 
 def replay_command(args: argparse.Namespace) -> str:
     """The ``slcp replay`` command line of ``args``, its non-default options only."""
+    from .replay import OutageProtocol
+
+    default = OutageProtocol()  # the protocol's defaults, which the command line's are
     parts = ["slcp", "replay", args.format, str(args.path)]
     if args.vehicle is not None:
         parts += ["--vehicle", str(args.vehicle)]
     if args.no_outage:
         parts.append("--no-outage")
-    elif tuple(args.outage) != (15.0, 30.0):
+    elif tuple(args.outage) != (default.length, default.period - default.length):
         parts += ["--outage", f"{args.outage[0]:g}:{args.outage[1]:g}"]
-    if args.first_outage != 40.0:
+    if args.first_outage != default.first:
         parts += ["--first-outage", f"{args.first_outage:g}"]
-    if args.end_margin != 30.0:
+    if args.end_margin != default.end_margin:
         parts += ["--end-margin", f"{args.end_margin:g}"]
     if args.phases != 1:
         parts += ["--phases", str(args.phases)]
