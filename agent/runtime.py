@@ -57,9 +57,10 @@ class Agent:
     agent, so a host's user sees one vehicle.
     """
 
-    def __init__(self, cfg: AgentConfig, bus: Bus) -> None:
+    def __init__(self, cfg: AgentConfig, bus: Bus, engine: type[VehicleEngine] = VehicleEngine) -> None:
+        """``engine``: the engine's class (:class:`agent.stand_in.StandInEngine` for benchmarks)."""
         keys.check_name(cfg.vehicle)
-        self.engine = VehicleEngine(cfg)
+        self.engine = engine(cfg)
         self.engine.extra_counters = self._queue_counters
         self.cfg = cfg
         self.bus = bus

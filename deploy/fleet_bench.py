@@ -50,6 +50,8 @@ from slcp.hw_emulation.grid import grid_scenario_toml
 from slcp.transport import keys
 from slcp.transport.codec import decode
 
+from .fleet_capacity import FLEET_ENGINES
+
 log = logging.getLogger(__name__)
 
 _TICK = os.sysconf("SC_CLK_TCK")
@@ -294,15 +296,20 @@ class MapWatcher(threading.Thread):
 
 def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign: bool = True,
                     out: Path | None = None, agent_nice: int = 5, zenoh_mode: str = "client",
-                    imu_batch: int = 20, fusion: str = DEFAULT_FUSION, view: bool = False) -> dict:
+                    imu_batch: int = 20, fusion: str = DEFAULT_FUSION, view: bool = False,
+                    engine: str = "full") -> dict:
     """One benchmark point: ``n`` agents on the grid at 1× with ``imu_batch`` IMU samples per
     message (20: 5 messages a second at 100 Hz), CP methods fusing by ``fusion``; returns
     :meth:`FleetMonitor.result`. A client-mode fleet is secured as ``slcp run``'s is (mutual
     TLS, the access control list); a peer-mode one cannot be, and runs on plain TCP. With
     ``view`` the live map is served and watched the whole run by a client that takes every
     frame, as an open page does (``view_frames``: the frames it took; ``view_vehicles``: the
-    most vehicles one frame showed)."""
+    most vehicles one frame showed). With ``engine`` ``"stand-in"`` the agents stop estimating
+    once started (:mod:`agent.stand_in`): the point measures the fleet without its estimation."""
     from .launcher import free_port, run_fleet
+
+    if engine not in FLEET_ENGINES:
+        raise ValueError(f"engine must be one of {', '.join(FLEET_ENGINES)}, got {engine!r}")
 
     with tempfile.TemporaryDirectory(prefix=f"slcp-bench-{n}-") as tmp:
         base = Path(out) if out is not None else Path(tmp)
@@ -315,11 +322,13 @@ def run_fleet_point(n: int, duration: float = 40.0, method: str = "SL-CP", sign:
         wall0 = time.monotonic()
         stats = run_fleet(str(scn), methods=(method,), speed=1.0, seed=0, out=base / "run", sign=sign,
                           monitor=mon, evaluate=False, wait_agents=max(30.0, 1.5 * n), agent_nice=agent_nice,
-                          zenoh_mode=zenoh_mode, fusion=fusion, secure=zenoh_mode == "client", view_port=port)
+                          zenoh_mode=zenoh_mode, fusion=fusion, secure=zenoh_mode == "client", view_port=port,
+                          agent_args=("--stand-in",) if engine == "stand-in" else ())
         res = mon.result()
         if watcher is not None:
             res["view_frames"], res["view_vehicles"] = watcher.stop()
         res["method"] = method
+        res["engine"] = engine
         res["fusion"] = fusion
         res["agent_nice"] = agent_nice
         res["zenoh_mode"] = zenoh_mode

@@ -23,6 +23,10 @@ BEACON_P99_MAX_MS = 20.0
 #: every agent's peak resident set [MB], at most
 RSS_MAX_MB = 80.0
 
+#: the agents' engines a fleet point can run: the real one, or the stand-in that stops
+#: estimating once started (:mod:`agent.stand_in`), whose points say what the rest costs
+FLEET_ENGINES = ("full", "stand-in")
+
 
 def missed_targets(point: dict) -> list[str]:
     """What a fleet point misses of the targets, in words (empty: it meets them all)."""

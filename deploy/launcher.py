@@ -114,9 +114,10 @@ def _bag(out: Path, scn, truth, inputs: bool = False) -> McapSink:
 def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, speed: float | None = None,
               seed: int = 0, out: Path = Path("runs/fleet"), progress=None, fusion: str = DEFAULT_FUSION,
               sign: bool = True, faults: Path | None = None, monitor=None, evaluate: bool = True,
-              wait_agents: float = 20.0, agent_nice: int = 5, lane_constraint: bool = True,
-              zenoh_mode: str = "client", secure: bool = True, view_port: int | None = None,
-              foxglove_port: int | None = None, lanelet2: bool = False, bag_inputs: bool = False) -> dict:
+              wait_agents: float = 20.0, agent_nice: int = 5, agent_args: tuple[str, ...] = (),
+              lane_constraint: bool = True, zenoh_mode: str = "client", secure: bool = True,
+              view_port: int | None = None, foxglove_port: int | None = None, lanelet2: bool = False,
+              bag_inputs: bool = False) -> dict:
     """Run the fleet and return the metrics (also written to ``out``).
 
     ``progress`` (optional) is called about twice a second with a
@@ -126,10 +127,10 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
     ``attach(bus, procs, endpoint)`` (the router's bus, the processes by name, the router's
     endpoint) once every process is started and ``sample(recorder)`` every 0.2 s.
     Without ``evaluate`` only the process statistics are returned (no truth, no metrics files).
-    The emulator waits up to ``wait_agents`` seconds for every agent's liveliness. The agents run
-    ``agent_nice`` steps below the normal scheduling priority (``nice``): on one machine the
-    emulated sensors and radio, and the Zenoh router, stand for hardware that does not wait for
-    the vehicles' computers, so they are served first when the CPUs are busy. Without
+    The emulator waits up to ``wait_agents`` s for every agent's liveliness. The agents (``slcp
+    agent`` with ``agent_args``) run ``agent_nice`` steps below the normal priority (``nice``): on
+    one machine the emulated sensors and radio, and the Zenoh router, stand for hardware that does
+    not wait for the vehicles' computers, so they are served first when the CPUs are busy. Without
     ``lane_constraint`` the SL methods use the stop line only (the paper's), and so does the bound.
 
     ``zenoh_mode`` says how the agents and the emulator join the launcher's router: ``"client"``
@@ -176,7 +177,7 @@ def run_fleet(scenario: str = "paper-1", methods: tuple[str, ...] = METHODS, spe
                                    faults=schedule, monitor=monitor, wait_agents=wait_agents,
                                    agent_nice=agent_nice, zenoh_mode=zenoh_mode, end_t=scn.duration,
                                    title=scn.name, fleet_dir=fleet_dir if secure else None,
-                                   sinks=sinks))
+                                   sinks=sinks, agent_args=agent_args))
     wall = time.monotonic() - wall0
     if not evaluate:
         return {"wall_s": wall, "processes": stats}

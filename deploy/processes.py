@@ -66,8 +66,11 @@ def settle_gc() -> None:
     gc.set_threshold(GC_GEN0_THRESHOLD, 10, 10)
 
 
-async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> int:
+async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0, stand_in: bool = False) -> int:
+    """One agent until SIGINT/SIGTERM; with ``stand_in`` its engine stops estimating once
+    started (:mod:`agent.stand_in`: benchmarks of what the rest of a fleet costs)."""
     from slcp.agent.runtime import Agent
+    from slcp.agent.stand_in import StandInEngine
     from slcp.transport.zenoh_bus import ZenohBus
 
     cfg, zcfg = load_agent_config(config_path, vehicle)
@@ -79,7 +82,7 @@ async def agent_main(config_path: Path, vehicle: str | None, nice: int = 0) -> i
     stop = asyncio.Event()
     _install_signals(stop)
     bus = ZenohBus(zcfg)
-    agent = Agent(cfg, bus)
+    agent = Agent(cfg, bus, StandInEngine) if stand_in else Agent(cfg, bus)
     settle_gc()
     reach = asyncio.create_task(report_reachability(bus, zcfg.connect, cfg.vehicle))
     try:

@@ -54,7 +54,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                     wait_agents: float = 20.0, agent_nice: int = 0, zenoh_mode: str = "client",
                     end_t: float | None = None, stall_s: float = 30.0, exit_grace_s: float = 15.0,
                     title: str = "", fleet_dir: Path | None = None,
-                    sinks: list | tuple = ()) -> dict:
+                    sinks: list | tuple = (), agent_args: tuple[str, ...] = ()) -> dict:
     """Run the fleet's processes until the emulator has played the scenario; return their statistics.
 
     A process that dies is restarted (at most ``max_restarts`` times each; the emulator resumes
@@ -68,7 +68,8 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
 
     With ``fleet_dir`` (the run's keys) the router is the fleet's: mutual TLS and the access
     control list (:func:`deploy.zenoh_security.router_config`), and the emulator joins with its
-    certificate; the agents' configurations say the same for them."""
+    certificate; the agents' configurations say the same for them. ``agent_args`` are added to
+    every agent's command line."""
     from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
 
     from .zenoh_security import router_config
@@ -78,7 +79,7 @@ async def supervise(scenario, vehicles, configs, endpoint, speed, seed, out: Pat
                         else ZenohConfig(mode="router", listen=(endpoint,)))
 
     sup = _Supervisor(vehicles, configs, out, progress, max_restarts, faults or [], monitor, wait_agents,
-                      agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario), sinks)
+                      agent_nice, end_t, stall_s, exit_grace_s, title or str(scenario), sinks, agent_args)
     sup.open_router(open_router)
     emu_args = ["-v", "emulate", scenario, "--seed", str(seed), "--connect", endpoint, "--mode", zenoh_mode,
                 "--wait-agents", f"{wait_agents:g}"]
@@ -107,13 +108,15 @@ class _Supervisor:
 
     def __init__(self, vehicles, configs, out: Path, progress, max_restarts: int, faults: list, monitor,
                  wait_agents: float, agent_nice: int, end_t: float | None, stall_s: float,
-                 exit_grace_s: float, title: str, sinks: list | tuple = ()) -> None:
+                 exit_grace_s: float, title: str, sinks: list | tuple = (),
+                 agent_args: tuple[str, ...] = ()) -> None:
         from slcp.transport.zenoh_bus import LIGHT_CLIENT_RUNTIME
 
         self.vehicles, self.configs, self.out = vehicles, configs, out
         self.progress, self.max_restarts, self.monitor = progress, max_restarts, monitor
         self.wait_agents, self.agent_nice, self.end_t = wait_agents, agent_nice, end_t
         self.stall_s, self.exit_grace_s, self.title = stall_s, exit_grace_s, title
+        self.agent_args = tuple(agent_args)
         self.agent_env = {} if "ZENOH_RUNTIME" in os.environ else {"ZENOH_RUNTIME": LIGHT_CLIENT_RUNTIME}
         self.procs: dict[str, subprocess.Popen] = {}
         self.logs: list = []
@@ -177,7 +180,7 @@ class _Supervisor:
 
     def _agent_args(self, vid: str) -> list[str]:
         return _slcp("-v", "agent", "--vehicle", vid, "--config", str(self.configs[vid]),
-                     "--nice", str(self.agent_nice))
+                     "--nice", str(self.agent_nice), *self.agent_args)
 
     def start(self, emu_args: list[str]) -> None:
         for vid in self.vehicles:

@@ -16,6 +16,9 @@ def add_agent(sub) -> None:
     ag.add_argument("--config", type=Path, required=True, help="agent TOML (docs/cli.md, agent configuration)")
     ag.add_argument("--nice", type=int, choices=range(0, 20), default=0, metavar="0-19",
                     help="lower this process's scheduling priority by N (default 0)")
+    ag.add_argument("--stand-in", action="store_true",
+                    help="for benchmarks: once the engine has sent its first beacon and estimate, estimate "
+                         "nothing and send their copies at the engine's rates (what the rest of a fleet costs)")
 
 
 def add_emulate(sub) -> None:
@@ -146,7 +149,7 @@ def _cmd_agent(args: argparse.Namespace) -> int:
 
     from ..processes import agent_main
 
-    return asyncio.run(agent_main(args.config, args.vehicle, args.nice))
+    return asyncio.run(agent_main(args.config, args.vehicle, args.nice, args.stand_in))
 
 
 def _cmd_emulate(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ from pathlib import Path
 from slcp.agent.methods import DEFAULT_FUSION, FUSION_RULES
 
 from .. import cli_types as T
+from ..fleet_capacity import FLEET_ENGINES
 
 
 def add_attack_eval(sub) -> None:
@@ -73,6 +74,10 @@ def add_bench(sub) -> None:
                     help="how the fleet's processes join the router (as slcp run --zenoh-mode; default client)")
     bn.add_argument("--fleet-imu-batch", type=int, choices=range(1, 101), default=20, metavar="1-100",
                     help="IMU samples per message in the fleet's grid (default 20: 5 messages a second at 100 Hz)")
+    bn.add_argument("--fleet-engine", choices=FLEET_ENGINES, default="full",
+                    help="the agents' engine: full (default), or stand-in: once started it estimates nothing "
+                         "and sends copies of its first beacon and estimate at their rates, so the point "
+                         "measures what the fleet costs without its estimation")
     bn.add_argument("--fleet-view", action="store_true",
                     help="serve the live map during each fleet point, watched by a client that takes every frame")
 
@@ -296,7 +301,8 @@ def _fleet_point(args: argparse.Namespace, n: int) -> dict:
     if not args.json:
         print(f"fleet benchmark: {n} agents for {args.fleet_duration:g} s at 1x ...", file=sys.stderr)
     point = run_fleet_point(n, args.fleet_duration, args.fleet_method, zenoh_mode=args.fleet_zenoh_mode,
-                            imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion, view=args.fleet_view)
+                            imu_batch=args.fleet_imu_batch, fusion=args.fleet_fusion, view=args.fleet_view,
+                            engine=args.fleet_engine)
     # the machine's speed drifts within a run too: the costs of the agents' main steps,
     # measured again right after the point, tell a slow moment from a regression
     steps = micro_benchmarks(quick=True)
@@ -327,7 +333,7 @@ def _print_fleet_figures(f: dict) -> None:
     lat = f["beacon_latency_ms"] or {"p50": float("nan"), "p99": float("nan")}
     print(
         f"  fleet {f['agents']:3d} agents ({f['method']}, {f['fusion']}, Zenoh {f['zenoh_mode']}, "
-        f"IMU batch {f['imu_batch']}): "
+        f"IMU batch {f['imu_batch']}{', stand-in engine' if f.get('engine') == 'stand-in' else ''}): "
         f"real-time factor {f['realtime_factor']:.2f}, lag p99 {f['lag_p99_s']:.2f} s, "
         f"CPU/agent {f['cpu_pct_per_agent']['mean']:.1f} % "
         f"(max {f['cpu_pct_per_agent']['max']:.1f}, {f['threads_per_agent']} threads), emulator "
