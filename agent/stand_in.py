@@ -78,7 +78,7 @@ class StandInEngine(VehicleEngine):
         self._seq = max(b.seq for b in self._beacons.values())
         b_t = max(b.t for b in self._beacons.values())
         # estimates are stamped in GNSS time (the IMU's plus the estimated offset, which now
-        # stands still): the copies keep their stamps' offsets to the first one's
+        # stands still): the copies keep their stamps' offsets to the latest one's
         self._estimate_base = max(e.t for e in self._estimates.values())
         self._due = {"beacon": b_t + 1.0 / self.cfg.beacon_rate,
                      "estimate": self._estimate_base + 1.0 / self.cfg.estimate_rate,

@@ -76,7 +76,7 @@ def add_bench(sub) -> None:
                     help="IMU samples per message in the fleet's grid (default 20: 5 messages a second at 100 Hz)")
     bn.add_argument("--fleet-engine", choices=FLEET_ENGINES, default="full",
                     help="the agents' engine: full (default), or stand-in: once started it estimates nothing "
-                         "and sends copies of its first beacon and estimate at their rates, so the point "
+                         "and sends copies of its beacons and estimates at their rates, so the point "
                          "measures what the fleet costs without its estimation")
     bn.add_argument("--fleet-view", action="store_true",
                     help="serve the live map during each fleet point, watched by a client that takes every frame")
