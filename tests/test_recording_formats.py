@@ -183,9 +183,30 @@ def test_the_drive_in_every_format_scores_as_the_native_read(tmp_path) -> None:
         for k in keys:
             assert m[k] == pytest.approx(ref[k], rel=0.02), (fmt, k)
     rows["position-only"] = run_replay(Recording(native.imu, native.gnss.position_only()), cfg).metrics
-    for name, m in rows.items():
-        print(f"\n{name:14s} " + " / ".join(f"{m[k]:.3f}" for k in keys) + " m")
     assert rows["position-only"]["outage_h_rms_m"] < 1.5 * ref["outage_h_rms_m"]
+    # the docs' table of these figures is what this test measures
+    measured = {name: [f"{m[k]:.3f}" for k in keys] for name, m in rows.items()}
+    assert _formats_table() == measured, "docs/recording-formats.md's table should read:\n" + "\n".join(
+        f"{DOC_ROWS[name]} | " + " | ".join(v) + " |" for name, v in measured.items())
+
+
+#: the rows of docs/recording-formats.md's table of the drive in every format, by the row's start
+DOC_ROWS = {"rtklib": "| `rtklib` (native)", "kf-gins": "| `kf-gins`", "csv": "| `csv`", "ros2": "| `ros2`",
+            "position-only": "| native, positions only"}
+
+
+def _formats_table() -> dict[str, list[str]]:
+    """The figures of docs/recording-formats.md's table, by format (the cells as written)."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "recording-formats.md").read_text()
+    section = text.split("## The same drive in every format", 1)[1].split("\n## ", 1)[0]
+    out = {}
+    for line in section.splitlines():
+        for name, start in DOC_ROWS.items():
+            if line.startswith(start):
+                out[name] = [c.strip() for c in line.strip().strip("|").split("|")[1:]]
+    return out
 
 
 def test_a_recording_without_reference_writes_its_trajectory_and_says_so(tmp_path, capsys) -> None:
