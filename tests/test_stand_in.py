@@ -61,8 +61,7 @@ def test_the_stand_in_is_the_engine_until_its_first_beacon_and_estimate(v0_input
     assert stand.counters["stand_in_inputs"] == len(msgs) - k
     for m, f in stand.filters.items():
         assert f.filter.t == at_switch[m][0] and np.array_equal(f.filter.state.llh, at_switch[m][1])
-    assert real.filters["SL-CP"].filter.t < at_switch["SL-CP"][0] + 1.0  # (the real one moves on)
-    for m in msgs[k:]:
+    for m in msgs[k:]:  # where the engine itself moves on
         real.handle(m)
     assert real.filters["SL-CP"].filter.t > at_switch["SL-CP"][0] + 10.0
 
