@@ -51,6 +51,13 @@ class Route:
     path: Path
     segments: list[Segment]
 
+    def segment(self, key: str) -> Segment | None:
+        """The route's first segment with this key (a lane id or "A>B"), or None."""
+        for seg in self.segments:
+            if seg.key == key:
+                return seg
+        return None
+
     def segment_at(self, s: float) -> Segment:
         for seg in self.segments:
             if s < seg.s1:
@@ -178,10 +185,10 @@ def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos:
     for oid, (oseg, os_) in pos.items():
         if oid == vid or t < specs[oid].depart:  # not yet departed: parked off the lane
             continue
-        match = [seg for seg in route.segments if seg.key == oseg.key]
-        if not match:
+        mine = route.segment(oseg.key)
+        if mine is None:
             continue
-        o_on_me = match[0].s0 + (os_ - oseg.s0)
+        o_on_me = mine.s0 + (os_ - oseg.s0)
         # other vehicle's rear relative to my front (reference points are l0 behind fronts)
         g = (o_on_me + specs[oid].l0 - specs[oid].length) - (sk + veh.l0)
         if o_on_me > sk and g < gap:
@@ -214,6 +221,8 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
         v[veh.id][0] = veh.initial_speed
     specs = {veh.id: veh for veh in scn.vehicles}
     committed: dict[tuple[str, str], bool] = {}
+    # the turns' hold depends on the position and speed only: a standing vehicle reuses it
+    turn_hold: dict[str, tuple[float, float, tuple[float, float]]] = {}
     for k in range(n - 1):
         tk = t[k]
         pos = {vid: (routes[vid].segment_at(s[vid][k]), s[vid][k]) for vid in routes}
@@ -237,7 +246,12 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
                         gap, dv = g, vk
             elif stop is not None:
                 committed.pop((vid, stop.key), None)
-            v_here, need = _turn_braking(route, sk, vk, veh)
+            held = turn_hold.get(vid)
+            if held is not None and held[0] == sk and held[1] == vk:
+                v_here, need = held[2]
+            else:
+                v_here, need = _turn_braking(route, sk, vk, veh)
+                turn_hold[vid] = (sk, vk, (v_here, need))
             acc = _idm_accel(vk, max(v_here, 0.1), gap, dv, veh.idm)
             if need >= veh.idm.b:  # a turn ahead: brake at the rate it needs
                 acc = min(acc, -need)
