@@ -34,6 +34,9 @@ STOPPED_SPEED = 0.05  #: below this a vehicle counts as stopped [m/s]
 #: (56 m); any farther, IDM's interaction term, (s*/gap)², would slow free-flowing vehicles
 END_LOOKAHEAD = 60.0
 FIRST_STOP_GATE = 15.0  #: a stopped queue head within this of its stop line is "first stopped" [m]
+#: [m] how far before a merge point two drivers heed each other: at 12 m/s, 3.3 s to open a
+#: gap at the comfortable 2 m/s², about 11 m, more than IDM's desired gap at turning speeds
+MERGE_HORIZON = 40.0
 
 
 @dataclass
@@ -202,6 +205,45 @@ def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos:
     return gap, dv
 
 
+def _merges(route: Route, other: Route) -> list[tuple[float, float]]:
+    """Where ``other`` joins ``route``: for each segment of ``other`` that ``route`` also has, in
+    ``other``'s order, its start on ``other`` and on ``route`` [m]."""
+    out = []
+    for seg in other.segments:
+        mine = route.segment(seg.key)
+        if mine is not None:
+            out.append((seg.s0, mine.s0))
+    return out
+
+
+def _merge_leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float,
+                  pos: dict[str, tuple[Segment, float]], specs: dict[str, VehicleSpec], v: dict[str, np.ndarray],
+                  k: int, t: float, held: dict[str, float], merges) -> tuple[float, float]:
+    """IDM's gap [m] and closing speed [m/s] to the vehicle that enters a lane of ``vid``'s route
+    before it, from another route (two turns into one exit lane): the one nearer to the merge
+    point (ties by id), within :data:`MERGE_HORIZON` of it as ``vid`` is, free to go (not held
+    by a red stop line before the merge point; ``held``: vehicle -> where its red line is) and
+    not yet on a segment of ``vid``'s route (:func:`_leader` finds it there). It stands on
+    ``vid``'s route at its own distance before the merge point, so that the later driver
+    follows it by IDM before the merge and the handover to :func:`_leader` at the merge point
+    is continuous. (inf, 0) if none."""
+    gap, dv = math.inf, 0.0
+    for oid, (oseg, os_) in pos.items():
+        if oid == vid or t < specs[oid].depart or route.segment(oseg.key) is not None:
+            continue
+        for o_start, my_start in merges(vid, oid):
+            if o_start <= os_:
+                continue
+            d_me, d_o = my_start - sk, o_start - os_
+            if (0.0 < d_me <= MERGE_HORIZON and d_o <= MERGE_HORIZON and (d_o, oid) < (d_me, vid)
+                    and held.get(oid, math.inf) > o_start):
+                g = (my_start - d_o + specs[oid].l0 - specs[oid].length) - (sk + veh.l0)
+                if g < gap:
+                    gap, dv = g, vk - v[oid][k]
+            break  # only the first lane where the other joins my route
+    return gap, dv
+
+
 def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
     """Run the traffic model over the scenario duration."""
     n = int(round(scn.duration / STEP)) + 1
@@ -223,9 +265,24 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
     committed: dict[tuple[str, str], bool] = {}
     # the turns' hold depends on the position and speed only: a standing vehicle reuses it
     turn_hold: dict[str, tuple[float, float, tuple[float, float]]] = {}
+    pair_merges: dict[tuple[str, str], list[tuple[float, float]]] = {}
+
+    def merges(vid: str, oid: str) -> list[tuple[float, float]]:
+        got = pair_merges.get((vid, oid))
+        if got is None:
+            got = pair_merges[(vid, oid)] = _merges(routes[vid], routes[oid])
+        return got
+
     for k in range(n - 1):
         tk = t[k]
         pos = {vid: (routes[vid].segment_at(s[vid][k]), s[vid][k]) for vid in routes}
+        red_held = {}  # vehicle -> where its next stop line is, while red holds it there
+        for vid in routes:
+            line = routes[vid].next_stop_line(s[vid][k])
+            if (line is not None and not scn.signals.is_green(line.key, tk)
+                    and not committed.get((vid, line.key), False)
+                    and line.s1 - (s[vid][k] + specs[vid].l0) > -0.5):
+                red_held[vid] = line.s1
         for vid, veh in specs.items():
             sk, vk = s[vid][k], v[vid][k]
             route = routes[vid]
@@ -253,6 +310,9 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
                 v_here, need = _turn_braking(route, sk, vk, veh)
                 turn_hold[vid] = (sk, vk, (v_here, need))
             acc = _idm_accel(vk, max(v_here, 0.1), gap, dv, veh.idm)
+            m_gap, m_dv = _merge_leader(vid, veh, route, sk, vk, pos, specs, v, k, tk, red_held, merges)
+            if m_gap < math.inf:  # a merging vehicle ahead: made room for at the comfortable rate
+                acc = min(acc, max(_idm_accel(vk, max(v_here, 0.1), m_gap, m_dv, veh.idm), -veh.idm.b))
             if need >= veh.idm.b:  # a turn ahead: brake at the rate it needs
                 acc = min(acc, -need)
             acc = max(acc, -9.0)

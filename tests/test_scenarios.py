@@ -232,7 +232,7 @@ def test_a_vehicle_brakes_to_stand_at_the_end_of_its_route() -> None:
     scn = load_scenario("rush-hour")
     tr = simulate_traffic(scn, np.random.default_rng(0))
     ended = [vid for vid, r in tr.routes.items() if tr.s[vid][-1] >= r.path.length - 1e-9]
-    assert {"N2", "N3", "S2", "S3", "W1", "W3"} <= set(ended)
+    assert {"N2", "N3", "S2", "S3", "E3", "W3"} <= set(ended)
     for vid in ended:
         v = tr.v[vid]
         k = int(np.argmax(tr.s[vid] >= tr.routes[vid].path.length - 1e-9))

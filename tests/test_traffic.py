@@ -32,8 +32,9 @@ def test_a_driver_above_its_desired_speed_slows_at_the_comfortable_rate() -> Non
 def test_turns_are_taken_near_the_lateral_cap_after_comfortable_braking(traffic, name) -> None:
     """Every vehicle takes its turns at about the 2 m/s² lateral cap (3 at most: the 0.1 s steps),
     braking for them at IDM's comfortable rate: in paper-1 and paper-2 nobody brakes harder than
-    a red light asks (3.5 m/s²). The cap on the next 30 m alone made paper-1's V0 brake at 9 m/s²
-    and still take a 3 m radius at 6 m/s (12 m/s² lateral)."""
+    a red light asks (3.5 m/s²), in rush-hour too, where turns from opposite approaches merge into
+    one exit lane. The cap on the next 30 m alone made paper-1's V0 brake at 9 m/s² and still
+    take a 3 m radius at 6 m/s (12 m/s² lateral)."""
     scn, tr = traffic[name]
     turned = 0
     for vid, route in tr.routes.items():
@@ -42,8 +43,7 @@ def test_turns_are_taken_near_the_lateral_cap_after_comfortable_braking(traffic,
         lateral = kappa * v * v
         assert lateral.max() < LAT_ACCEL_MAX + 1.0, (vid, lateral.max())
         turned += int(kappa.max() > 0.05)
-        if name != "rush-hour":  # rush-hour's exit lanes see turning vehicles meet (no conflicts modelled)
-            assert np.min(np.diff(v) / STEP) > -3.6, (vid, np.min(np.diff(v) / STEP))
+        assert np.min(np.diff(v) / STEP) > -3.6, (vid, np.min(np.diff(v) / STEP))
     assert turned >= 1
 
 
@@ -82,3 +82,89 @@ def test_a_vehicle_parked_by_the_stop_line_is_not_the_queue_head() -> None:
     flags = first_stopped_flags(scn, tr)
     assert flags["V1"].any() and not flags["V2"].any()
     assert tr.s["V1"][-1] > line - 10.0 and np.all(tr.s["V2"] == line - 3.0)
+
+
+def _min_gap_in_lanes(scn, tr) -> tuple[float, tuple]:
+    """The smallest bumper-to-bumper gap [m] between two departed vehicles on one segment, over
+    the run, and where: (follower, leader, segment, time)."""
+    spec = {v.id: v for v in scn.vehicles}
+    best, where = np.inf, ()
+    for k, tk in enumerate(tr.t):
+        on: dict[str, list] = {}
+        for vid, route in tr.routes.items():
+            if tk >= spec[vid].depart:
+                seg = route.segment_at(tr.s[vid][k])
+                on.setdefault(seg.key, []).append((tr.s[vid][k] - seg.s0, vid))
+        for key, lst in on.items():
+            lst.sort()
+            for (a, va), (b, vb) in zip(lst, lst[1:]):
+                g = (b + spec[vb].l0 - spec[vb].length) - (a + spec[va].l0)
+                if g < best:
+                    best, where = g, (va, vb, key, round(float(tk), 1))
+    return best, where
+
+
+def _rush_hour_with(vehicles):
+    import tomllib
+
+    from slcp.hw_emulation.scenario import parse_scenario, shipped_scenario_text
+
+    data = tomllib.loads(shipped_scenario_text("rush-hour"))
+    return parse_scenario(dict(data, vehicles=vehicles, events=[], windows={}, paper={}), "merge.toml")
+
+
+def _rush_hour_vehicles(*ids):
+    import tomllib
+
+    from slcp.hw_emulation.scenario import shipped_scenario_text
+
+    data = tomllib.loads(shipped_scenario_text("rush-hour"))
+    return [dict(v) for v in data["vehicles"] if v["id"] in ids]
+
+
+def test_turns_into_one_exit_lane_enter_it_one_after_the_other(traffic, monkeypatch) -> None:
+    """Rush-hour's E1 (a left turn into NB_out) and W3 (the opposite right turn into it) reach
+    the exit lane together on the same green. The one nearer to the merge point goes first; the
+    other makes room before the merge at no more than the comfortable deceleration, and enters
+    a safe gap behind. Without the rule (a zero horizon) they met in the lane: E1 braked at
+    9 m/s² and still ran 4 m into W3. Over the whole of rush-hour, no two vehicles in one lane
+    come closer than IDM's standstill gap."""
+    from slcp.hw_emulation import traffic as traffic_mod
+
+    scn = _rush_hour_with(_rush_hour_vehicles("E1", "W3"))
+    tr = simulate_traffic(scn, np.random.default_rng(0))
+    gap, where = _min_gap_in_lanes(scn, tr)
+    assert gap > 1.5, where
+    for vid in ("E1", "W3"):
+        assert np.min(np.diff(tr.v[vid]) / STEP) > -(Idm().b + 0.9), vid
+    first = {vid: tr.t[int(np.argmax(tr.s[vid] >= tr.routes[vid].segments[-1].s0))] for vid in ("E1", "W3")}
+    assert first["W3"] + 1.0 < first["E1"], first  # W3 turns right from nearer; E1 follows
+
+    monkeypatch.setattr(traffic_mod, "MERGE_HORIZON", 0.0)
+    off = simulate_traffic(scn, np.random.default_rng(0))
+    assert _min_gap_in_lanes(scn, off)[0] < 0.0
+    assert np.min(np.diff(off.v["E1"]) / STEP) < -8.0
+    monkeypatch.undo()
+
+    scn, full = traffic["rush-hour"]
+    gap, where = _min_gap_in_lanes(scn, full)
+    assert gap > 1.5, where
+
+
+def test_a_vehicle_held_by_a_red_light_does_not_merge_ahead() -> None:
+    """A vehicle standing at its red light, 20 m from where its left turn joins NB_out, is nearer
+    to that merge point than N1 driving through on green: it is no leader for N1, whose drive is
+    the same to the bit as beside the same vehicle parked off the road for the whole run (as a
+    leader it would have had N1 slow down for it). It turns on its next green, after N1."""
+    n1 = _rush_hour_vehicles("N1")
+    waiting = dict(n1[0], id="E9", route=["EB_in_L", "NB_out"], depart=32.0, depart_pos=385.0,
+                   initial_speed=0.0)
+    a = simulate_traffic(_rush_hour_with(n1 + [dict(waiting, depart=1000.0)]), np.random.default_rng(0))
+    b = simulate_traffic(_rush_hour_with(n1 + [waiting]), np.random.default_rng(0))
+    np.testing.assert_array_equal(a.s["N1"], b.s["N1"])
+    k_red = int(round(40.0 / STEP))
+    e9 = b.routes["E9"]
+    assert b.v["E9"][k_red] == 0.0 and e9.segments[-1].s0 - b.s["E9"][k_red] < 30.0
+    k = int(np.argmax(b.s["N1"] >= b.routes["N1"].segments[-1].s0))  # N1 joins NB_out
+    assert b.t[k] < 58.0 and b.s["E9"][k] == b.s["E9"][k_red]
+    assert b.s["E9"][-1] > e9.segments[-1].s0
