@@ -205,20 +205,29 @@ def _leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float, pos:
     return gap, dv
 
 
-def _merges(route: Route, other: Route) -> list[tuple[float, float]]:
-    """Where ``other`` joins ``route``: for each segment of ``other`` that ``route`` also has, in
-    ``other``'s order, its start on ``other`` and on ``route`` [m]."""
-    out = []
-    for seg in other.segments:
-        mine = route.segment(seg.key)
-        if mine is not None:
-            out.append((seg.s0, mine.s0))
-    return out
+class _MergeTable:
+    """Where one route joins another, per ordered pair of vehicles, worked out once."""
+
+    def __init__(self, routes: dict[str, Route]) -> None:
+        self.routes = routes
+        self.pairs: dict[tuple[str, str], list[tuple[float, float]]] = {}
+
+    def __call__(self, vid: str, oid: str) -> list[tuple[float, float]]:
+        """Where ``oid``'s route joins ``vid``'s: for each segment of ``oid``'s route that
+        ``vid``'s also has, in ``oid``'s order, its start on ``oid``'s route and on ``vid``'s [m]."""
+        got = self.pairs.get((vid, oid))
+        if got is None:
+            route = self.routes[vid]
+            got = [(seg.s0, mine.s0) for seg in self.routes[oid].segments
+                   if (mine := route.segment(seg.key)) is not None]
+            self.pairs[(vid, oid)] = got
+        return got
 
 
 def _merge_leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float,
                   pos: dict[str, tuple[Segment, float]], specs: dict[str, VehicleSpec], v: dict[str, np.ndarray],
-                  k: int, t: float, held: dict[str, float], merges) -> tuple[float, float]:
+                  k: int, t: float, held: dict[str, float],
+                  merges: _MergeTable) -> tuple[float, float]:
     """IDM's gap [m] and closing speed [m/s] to the vehicle that enters a lane of ``vid``'s route
     before it, from another route (two turns into one exit lane): the one nearer to the merge
     point (ties by id), within :data:`MERGE_HORIZON` of it as ``vid`` is, free to go (not held
@@ -244,6 +253,19 @@ def _merge_leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float
     return gap, dv
 
 
+def _red_held(scn: Scenario, routes: dict[str, Route], specs: dict[str, VehicleSpec], at: dict[str, float],
+              t: float, committed: dict[tuple[str, str], bool]) -> dict[str, float]:
+    """Vehicle -> where its next stop line is on its route [m], for the vehicles a red light
+    holds there at time ``t`` (not committed to run the amber, front not past the line)."""
+    out = {}
+    for vid, route in routes.items():
+        line = route.next_stop_line(at[vid])
+        if (line is not None and not scn.signals.is_green(line.key, t) and not committed.get((vid, line.key), False)
+                and line.s1 - (at[vid] + specs[vid].l0) > -0.5):
+            out[vid] = line.s1
+    return out
+
+
 def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
     """Run the traffic model over the scenario duration."""
     n = int(round(scn.duration / STEP)) + 1
@@ -265,24 +287,11 @@ def simulate_traffic(scn: Scenario, rng: np.random.Generator) -> TrafficResult:
     committed: dict[tuple[str, str], bool] = {}
     # the turns' hold depends on the position and speed only: a standing vehicle reuses it
     turn_hold: dict[str, tuple[float, float, tuple[float, float]]] = {}
-    pair_merges: dict[tuple[str, str], list[tuple[float, float]]] = {}
-
-    def merges(vid: str, oid: str) -> list[tuple[float, float]]:
-        got = pair_merges.get((vid, oid))
-        if got is None:
-            got = pair_merges[(vid, oid)] = _merges(routes[vid], routes[oid])
-        return got
-
+    merges = _MergeTable(routes)
     for k in range(n - 1):
         tk = t[k]
         pos = {vid: (routes[vid].segment_at(s[vid][k]), s[vid][k]) for vid in routes}
-        red_held = {}  # vehicle -> where its next stop line is, while red holds it there
-        for vid in routes:
-            line = routes[vid].next_stop_line(s[vid][k])
-            if (line is not None and not scn.signals.is_green(line.key, tk)
-                    and not committed.get((vid, line.key), False)
-                    and line.s1 - (s[vid][k] + specs[vid].l0) > -0.5):
-                red_held[vid] = line.s1
+        red_held = _red_held(scn, routes, specs, {vid: s[vid][k] for vid in routes}, tk, committed)
         for vid, veh in specs.items():
             sk, vk = s[vid][k], v[vid][k]
             route = routes[vid]
