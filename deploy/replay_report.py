@@ -57,6 +57,8 @@ def load_comparison(path: Path) -> Comparison:
         doc = tomllib.loads(Path(path).read_text())
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path}: not TOML: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"--compare {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
     name = doc.get("name")
     if not isinstance(name, str) or not name.strip():
         raise ValueError(f"{path}: a comparison needs a name (the filter the figures are of)")

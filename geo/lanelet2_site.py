@@ -101,13 +101,13 @@ def read_lanelet2(path: Path, origin_llh: tuple[float, float, float] | None = No
     """The site of the Lanelet2 map ``path`` in the frame of ``origin_llh`` [rad, rad, m]
     (default: the ``map_projector_info.yaml`` beside it)."""
     path = Path(path)
+    if not path.is_file():
+        raise SiteMapError(f"{path}: no such file")
     if origin_llh is None:
         info = path.parent / PROJECTOR_INFO
         if not info.exists():
             raise SiteMapError(f"{path}: no {PROJECTOR_INFO} beside it: give the map's origin")
         origin_llh = read_projector_info(info)
-    if not path.is_file():
-        raise SiteMapError(f"{path}: no such file")
     lanelet2, _, _, _ = _lanelet2()
     try:
         lmap, errors = lanelet2.io.loadRobust(str(path), _projector(origin_llh))

@@ -35,6 +35,9 @@ EVENT_KINDS = ("first_stopped", "stopped", "moving", "passes_stop_line", "near",
 #: the evaluation window each run adds per vehicle: the times it truly stands still (a scenario
 #: may not define a window of that name)
 STANDING_WINDOW = "standing"
+#: [Hz] the highest IMU rate a scenario may ask for: automotive and tactical IMUs output at most
+#: 1-2 kHz, and each sample is a message the emulator generates and every agent integrates
+MAX_IMU_RATE = 2000.0
 
 
 class ScenarioError(ValueError):
@@ -234,7 +237,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     radio = ctx.model(RadioModel, ctx.table(data, "radio", ""), "radio")
     vehicles = _parse_vehicles(ctx, data, lanes, imu_base, gnss_base)
     events = _parse_events(ctx, data, lanes, {v.id for v in vehicles})
-    windows = _parse_windows(ctx, data, {e.name for e in events})
+    windows = _parse_windows(ctx, data, events)
     return Scenario(
         **head, description=str(sc.get("description", "")), lanes=lanes, signals=signals,
         vehicles=tuple(vehicles), uwb=uwb, radio=radio,
@@ -258,6 +261,8 @@ def _parse_header(ctx: _Ctx, sc: dict) -> dict:
         raise ctx.fail("scenario.seed", f"must be a non-negative integer, got {seed!r}")
     duration = ctx.number(sc, "duration", "scenario", positive=True)
     imu_rate = ctx.number(sc, "imu_rate", "scenario", 100.0, positive=True)
+    if imu_rate > MAX_IMU_RATE:
+        raise ctx.fail("scenario.imu_rate", f"must be at most {MAX_IMU_RATE:g} Hz, got {imu_rate:g}")
     if abs(round(imu_rate / 10.0) * 10.0 - imu_rate) > 1e-9:
         raise ctx.fail("scenario.imu_rate", "must be a multiple of 10 Hz (the traffic step is 0.1 s)")
     imu_batch = sc.get("imu_batch", 10)
@@ -307,6 +312,7 @@ def _parse_lanes(ctx: _Ctx, data: dict) -> dict[str, Lane]:
 def _parse_signals(ctx: _Ctx, data: dict, lanes: dict[str, Lane]) -> Signals:
     sg = ctx.table(data, "signals", "")
     _check_keys(ctx, sg, {"cycle", "offset", "phases"}, "signals")
+    cycle = ctx.number(sg, "cycle", "signals", 60.0, positive=True)
     phases = []
     for i, ph in enumerate(sg.get("phases", [])):
         p = f"signals.phases[{i}]"
@@ -320,11 +326,13 @@ def _parse_signals(ctx: _Ctx, data: dict, lanes: dict[str, Lane]) -> Signals:
             if not lanes[x].stop_line:
                 raise ctx.fail(f"{p}.lanes", f"lane {x!r} has no stop line")
         g = ph.get("green")
-        if not (isinstance(g, list) and len(g) == 2 and all(isinstance(v, (int, float)) for v in g) and g[0] < g[1]):
-            raise ctx.fail(f"{p}.green", "must be [start, end] seconds into the cycle with start < end")
+        if not (isinstance(g, list) and len(g) == 2
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in g)
+                and 0.0 <= g[0] < g[1] <= cycle):
+            raise ctx.fail(f"{p}.green", f"must be [start, end] seconds into the cycle, 0 <= start < end <= cycle "
+                                         f"({cycle:g} s), got {g!r}")
         phases.append(SignalPhase(tuple(ls), float(g[0]), float(g[1])))
-    return Signals(ctx.number(sg, "cycle", "signals", 60.0, positive=True),
-                      ctx.number(sg, "offset", "signals", 0.0), tuple(phases))
+    return Signals(cycle, ctx.number(sg, "offset", "signals", 0.0), tuple(phases))
 
 
 
@@ -429,7 +437,10 @@ def _parse_events(ctx: _Ctx, data: dict, lanes: dict[str, Lane], ids: set[str]) 
     return events
 
 
-def _parse_windows(ctx: _Ctx, data: dict, names: set[str]) -> dict[str, tuple[str, str]]:
+def _parse_windows(ctx: _Ctx, data: dict, events: list[EventSpec]) -> dict[str, tuple[str, str]]:
+    """The evaluation windows; a window between two fixed times must not end before it starts
+    (one between events of the traffic is checked when they are known: ``window_bounds``)."""
+    names = {e.name: e for e in events}
     windows = {}
     for wn, w in ctx.table(data, "windows", "").items():
         if wn == STANDING_WINDOW:
@@ -437,8 +448,10 @@ def _parse_windows(ctx: _Ctx, data: dict, names: set[str]) -> dict[str, tuple[st
                                             "stands still)")
         if not (isinstance(w, list) and len(w) == 2 and all(x in names for x in w)):
             raise ctx.fail(f"windows.{wn}", f"must be [start_event, end_event] of defined events, got {w!r}")
+        a, b = names[w[0]], names[w[1]]
+        if a.kind == "time" and b.kind == "time" and b.time < a.time:
+            raise ctx.fail(f"windows.{wn}", f"ends ({w[1]} at {b.time:g} s) before it starts ({w[0]} at {a.time:g} s)")
         windows[wn] = (w[0], w[1])
-
     return windows
 
 

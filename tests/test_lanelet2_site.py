@@ -167,6 +167,8 @@ def test_bad_maps_and_origins_are_errors_that_name_the_file(tmp_path) -> None:
         read_lanelet2(garbage, (0.8, 0.1, 0.0))
     with pytest.raises(SiteMapError, match="missing.osm: no such file"):
         read_lanelet2(tmp_path / "missing.osm", (0.8, 0.1, 0.0))
+    with pytest.raises(SiteMapError, match="missing.osm: no such file"):  # not "no map_projector_info.yaml"
+        read_lanelet2(tmp_path / "missing.osm")
     info = tmp_path / "map_projector_info.yaml"
     info.write_text("projector_type: MGRS\nmgrs_grid: 54SUE\n")
     with pytest.raises(SiteMapError, match="projector_type 'MGRS'"):

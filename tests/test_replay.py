@@ -146,3 +146,61 @@ def test_outage_phases_pool_their_runs(replay_result, tmp_path, capsys) -> None:
     assert pooled["outage_h_max_m"] == max(p["outage_h_max_m"] for p in pooled["phases"])
     assert json.loads((tmp_path / "metrics.json").read_text())["phases_pooled"]["n_phases"] == 2
     assert main(["replay", "rtklib", str(SHARED_DRIVE), "--phases", "2", "--no-outage"]) == 2
+
+
+def _short_recording(folder, seconds: float = 29.0) -> None:
+    """A vehicle standing for ``seconds``, level, IMU at 100 Hz, RTK-fixed fixes at 4 Hz, as csv."""
+    from slcp.deploy.datasets import csv_columns
+    from slcp.deploy.datasets.recording import Recording, gnss_log, imu_log
+
+    t = 1000.0 + np.arange(int(seconds * 100)) / 100.0
+    imu = imu_log(t, np.tile([0.0, 0.0, -9.80665], (len(t), 1)), np.zeros((len(t), 3)))
+    tg = 1000.0 + np.arange(0.0, seconds, 0.25)
+    n = len(tg)
+    gnss = gnss_log(tg, np.full(n, 40.1), np.full(n, -105.1), np.full(n, 1600.0), np.full((n, 3), 0.01),
+                    None, None, np.ones(n, int), np.full(n, 20))
+    csv_columns.write(Recording(imu, gnss), folder)
+
+
+def test_a_recording_too_short_for_an_outage_gives_null_figures_and_says_why(tmp_path, capsys, caplog) -> None:
+    """29 s of drive, first outage at 40 s: no outage fits. The figures that were not measured
+    are JSON's null in the printed object and in metrics.json (strict JSON: no NaN), and a
+    warning says why; the text summary leaves the outage lines out."""
+    _short_recording(tmp_path / "rec")
+
+    def strict(text: str):
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
+
+    rc = main(["replay", "csv", str(tmp_path / "rec"), "--out", str(tmp_path / "out"), "--json"])
+    assert rc == 0
+    m = strict(capsys.readouterr().out.strip().splitlines()[-1])
+    assert m["n_outages"] == 0 and m["outage_h_rms_m"] is None and m["outage_h_max_m"] is None
+    assert m["gnss_on_h_rms_m"] is not None
+    assert strict((tmp_path / "out" / "metrics.json").read_text())["outage_h_end_mean_m"] is None
+    assert "no outage fits the recording" in caplog.text
+    assert main(["replay", "csv", str(tmp_path / "rec"), "--out", str(tmp_path / "out")]) == 0
+    text = capsys.readouterr().out
+    assert "nan" not in text and "outage horizontal RMS" not in text and "GNSS-on RMS" in text
+
+
+def test_options_the_replay_would_not_use_are_refused_before_any_work(tmp_path, capsys) -> None:
+    """Publishing options without --publish, an --out that is a file or another folder's
+    files, a --compare file that is not there: one clear error each, and nothing written."""
+    _short_recording(tmp_path / "rec")
+    rec = str(tmp_path / "rec")
+    assert main(["replay", "csv", rec, "--speed", "3", "--vehicle-id", "V1", "--out", str(tmp_path / "a")]) == 2
+    assert "--vehicle-id, --speed: only with --publish" in capsys.readouterr().err
+    (tmp_path / "file").write_text("x")
+    assert main(["replay", "csv", rec, "--out", str(tmp_path / "file")]) == 2
+    assert "a file, not a folder" in capsys.readouterr().err
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    assert main(["replay", "csv", rec, "--out", str(tmp_path / "other")]) == 2
+    assert "holds other files" in capsys.readouterr().err
+    assert main(["replay", "csv", rec, "--compare", str(tmp_path / "nosuch.toml"), "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert "--compare" in err and "cannot read it" in err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["notes.txt"]
+    assert main(["replay", "csv", rec, "--out", str(tmp_path / "c")]) == 0  # a new folder, then again into it
+    assert main(["replay", "csv", rec, "--out", str(tmp_path / "c")]) == 0

@@ -169,6 +169,11 @@ def _base() -> dict:
     (lambda d: d["scenario"].update(imu_batch=101), r"scenario.imu_batch: must be an integer from 1 to imu_rate"),
     (lambda d: d["scenario"].update(imu_batch=2.5), r"scenario.imu_batch: must be an integer"),
     (lambda d: d.setdefault("sensors", {}).update(camera={"rate": 0.0}), r"sensors.camera: LaneCameraModel.rate"),
+    (lambda d: d["scenario"].update(imu_rate=1e7), r"scenario.imu_rate: must be at most 2000 Hz"),
+    (lambda d: d["signals"]["phases"][0].update(green=[-50, -10]), r"green: must be \[start, end\] .*0 <= start"),
+    (lambda d: d["signals"]["phases"][0].update(green=[10, 500]), r"green: .*<= cycle \(\d+ s\), got \[10, 500\]"),
+    (lambda d: (d["events"].append({"name": "t_9", "kind": "time", "time": 9.0}),
+                d["windows"].update(w=["t_9", "t_0"])), r"windows.w: ends \(t_0 at 0 s\) before it starts \(t_9"),
 ])
 def test_bad_scenarios_name_the_field(mutate, match) -> None:
     d = _base()

@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import json
 import logging
+import math
 from pathlib import Path
 
 from .. import cli_types as T
@@ -76,6 +77,37 @@ def _outage_arg(text: str) -> tuple[float, float]:
     return length, gap
 
 
+#: the options of the publishing group and their defaults: given without --publish, refused
+_PUBLISH_ONLY = {"vehicle_id": "V0", "speed": 1.0, "start": 0.0, "duration": None, "connect": [], "listen": [],
+                 "wait_agent": 30.0}
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """What the command line asks that this replay would not do, refused before any work."""
+    if not args.publish:
+        given = [k for k, default in _PUBLISH_ONLY.items() if getattr(args, k) != default]
+        if given:
+            names = ", ".join("--" + k.replace("_", "-") for k in given)
+            raise ValueError(f"{names}: only with --publish (the offline replay does not publish)")
+        out: Path = args.out
+        if out.exists() and not out.is_dir():
+            raise ValueError(f"--out {out}: a file, not a folder")
+        if out.is_dir() and any(out.iterdir()) and not (out / "metrics.json").is_file():
+            raise ValueError(f"--out {out}: holds other files (not an earlier replay's output); choose another folder")
+
+
+def json_finite(obj):
+    """``obj`` with every non-finite float as None (JSON's null): strict JSON has no NaN or
+    Infinity, and a metric that was not measured (no outage fits the recording) is null."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_finite(v) for v in obj]
+    return obj
+
+
 def _profile(args: argparse.Namespace):
     """The vehicle profile of ``--vehicle`` (or a generic one) with the command line's switches."""
     from slcp.vehicles.profile import VehicleProfile
@@ -110,6 +142,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         run_replay,
     )
 
+    _check_options(args)
     length, gap = (0.0, 1.0) if args.no_outage else args.outage
     cfg = ReplayConfig(
         profile=_profile(args),
@@ -128,6 +161,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.publish:
         return _replay_publish(args, drive, cfg)
     res = run_replay(drive, cfg)
+    if not args.no_outage and not res.outages:
+        logging.getLogger(__name__).warning(
+            "no outage fits the recording (%.1f s of GNSS; the first would start %.1f s after its first fix, and "
+            "none starts later than %.1f s before its last): no outage figures; shorten --first-outage or "
+            "--end-margin", float(drive.gnss.t[-1] - drive.gnss.t[0]), args.first_outage, args.end_margin)
     pooled = None
     if args.phases > 1:  # phase 0 is the run above
         others = [run_replay(drive, dataclasses.replace(cfg, outage=p))
@@ -146,7 +184,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if pooled is not None:
         metrics["phases_pooled"] = pooled
     metrics["config"] = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    (out / "metrics.json").write_text(json.dumps(json_finite(metrics), indent=2, allow_nan=False))
     if not metrics["reference"]:
         return _no_reference(args, metrics, out)
     try:
@@ -158,7 +196,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     report = replay_report(replay_command(args), metrics, other, title=f"SP replay of {args.path.name}")
     (out / "report.md").write_text(report)
     if args.json:
-        print(json.dumps({**res.metrics, **({"phases_pooled": pooled} if pooled is not None else {})}))
+        print(json.dumps(json_finite({**res.metrics, **({"phases_pooled": pooled} if pooled is not None else {})}),
+                         allow_nan=False))
     else:
         _print_summary(args, cfg, res.metrics, pooled, out)
     return 0
@@ -168,9 +207,10 @@ def _print_summary(args: argparse.Namespace, cfg, m: dict, pooled: dict | None, 
     """The replay's figures as text (the default output)."""
     print(f"SP replay of {args.path} ({args.format}, vehicle {cfg.profile.name}; {m['imu_span_s']:.1f} s of IMU, "
           f"{m['n_outages']} outages, {m['n_withheld_fixes']} withheld fixes)")
-    print(f"  outage horizontal RMS      {m['outage_h_rms_m']:.2f} m")
-    print(f"  end-of-outage mean / max   {m['outage_h_end_mean_m']:.2f} / {m['outage_h_end_max_m']:.2f} m")
-    print(f"  outage max                 {m['outage_h_max_m']:.2f} m")
+    if m["n_outages"]:
+        print(f"  outage horizontal RMS      {m['outage_h_rms_m']:.2f} m")
+        print(f"  end-of-outage mean / max   {m['outage_h_end_mean_m']:.2f} / {m['outage_h_end_max_m']:.2f} m")
+        print(f"  outage max                 {m['outage_h_max_m']:.2f} m")
     print(f"  GNSS-on RMS                {m['gnss_on_h_rms_m']:.2f} m")
     print(f"  estimated IMU time offset  {m['imu_time_offset_s']:+.3f} s")
     print(f"  wall {m['wall_s']:.2f} s, real-time factor {m['realtime_factor']:.0f}x")
@@ -193,7 +233,7 @@ def _no_reference(args: argparse.Namespace, metrics: dict, out: Path) -> int:
     share = metrics["reference_share"]
     keep = ("reference", "reference_share", "imu_span_s", "wall_s", "realtime_factor", "imu_time_offset_s")
     if args.json:
-        print(json.dumps({k: metrics[k] for k in keep}))
+        print(json.dumps(json_finite({k: metrics[k] for k in keep}), allow_nan=False))
         return 0
     print(f"SP replay of {args.path} ({args.format}): no reference, only {100 * share:.0f} % of the fixes are "
           "RTK-fixed, so outage figures would measure the receiver's own error")
@@ -215,7 +255,7 @@ def _replay_publish(args: argparse.Namespace, drive, cfg) -> int:
     res = asyncio.run(replay_publish_main(plan, z, args.speed, args.wait_agent,
                                           lever_arm=cfg.profile.gnss.lever_arm_m))
     if args.json:
-        print(json.dumps(res))
+        print(json.dumps(json_finite(res), allow_nan=False))
         return 0
     print(
         f"published {res['published']} messages ({res['imu_batches']} IMU batches of {res['imu_samples']} samples, "

@@ -109,7 +109,7 @@ def _cmd_scenario(args: argparse.Namespace) -> int:
               + (f", first stopped from {first[0]:.1f} s" if first.size else ""))
     print("  events: " + ", ".join(f"{k} = {v:.1f} s" for k, v in ev.items()))
     for w, (a, b) in window_bounds(truth, ev).items():
-        print(f"  window {w}: {a:.1f} - {b:.1f} s")
+        print(f"  window {w}: {a:.1f} - {b:.1f} s" + (" (empty: its end comes before its start)" if b < a else ""))
     if args.plot:
         from ..plots import plot_scenario
 

@@ -127,6 +127,15 @@ class StopGapModel:
     sigma_yb: float
     l0: float
 
+    def __post_init__(self) -> None:
+        for name in ("m_xb", "sigma_xb", "m_yb", "sigma_yb", "l0"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"StopGapModel.{name} must be a finite number, got {value!r}")
+        for name in ("sigma_xb", "sigma_yb", "l0"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"StopGapModel.{name} must be >= 0, got {getattr(self, name)!r}")
+
 
 def stop_line_fix(approach: StopLineApproach, d_e: float, d_l: float) -> tuple[np.ndarray, np.ndarray]:
     """Solve the reference point from its distances to the two lines.
