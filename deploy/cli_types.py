@@ -55,6 +55,39 @@ def _integer(text: str, what: str, low: int) -> int:
     return v
 
 
+def int_range(low: int, high: int):
+    """An argument type: an integer from ``low`` to ``high``, named as such in its error (argparse's
+    ``choices=range(...)`` lists every allowed value)."""
+
+    def parse(text: str) -> int:
+        v = _integer(text, f"an integer from {low} to {high}", low)
+        if v > high:
+            raise argparse.ArgumentTypeError(f"expected an integer from {low} to {high}, got {text!r}")
+        return v
+
+    parse.__name__ = f"integer {low}-{high}"
+    return parse
+
+
+#: the file types a plot may be written as (by its suffix)
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+
+
+def plot_file(text: str):
+    """A plot to write: a file name with a suffix of :data:`PLOT_SUFFIXES`, in a folder that exists
+    (checked before the work whose result it draws)."""
+    from pathlib import Path
+
+    p = Path(text)
+    if p.suffix.lower() not in PLOT_SUFFIXES:
+        raise argparse.ArgumentTypeError(f"expected a file name ending in {', '.join(PLOT_SUFFIXES)}, got {text!r}")
+    if not p.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: its folder {p.parent} does not exist")
+    if p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: a folder, not a file")
+    return p
+
+
 def positive_int(text: str) -> int:
     """An integer of 1 or more (a count)."""
     return _integer(text, "a positive integer", 1)

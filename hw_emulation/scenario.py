@@ -35,9 +35,7 @@ EVENT_KINDS = ("first_stopped", "stopped", "moving", "passes_stop_line", "near",
 #: the evaluation window each run adds per vehicle: the times it truly stands still (a scenario
 #: may not define a window of that name)
 STANDING_WINDOW = "standing"
-#: [Hz] the highest IMU rate a scenario may ask for: automotive and tactical IMUs output at most
-#: 1-2 kHz, and each sample is a message the emulator generates and every agent integrates
-MAX_IMU_RATE = 2000.0
+MAX_IMU_RATE = 2000.0  #: [Hz] the highest IMU rate of a scenario (vehicle IMUs output at most 1-2 kHz)
 
 
 class ScenarioError(ValueError):
@@ -438,14 +436,12 @@ def _parse_events(ctx: _Ctx, data: dict, lanes: dict[str, Lane], ids: set[str]) 
 
 
 def _parse_windows(ctx: _Ctx, data: dict, events: list[EventSpec]) -> dict[str, tuple[str, str]]:
-    """The evaluation windows; a window between two fixed times must not end before it starts
-    (one between events of the traffic is checked when they are known: ``window_bounds``)."""
+    """The evaluation windows; one between two fixed times must not end before it starts."""
     names = {e.name: e for e in events}
     windows = {}
     for wn, w in ctx.table(data, "windows", "").items():
         if wn == STANDING_WINDOW:
-            raise ctx.fail(f"windows.{wn}", "is reserved: the evaluation adds it per vehicle (the times it truly "
-                                            "stands still)")
+            raise ctx.fail(f"windows.{wn}", "is reserved: the evaluation adds it per vehicle (its times at rest)")
         if not (isinstance(w, list) and len(w) == 2 and all(x in names for x in w)):
             raise ctx.fail(f"windows.{wn}", f"must be [start_event, end_event] of defined events, got {w!r}")
         a, b = names[w[0]], names[w[1]]

@@ -50,6 +50,11 @@ def _refused(argv: list[str], capsys) -> str:
     (["sensors", "--vehicle", "V0", "--uere", "-2"], "above 0"),
     (["scenario", "sp-check", "paper-1", "--seeds", "0"], "positive integer"),
     (["bench", "--fleet-duration", "-5"], "above 0"),
+    (["run", "--agent-nice", "50"], "expected an integer from 0 to 19, got '50'"),
+    (["agent", "--nice", "-1"], "expected an integer from 0 to 19, got '-1'"),
+    (["bench", "--fleet-imu-batch", "0"], "expected an integer from 1 to 100, got '0'"),
+    (["bound", "paper-1", "--plot", "/nonexistent/dir/x.png"], "its folder /nonexistent/dir does not exist"),
+    (["scenario", "show", "paper-1", "--plot", "x.txt"], "expected a file name ending in .png"),
 ])
 def test_a_wrong_number_is_one_line_and_exit_2(argv, says, capsys) -> None:
     line = _refused(argv, capsys)

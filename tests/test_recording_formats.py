@@ -131,6 +131,9 @@ def test_ros2_bag_round_trip(tmp_path, mcap) -> None:
 def test_bad_bags_are_clear_errors(tmp_path) -> None:
     with pytest.raises(DatasetError, match="no such bag"):
         ros2_bag.load(tmp_path / "none")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match=r"empty: not a ROS 2 bag folder \(no metadata.yaml in it\)"):
+        ros2_bag.load(tmp_path / "empty")
     (tmp_path / "junk").mkdir()
     (tmp_path / "junk" / "metadata.yaml").write_text("this: [is not a bag")
     with pytest.raises(DatasetError, match="not a readable ROS 2 bag"):

@@ -122,6 +122,13 @@ def test_a_run_admits_only_its_own_keys_and_refuses_and_counts_forgeries(tmp_pat
                     ["zenoh"]["connect"][0])
 
 
-def test_peer_mode_cannot_be_secured(tmp_path) -> None:
+def test_peer_mode_cannot_be_secured(tmp_path, capsys) -> None:
     with pytest.raises(ValueError, match="insecure"):
         run_fleet("paper-1", out=tmp_path / "peer", zenoh_mode="peer")
+    from slcp.deploy.cli import main
+
+    # the command line refuses it before it writes anything
+    assert main(["run", "paper-1", "--zenoh-mode", "peer", "--out", str(tmp_path / "cli")]) == 2
+    out = capsys.readouterr()
+    assert "--zenoh-mode peer" in out.err and "needs --insecure" in out.err and "writing" not in out.out
+    assert not (tmp_path / "cli").exists()

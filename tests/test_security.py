@@ -158,6 +158,26 @@ def test_create_fleet_keeps_existing_keys_and_adds_vehicles(fleet, tmp_path) -> 
         beacon("emulator"))) == "unknown_key"
 
 
+def test_a_certificate_never_outlives_its_ca_and_a_file_is_no_fleet_folder(tmp_path, caplog) -> None:
+    """A vehicle added for 100,000 days to a CA of 365 ends with the CA, and a warning says so;
+    a file where the folder should be is a clear error."""
+    from cryptography import x509
+
+    d = tmp_path / "f"
+    create_fleet(d, ["V0"], days=365)
+    ca_end = x509.load_pem_x509_certificate((d / "ca.crt").read_bytes()).not_valid_after_utc
+    create_fleet(d, ["V2"], days=100_000)
+    assert x509.load_pem_x509_certificate((d / "V2.crt").read_bytes()).not_valid_after_utc == ca_end
+    assert "valid to the fleet CA's end" in caplog.text
+    caplog.clear()
+    create_fleet(d, ["V3"], days=30)  # within the CA's validity: its own days, no warning
+    assert x509.load_pem_x509_certificate((d / "V3.crt").read_bytes()).not_valid_after_utc < ca_end
+    assert "fleet CA's end" not in caplog.text
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SecurityError, match="not a folder"):
+        create_fleet(tmp_path / "file", ["V0"])
+
+
 def _agent(fleet: Path, vehicle: str = "V0") -> Agent:
     scn = load_scenario("paper-1")
     cfg = dataclasses.replace(agent_config(scn, vehicle), trust=TrustStore.from_dir(fleet),

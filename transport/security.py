@@ -244,6 +244,10 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
     0600, existing ones included.
     """
     d = Path(directory)
+    if d.exists() and not d.is_dir():
+        raise SecurityError(f"{d}: not a folder (the fleet's keys go in a folder)")
+    if days < 1:
+        raise SecurityError(f"days must be at least 1, got {days}")
     d.mkdir(parents=True, exist_ok=True)
     for v in vehicles:
         check_name(v)
@@ -269,6 +273,9 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
     else:
         ca_key = _load_private_key(d / "ca.key")
         ca_cert = _load_cert(d / "ca.crt")
+    # a certificate valid past its CA's end would not verify then: it ends with the CA
+    ca_end = ca_cert.not_valid_after_utc
+    issued = len(written)
     identities = ([(v, VEHICLE, ()) for v in vehicles] + [("router", INFRASTRUCTURE, router_hosts)]
                   + [(v, INFRASTRUCTURE, ()) for v in infrastructure])
     for name, role, sans in identities:
@@ -280,7 +287,7 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
         # key identifiers: RFC 5280 asks for them, and path validators of the web-PKI profile
         # refuse a leaf without the authority's (the fleet CA's key is P-256, a key that can issue)
         ca_public_key = cast(ec.EllipticCurvePublicKey, ca_cert.public_key())
-        b = (_builder(subject, ca_cert.subject, key.public_key(), days)
+        b = (_builder(subject, ca_cert.subject, key.public_key(), days, ca_end)
              .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
              .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_public_key), critical=False)
              .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False))
@@ -292,15 +299,22 @@ def create_fleet(directory: Path | str, vehicles: list[str], router_hosts: tuple
                 alt.append(x509.DNSName(h))
         b = b.add_extension(x509.SubjectAlternativeName(alt), critical=False)
         written += _write_pair(d, name, key, b.sign(ca_key, hashes.SHA256()))
+    if len(written) > issued and _dt.datetime.now(_dt.UTC) + _dt.timedelta(days=days) > ca_end + _dt.timedelta(days=1):
+        log.warning("the new certificates are valid to the fleet CA's end (%s), not for %d days: a new CA (--new-ca) "
+                    "for longer", f"{ca_end:%Y-%m-%d}", days)
     return written
 
 
 def _builder(subject: x509.Name, issuer: x509.Name, public_key: ec.EllipticCurvePublicKey,
-             days: int) -> x509.CertificateBuilder:
+             days: int, not_after: _dt.datetime | None = None) -> x509.CertificateBuilder:
+    """A certificate valid from now (less 5 minutes of clock skew) for ``days``, and at most to
+    ``not_after``."""
     now = _dt.datetime.now(_dt.UTC)
+    end = now + _dt.timedelta(days=days)
     return (x509.CertificateBuilder().subject_name(subject).issuer_name(issuer).public_key(public_key)
             .serial_number(x509.random_serial_number())
-            .not_valid_before(now - _dt.timedelta(minutes=5)).not_valid_after(now + _dt.timedelta(days=days)))
+            .not_valid_before(now - _dt.timedelta(minutes=5))
+            .not_valid_after(end if not_after is None else min(end, not_after)))
 
 
 def _write_pair(d: Path, name: str, key: ec.EllipticCurvePrivateKey, cert: x509.Certificate) -> list[Path]:

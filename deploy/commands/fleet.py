@@ -14,7 +14,7 @@ def add_agent(sub) -> None:
     ag = sub.add_parser("agent", help="run one vehicle agent (Zenoh)")
     ag.add_argument("--vehicle", help="vehicle id (overrides the config file)")
     ag.add_argument("--config", type=Path, required=True, help="agent TOML (docs/cli.md, agent configuration)")
-    ag.add_argument("--nice", type=int, choices=range(0, 20), default=0, metavar="0-19",
+    ag.add_argument("--nice", type=T.int_range(0, 19), default=0, metavar="0-19",
                     help="lower this process's scheduling priority by N (default 0)")
     ag.add_argument("--stand-in", action="store_true",
                     help="for benchmarks: once the engine has sent its first beacon and estimate, estimate "

@@ -32,7 +32,7 @@ def add_bound(sub) -> None:
     bd = sub.add_parser("bound", help="posterior Cramér-Rao bound per vehicle and method on a scenario's truth")
     bd.add_argument("scenario", help="shipped scenario name or .toml")
     bd.add_argument("--json", action="store_true", help="print one JSON object")
-    bd.add_argument("--plot", type=Path, metavar="FILE.png", help="plot the bound over time")
+    bd.add_argument("--plot", type=T.plot_file, metavar="FILE.png", help="plot the bound over time")
     bd.add_argument("--csv", type=Path, metavar="FILE.csv", help="write the bound over time")
     bd.add_argument("--no-lane-constraint", action="store_true",
                     help="SL bounds without the lane-keeping information (as for slcp run --no-lane-constraint)")
@@ -72,7 +72,7 @@ def add_bench(sub) -> None:
                     help=f"how the fleet's CP methods fuse ranges (as slcp run --fusion; default {DEFAULT_FUSION})")
     bn.add_argument("--fleet-zenoh-mode", choices=("client", "peer"), default="client",
                     help="how the fleet's processes join the router (as slcp run --zenoh-mode; default client)")
-    bn.add_argument("--fleet-imu-batch", type=int, choices=range(1, 101), default=20, metavar="1-100",
+    bn.add_argument("--fleet-imu-batch", type=T.int_range(1, 100), default=20, metavar="1-100",
                     help="IMU samples per message in the fleet's grid (default 20: 5 messages a second at 100 Hz)")
     bn.add_argument("--fleet-engine", choices=FLEET_ENGINES, default="full",
                     help="the agents' engine: full (default), or stand-in: once started it estimates nothing "

@@ -41,7 +41,7 @@ def add_run(sub) -> None:
                     help="with --seeds: exit 1 if a seed fails twice (default: report the others and exit 0)")
     rn.add_argument("--faults", type=Path, default=None,
                     help="fault schedule (TOML): link, sensor and process faults, shown on the report")
-    rn.add_argument("--agent-nice", type=int, choices=range(0, 20), default=5, metavar="0-19",
+    rn.add_argument("--agent-nice", type=T.int_range(0, 19), default=5, metavar="0-19",
                     help="run the agents this many steps below normal priority, so that the emulated "
                          "sensors and radio and the Zenoh router are served first (default 5; 0: equal)")
     rn.add_argument("--zenoh-mode", choices=("client", "peer"), default="client",
@@ -76,6 +76,15 @@ def add_report(sub) -> None:
     rp2.add_argument("run_dir", type=Path)
 
 
+def _refuse_bad_combinations(args: argparse.Namespace) -> None:
+    """Options that cannot go together, refused before anything is written or started."""
+    if args.zenoh_mode == "peer" and not args.insecure:
+        raise ValueError("--zenoh-mode peer links the processes directly, past the router's access control: "
+                         "it needs --insecure")
+    if args.seeds and (args.view is not None or args.foxglove is not None):
+        raise ValueError("--view and --foxglove show one run: leave out --seeds, or them")
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from slcp.agent.methods import METHODS, MethodSpec
     from slcp.hw_emulation.scenario import load_scenario
@@ -84,6 +93,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from ..supervisor import interrupt_on_termination
 
     interrupt_on_termination()
+    _refuse_bad_combinations(args)
     methods = tuple(args.methods) if args.methods else METHODS
     for m in methods:
         MethodSpec.of(m)  # ValueError -> clear CLI error
@@ -95,8 +105,6 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.out is not None:
         prepare_out(args.out, args.force)
     stem = folder_stem(scn.name)
-    if args.seeds and (args.view is not None or args.foxglove is not None):
-        raise ValueError("--view and --foxglove show one run: leave out --seeds, or them")
     if args.seeds:
         from ..study import StudyError, run_study, study_markdown
 

@@ -27,7 +27,7 @@ def add_scenario(sub) -> None:
     l2.add_argument("--force", action="store_true", help="replace an existing map")
     show = ssub.add_parser("show", help="summarise a scenario (name or TOML file)")
     show.add_argument("name", help="shipped scenario name or path to a .toml file")
-    show.add_argument("--plot", type=Path, metavar="FILE.png", help="write a map with trajectories")
+    show.add_argument("--plot", type=T.plot_file, metavar="FILE.png", help="write a map with trajectories")
     chk = ssub.add_parser("sp-check", help="SP RMSE on emulated sensors beside the paper's SP row")
     chk.add_argument("name", help="shipped scenario name or path to a .toml file")
     chk.add_argument("--seeds", type=T.positive_int, default=20, help="sensor seeds to average (default 20)")

@@ -54,6 +54,8 @@ def load(path: str | Path, imu_topic: str | None = None, fix_topic: str | None =
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such bag")
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        raise DatasetError(f"{path}: not a ROS 2 bag folder (no metadata.yaml in it)")
     try:
         with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
             conns = reader.connections
