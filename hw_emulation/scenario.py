@@ -9,7 +9,6 @@ the geodetic origin in degrees (converted here). Sensor sections use the field n
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import re
 import tomllib
@@ -28,7 +27,10 @@ from .sensors.gnss import GnssModel
 from .sensors.imu import ImuModel, imu_model_of
 from .sensors.radio import RadioModel
 from .sensors.uwb import UwbModel
+from .toml_checks import Ctx, ScenarioError, array_of, check_keys, model_from_table
 from .trajectory_source import TrajectorySource, parse_trajectories
+
+__all__ = ["ScenarioError", "model_from_table"]  # re-exported: the agent file's reader takes them from here
 
 EVENT_KINDS = ("first_stopped", "stopped", "moving", "passes_stop_line", "near", "green", "time", "end")
 
@@ -36,10 +38,15 @@ EVENT_KINDS = ("first_stopped", "stopped", "moving", "passes_stop_line", "near",
 #: may not define a window of that name)
 STANDING_WINDOW = "standing"
 MAX_IMU_RATE = 2000.0  #: [Hz] the highest IMU rate of a scenario (vehicle IMUs output at most 1-2 kHz)
-
-
-class ScenarioError(ValueError):
-    """A scenario file is invalid; the message names the file, the field and the reason."""
+#: Physical bounds on a scenario's numbers: beyond them a value is a typo, and the emulation would
+#: allocate its truth for it (a day at 100 Hz is 8.6 M samples a vehicle)
+MAX_DURATION = 86400.0  #: [s] a day
+MAX_EXTENT = 50e3  #: [m] a site's lanes within this of its origin (one local frame)
+MAX_LANE_WIDTH = 10.0  #: [m]
+MAX_SPEED = 70.0  #: [m/s] 250 km/h
+MAX_VEHICLE_LENGTH = 30.0  #: [m] a road train's
+#: IDM's a and b [m/s²] (a car's limits), s0 [m], T [s] and δ at most
+IDM_BOUNDS = {"a": 10.0, "b": 10.0, "s0": 20.0, "T": 10.0, "delta": 10.0}
 
 
 @dataclass(frozen=True)
@@ -143,73 +150,7 @@ class Scenario:
         return Site(self.origin_llh, self.lanes)
 
 
-# --------------------------------------------------------------------------- parsing helpers
-class _Ctx:
-    def __init__(self, source: str) -> None:
-        self.source = source
-
-    def fail(self, path: str, reason: str) -> ScenarioError:
-        return ScenarioError(f"{self.source}: {path}: {reason}")
-
-    def number(self, d: dict, key: str, path: str, default: float | None = None, *,
-               positive: bool = False, non_negative: bool = False) -> float:
-        if key not in d:
-            if default is None:
-                raise self.fail(f"{path}.{key}" if path else key, "missing")
-            return float(default)
-        v = d[key]
-        p = f"{path}.{key}" if path else key
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise self.fail(p, f"must be a finite number, got {v!r}")
-        if positive and not v > 0:
-            raise self.fail(p, f"must be > 0, got {v!r}")
-        if non_negative and v < 0:
-            raise self.fail(p, f"must be >= 0, got {v!r}")
-        return float(v)
-
-    def string(self, d: dict, key: str, path: str) -> str:
-        v = d.get(key)
-        if not isinstance(v, str) or not v:
-            raise self.fail(f"{path}.{key}" if path else key, f"must be a non-empty string, got {v!r}")
-        return v
-
-    def table(self, d: dict, key: str, path: str, required: bool = False) -> dict:
-        v = d.get(key, None)
-        if v is None:
-            if required:
-                raise self.fail(f"{path}.{key}" if path else key, "missing")
-            return {}
-        if not isinstance(v, dict):
-            raise self.fail(f"{path}.{key}" if path else key, "must be a table")
-        return v
-
-    def model(self, cls, d: dict, path: str, base=None):
-        base = base if base is not None else cls()
-        names = {f.name for f in dataclasses.fields(cls)}
-        for k in d:
-            if k not in names:
-                raise self.fail(f"{path}.{k}", f"unknown field (known: {', '.join(sorted(names))})")
-        try:
-            return dataclasses.replace(base, **d)
-        except (TypeError, ValueError) as exc:
-            raise self.fail(path, str(exc)) from exc
-
-
-def model_from_table(cls, d: dict, source: str, path: str, base=None):
-    """``base`` (default ``cls()``) with the fields of TOML table ``d`` replaced; unknown or
-    invalid fields raise :class:`ScenarioError` naming ``source`` and ``path``."""
-    if not isinstance(d, dict):
-        raise ScenarioError(f"{source}: {path}: must be a table")
-    return _Ctx(source).model(cls, d, path, base)
-
-
-def _check_keys(ctx: _Ctx, d: dict, allowed: set[str], path: str) -> None:
-    for k in d:
-        if k not in allowed:
-            raise ctx.fail(f"{path}.{k}" if path else k, f"unknown field (known: {', '.join(sorted(allowed))})")
-
-
-def _correlation(ctx: _Ctx, d: dict, path: str) -> float:
+def _correlation(ctx: Ctx, d: dict, path: str) -> float:
     """``d``'s ``correlation`` (default 0), a correlation coefficient in [0, 1]."""
     rho = ctx.number(d, "correlation", path, 0.0, non_negative=True)
     if rho > 1.0:
@@ -219,15 +160,15 @@ def _correlation(ctx: _Ctx, d: dict, path: str) -> float:
 
 def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     """Validate a parsed TOML document and build a :class:`Scenario`."""
-    ctx = _Ctx(source)
-    _check_keys(ctx, data, {"scenario", "lanes", "signals", "vehicles", "sensors", "radio", "uwb",
+    ctx = Ctx(source)
+    check_keys(ctx, data, {"scenario", "lanes", "signals", "vehicles", "sensors", "radio", "uwb",
                             "events", "windows", "paper", "trajectories"}, "")
     sc = ctx.table(data, "scenario", "", required=True)
     head = _parse_header(ctx, sc)
     lanes = _parse_lanes(ctx, data)
     signals = _parse_signals(ctx, data, lanes)
     sensors = ctx.table(data, "sensors", "")
-    _check_keys(ctx, sensors, {"imu", "gnss", "camera"}, "sensors")
+    check_keys(ctx, sensors, {"imu", "gnss", "camera"}, "sensors")
     imu_base = ctx.model(ImuModel, ctx.table(sensors, "imu", "sensors"), "sensors.imu")
     gnss_base = ctx.model(GnssModel, ctx.table(sensors, "gnss", "sensors"), "sensors.gnss")
     camera = ctx.model(LaneCameraModel, ctx.table(sensors, "camera", "sensors"), "sensors.camera")
@@ -246,9 +187,9 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     )
 
 
-def _parse_header(ctx: _Ctx, sc: dict) -> dict:
+def _parse_header(ctx: Ctx, sc: dict) -> dict:
     """The ``[scenario]`` table's name, seed, duration, IMU rate and batching, and origin."""
-    _check_keys(ctx, sc, {"name", "description", "seed", "duration", "imu_rate", "origin",
+    check_keys(ctx, sc, {"name", "description", "seed", "duration", "imu_rate", "origin",
                           "common_mode_sigma", "common_mode_tau", "imu_stagger", "imu_batch"}, "scenario")
     imu_stagger = sc.get("imu_stagger", False)
     if not isinstance(imu_stagger, bool):
@@ -257,7 +198,7 @@ def _parse_header(ctx: _Ctx, sc: dict) -> dict:
     seed = sc.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ctx.fail("scenario.seed", f"must be a non-negative integer, got {seed!r}")
-    duration = ctx.number(sc, "duration", "scenario", positive=True)
+    duration = ctx.number(sc, "duration", "scenario", positive=True, maximum=MAX_DURATION)
     imu_rate = ctx.number(sc, "imu_rate", "scenario", 100.0, positive=True)
     if imu_rate > MAX_IMU_RATE:
         raise ctx.fail("scenario.imu_rate", f"must be at most {MAX_IMU_RATE:g} Hz, got {imu_rate:g}")
@@ -278,7 +219,7 @@ def _parse_header(ctx: _Ctx, sc: dict) -> dict:
             "imu_stagger": imu_stagger, "imu_batch": imu_batch}
 
 
-def _parse_lanes(ctx: _Ctx, data: dict) -> dict[str, Lane]:
+def _parse_lanes(ctx: Ctx, data: dict) -> dict[str, Lane]:
     lanes: dict[str, Lane] = {}
     raw_lanes = data.get("lanes")
     if not isinstance(raw_lanes, list) or not raw_lanes:
@@ -287,7 +228,7 @@ def _parse_lanes(ctx: _Ctx, data: dict) -> dict[str, Lane]:
         p = f"lanes[{i}]"
         if not isinstance(ln, dict):
             raise ctx.fail(p, "must be a table")
-        _check_keys(ctx, ln, {"id", "centerline", "width", "stop_line"}, p)
+        check_keys(ctx, ln, {"id", "centerline", "width", "stop_line"}, p)
         lid = ctx.string(ln, "id", p)
         if lid in lanes:
             raise ctx.fail(f"{p}.id", f"duplicate lane id {lid!r}")
@@ -297,24 +238,26 @@ def _parse_lanes(ctx: _Ctx, data: dict) -> dict[str, Lane]:
             raise ctx.fail(f"{p}.centerline", "must be a list of [north, east] pairs") from None
         if cl.ndim != 2 or cl.shape[1] != 2 or len(cl) < 2 or not np.all(np.isfinite(cl)):
             raise ctx.fail(f"{p}.centerline", "must be at least two finite [north, east] points")
+        if np.max(np.abs(cl)) > MAX_EXTENT:
+            raise ctx.fail(f"{p}.centerline", f"must lie within {MAX_EXTENT / 1e3:g} km of the origin")
         if np.any(np.linalg.norm(np.diff(cl, axis=0), axis=1) < 1e-6):
             raise ctx.fail(f"{p}.centerline", "has repeated consecutive points")
         stop = ln.get("stop_line", False)
         if not isinstance(stop, bool):
             raise ctx.fail(f"{p}.stop_line", "must be true or false")
-        lanes[lid] = Lane(lid, cl, ctx.number(ln, "width", p, 3.5, positive=True), stop)
+        lanes[lid] = Lane(lid, cl, ctx.number(ln, "width", p, 3.5, positive=True, maximum=MAX_LANE_WIDTH), stop)
 
     return lanes
 
 
-def _parse_signals(ctx: _Ctx, data: dict, lanes: dict[str, Lane]) -> Signals:
+def _parse_signals(ctx: Ctx, data: dict, lanes: dict[str, Lane]) -> Signals:
     sg = ctx.table(data, "signals", "")
-    _check_keys(ctx, sg, {"cycle", "offset", "phases"}, "signals")
+    check_keys(ctx, sg, {"cycle", "offset", "phases"}, "signals")
     cycle = ctx.number(sg, "cycle", "signals", 60.0, positive=True)
     phases = []
-    for i, ph in enumerate(sg.get("phases", [])):
+    for i, ph in enumerate(array_of(ctx, sg, "phases", "signals")):
         p = f"signals.phases[{i}]"
-        _check_keys(ctx, ph, {"lanes", "green"}, p)
+        check_keys(ctx, ph, {"lanes", "green"}, p)
         ls = ph.get("lanes")
         if not isinstance(ls, list) or not all(isinstance(x, str) for x in ls):
             raise ctx.fail(f"{p}.lanes", "must be a list of lane ids")
@@ -334,7 +277,7 @@ def _parse_signals(ctx: _Ctx, data: dict, lanes: dict[str, Lane]) -> Signals:
 
 
 
-def _profile_imu(ctx: _Ctx, v: dict, path: str, imu_base: ImuModel) -> ImuModel:
+def _profile_imu(ctx: Ctx, v: dict, path: str, imu_base: ImuModel) -> ImuModel:
     """The emulated IMU of a vehicle with a ``profile`` (a vehicle profile file, relative to the
     scenario's folder): the profile's datasheet noise and biases; else ``imu_base``."""
     if "profile" not in v:
@@ -349,7 +292,7 @@ def _profile_imu(ctx: _Ctx, v: dict, path: str, imu_base: ImuModel) -> ImuModel:
     return imu_model_of(spec)
 
 
-def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: ImuModel,
+def _parse_vehicles(ctx: Ctx, data: dict, lanes: dict[str, Lane], imu_base: ImuModel,
                     gnss_base: GnssModel) -> list[VehicleSpec]:
     vehicles = []
     raw_v = data.get("vehicles")
@@ -358,7 +301,7 @@ def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: Imu
     ids = set()
     for i, v in enumerate(raw_v):
         p = f"vehicles[{i}]"
-        _check_keys(ctx, v, {"id", "route", "depart", "depart_pos", "desired_speed", "initial_speed", "idm",
+        check_keys(ctx, v, {"id", "route", "depart", "depart_pos", "desired_speed", "initial_speed", "idm",
                              "length", "l0", "stop_gap", "lateral", "imu", "gnss", "profile"}, p)
         vid = ctx.string(v, "id", p)
         if vid in ids:
@@ -372,13 +315,14 @@ def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: Imu
                 raise ctx.fail(f"{p}.route", f"unknown lane {x!r}")
         idm_d = ctx.table(v, "idm", p)
         idm = ctx.model(Idm, idm_d, f"{p}.idm")
-        for k in ("a", "b", "s0", "T"):
-            if not getattr(idm, k) > 0:
-                raise ctx.fail(f"{p}.idm.{k}", "must be > 0")
+        for k, most in IDM_BOUNDS.items():
+            x = getattr(idm, k)
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 < x <= most:
+                raise ctx.fail(f"{p}.idm.{k}", f"must be a number above 0 and at most {most:g}, got {x!r}")
         sgap = ctx.table(v, "stop_gap", p)
-        _check_keys(ctx, sgap, {"mean", "sigma"}, f"{p}.stop_gap")
+        check_keys(ctx, sgap, {"mean", "sigma"}, f"{p}.stop_gap")
         lat_d = ctx.table(v, "lateral", p)
-        _check_keys(ctx, lat_d, {"mean", "sigma", "correlation"}, f"{p}.lateral")
+        check_keys(ctx, lat_d, {"mean", "sigma", "correlation"}, f"{p}.lateral")
         first = lanes[route[0]]
         depart_pos = ctx.number(v, "depart_pos", p, 0.0, non_negative=True)
         if depart_pos >= polyline_length(first.centerline):
@@ -387,11 +331,11 @@ def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: Imu
             id=vid, route=tuple(route),
             depart=ctx.number(v, "depart", p, 0.0, non_negative=True),
             depart_pos=depart_pos,
-            desired_speed=ctx.number(v, "desired_speed", p, 12.0, positive=True),
-            initial_speed=ctx.number(v, "initial_speed", p, 0.0, non_negative=True),
+            desired_speed=ctx.number(v, "desired_speed", p, 12.0, positive=True, maximum=MAX_SPEED),
+            initial_speed=ctx.number(v, "initial_speed", p, 0.0, non_negative=True, maximum=MAX_SPEED),
             idm=idm,
-            length=ctx.number(v, "length", p, 4.6, positive=True),
-            l0=ctx.number(v, "l0", p, 2.5, non_negative=True),
+            length=ctx.number(v, "length", p, 4.6, positive=True, maximum=MAX_VEHICLE_LENGTH),
+            l0=ctx.number(v, "l0", p, 2.5, non_negative=True, maximum=MAX_VEHICLE_LENGTH),
             stop_gap=(ctx.number(sgap, "mean", f"{p}.stop_gap", 1.5),
                       ctx.number(sgap, "sigma", f"{p}.stop_gap", 0.3, non_negative=True)),
             lateral=(ctx.number(lat_d, "mean", f"{p}.lateral", first.width / 2),
@@ -404,12 +348,12 @@ def _parse_vehicles(ctx: _Ctx, data: dict, lanes: dict[str, Lane], imu_base: Imu
     return vehicles
 
 
-def _parse_events(ctx: _Ctx, data: dict, lanes: dict[str, Lane], ids: set[str]) -> list[EventSpec]:
+def _parse_events(ctx: Ctx, data: dict, lanes: dict[str, Lane], ids: set[str]) -> list[EventSpec]:
     events = []
     names: set[str] = set()
-    for i, e in enumerate(data.get("events", [])):
+    for i, e in enumerate(array_of(ctx, data, "events")):
         p = f"events[{i}]"
-        _check_keys(ctx, e, {"name", "kind", "vehicle", "time", "other", "distance", "lane"}, p)
+        check_keys(ctx, e, {"name", "kind", "vehicle", "time", "other", "distance", "lane"}, p)
         en = ctx.string(e, "name", p)
         if en in names:
             raise ctx.fail(f"{p}.name", f"duplicate event {en!r}")
@@ -418,31 +362,32 @@ def _parse_events(ctx: _Ctx, data: dict, lanes: dict[str, Lane], ids: set[str]) 
         if kind not in EVENT_KINDS:
             raise ctx.fail(f"{p}.kind", f"must be one of {', '.join(EVENT_KINDS)}, got {kind!r}")
         veh = e.get("vehicle")
-        if kind in ("first_stopped", "stopped", "moving", "passes_stop_line", "near") and veh not in ids:
+        if kind in ("first_stopped", "stopped", "moving", "passes_stop_line", "near") and not (
+                isinstance(veh, str) and veh in ids):
             raise ctx.fail(f"{p}.vehicle", f"unknown or missing vehicle {veh!r}")
         tm = ctx.number(e, "time", p, non_negative=True) if kind == "time" else None
         other = dist = lane = None
         if kind == "near":
             other = e.get("other")
-            if other not in ids or other == veh:
+            if not isinstance(other, str) or other not in ids or other == veh:
                 raise ctx.fail(f"{p}.other", f"must be another vehicle id, got {other!r}")
             dist = ctx.number(e, "distance", p, positive=True)
         if kind == "green":
             lane = e.get("lane")
-            if lane not in lanes or not lanes[lane].stop_line:
+            if not isinstance(lane, str) or lane not in lanes or not lanes[lane].stop_line:
                 raise ctx.fail(f"{p}.lane", f"must be a lane with a stop line, got {lane!r}")
         events.append(EventSpec(en, kind, veh, tm, other, dist, lane))
     return events
 
 
-def _parse_windows(ctx: _Ctx, data: dict, events: list[EventSpec]) -> dict[str, tuple[str, str]]:
+def _parse_windows(ctx: Ctx, data: dict, events: list[EventSpec]) -> dict[str, tuple[str, str]]:
     """The evaluation windows; one between two fixed times must not end before it starts."""
     names = {e.name: e for e in events}
     windows = {}
     for wn, w in ctx.table(data, "windows", "").items():
         if wn == STANDING_WINDOW:
             raise ctx.fail(f"windows.{wn}", "is reserved: the evaluation adds it per vehicle (its times at rest)")
-        if not (isinstance(w, list) and len(w) == 2 and all(x in names for x in w)):
+        if not (isinstance(w, list) and len(w) == 2 and all(isinstance(x, str) and x in names for x in w)):
             raise ctx.fail(f"windows.{wn}", f"must be [start_event, end_event] of defined events, got {w!r}")
         a, b = names[w[0]], names[w[1]]
         if a.kind == "time" and b.kind == "time" and b.time < a.time:

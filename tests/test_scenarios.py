@@ -157,7 +157,7 @@ def _base() -> dict:
     (lambda d: d["lanes"][0].update(centerline=[[0, 0]]), r"lanes\[0\].centerline: must be at least two"),
     (lambda d: d["lanes"][1].update(id="NB_in"), r"lanes\[1\].id: duplicate lane id"),
     (lambda d: d["vehicles"][0].update(route=["NOPE"]), r"vehicles\[0\].route: unknown lane 'NOPE'"),
-    (lambda d: d["vehicles"][1].update(idm={"a": -1.0}), r"vehicles\[1\].idm.a: must be > 0"),
+    (lambda d: d["vehicles"][1].update(idm={"a": -1.0}), r"vehicles\[1\].idm.a: must be a number above 0"),
     (lambda d: d["vehicles"][1].update(gnss={"white_h": -1.0}), r"vehicles\[1\].gnss: GnssModel.white_h must be >= 0"),
     (lambda d: d["vehicles"][1].update(imu={"bogus": 1.0}), r"vehicles\[1\].imu.bogus: unknown field"),
     (lambda d: d["events"][1].update(kind="teleport"), r"events\[1\].kind: must be one of"),
@@ -172,6 +172,16 @@ def _base() -> dict:
     (lambda d: d["scenario"].update(imu_rate=1e7), r"scenario.imu_rate: must be at most 2000 Hz"),
     (lambda d: d["signals"]["phases"][0].update(green=[-50, -10]), r"green: must be \[start, end\] .*0 <= start"),
     (lambda d: d["signals"]["phases"][0].update(green=[10, 500]), r"green: .*<= cycle \(\d+ s\), got \[10, 500\]"),
+    (lambda d: d["scenario"].update(duration=1e9), r"scenario.duration: must be at most 86400"),
+    (lambda d: d["lanes"][1].update(width=1e9), r"lanes\[1\].width: must be at most 10"),
+    (lambda d: d["lanes"][0]["centerline"][1].__setitem__(1, 1e9), r"lanes\[0\].centerline: must lie within 50 km"),
+    (lambda d: d["vehicles"][1].update(desired_speed=1e9), r"vehicles\[1\].desired_speed: must be at most 70"),
+    (lambda d: d["vehicles"][0].update(idm={"a": 1e9}), r"vehicles\[0\].idm.a: must be a number above 0 and at most"),
+    (lambda d: d["vehicles"].__setitem__(1, ""), r"vehicles\[1\]: must be a table"),
+    (lambda d: d.update(events=[True]), r"events\[0\]: must be a table"),
+    (lambda d: d.update(events=float("inf")), r"events: must be an array of tables"),
+    (lambda d: d["windows"].update(w=[[1], "t_e"]), r"windows.w: must be \[start_event, end_event\]"),
+    (lambda d: d["events"][2].update(vehicle={"a": 1}), r"events\[2\].vehicle: unknown or missing vehicle"),
     (lambda d: (d["events"].append({"name": "t_9", "kind": "time", "time": 9.0}),
                 d["windows"].update(w=["t_9", "t_0"])), r"windows.w: ends \(t_0 at 0 s\) before it starts \(t_9"),
 ])
@@ -180,6 +190,48 @@ def test_bad_scenarios_name_the_field(mutate, match) -> None:
     mutate(d)
     with pytest.raises(ScenarioError, match=match):
         parse_scenario(d, "test.toml")
+
+
+def test_a_mangled_scenario_is_a_scenario_error_never_a_crash() -> None:
+    """Seeded random damage to paper-1's document (a field removed, or replaced by a value of
+    another type or an absurd size, one or two at a time): parsing either accepts it or raises
+    ScenarioError naming the field, never another exception (a TypeError was a traceback)."""
+    import copy
+    import random
+
+    base = _base()
+
+    def paths(d, pre=()):
+        items = d.items() if isinstance(d, dict) else enumerate(d) if isinstance(d, list) else ()
+        for k, v in items:
+            yield pre + (k,)
+            yield from paths(v, pre + (k,))
+
+    every = list(paths(base))
+    values = [None, True, -1, 0, 1e9, -1e9, float("nan"), float("inf"), "x", "", [], [1], [[0, 0]], {}, {"a": 1}, 0.5]
+    rng = random.Random(0)
+    refused = 0
+    for _ in range(1500):
+        d = copy.deepcopy(base)
+        for _ in range(rng.randint(1, 2)):
+            *head, last = rng.choice(every)
+            try:
+                target = d
+                for k in head:
+                    target = target[k]
+                value = rng.choice(values)
+                if value is None and isinstance(target, dict):
+                    target.pop(last, None)
+                elif value is not None:
+                    target[last] = copy.deepcopy(value)
+            except (KeyError, IndexError, TypeError):  # an earlier change removed the way there
+                continue
+        try:
+            parse_scenario(d, "mangled.toml")
+        except ScenarioError as exc:
+            assert str(exc).startswith("mangled.toml: ")
+            refused += 1
+    assert refused > 1000
 
 
 def test_bad_files(tmp_path) -> None:
