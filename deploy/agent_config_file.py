@@ -101,6 +101,9 @@ def load_agent_config(path: Path, vehicle: str | None):
     if unknown:
         raise ConfigError(f"{path}: [{sorted(unknown)[0]}]: unknown section "
                           "(known: agent, imu, gnss, uwb, stop_gap, filter, security, zenoh)")
+    for name, section in data.items():
+        if not isinstance(section, dict):
+            raise ConfigError(f"{path}: {name}: must be a table ([{name}]), got {section!r}")
     a = _agent_section(data.get("agent", {}), path, vehicle)
     cfg = _filter_config(a, data, path)
     sec = {}

@@ -185,6 +185,16 @@ def test_every_agent_config_value_is_type_checked(body, field, tmp_path, capsys)
     assert len(err.splitlines()) == 1 and "Traceback" not in err
 
 
+@pytest.mark.parametrize("text, field", [("agent = 0\n", "agent: must be a table"),
+                                         ('imu = 3\n[agent]\nvehicle = "V0"\n', "imu: must be a table")])
+def test_an_agent_file_section_that_is_not_a_table_is_named(text, field, tmp_path, capsys) -> None:
+    cfg = tmp_path / "agent.toml"
+    cfg.write_text(text)
+    assert main(["agent", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"slcp: error: {cfg}: {field}") and "Traceback" not in err, err
+
+
 def test_run_folders_are_named_after_the_scenario_never_hidden_never_reused(tmp_path) -> None:
     assert folder_stem("paper-1") == "paper-1"
     assert folder_stem("../mine/my 4cars") == "mine_my_4cars"
