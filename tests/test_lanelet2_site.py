@@ -213,7 +213,7 @@ def test_an_agent_takes_its_stop_lines_and_lanes_from_a_lanelet2_map(tmp_path) -
     lid = next(iter(own.lanes))
     a, b = own.lanes[lid].approach.stop_line.point, cfg.lanes[lid].approach.stop_line.point
     assert b[0] - a[0] == pytest.approx(-11.1, abs=0.1) and b[1] == pytest.approx(a[1], abs=0.01)
-    for body, match in (('site = "nowhere.osm"\n', "nowhere.osm: no map_projector_info.yaml"),
+    for body, match in (('site = "nowhere.osm"\n', "nowhere.osm: no such file"),
                         ('site = 3\n', "agent.site: must be the path of a Lanelet2 map"),
                         ('site = "maps/paper-1.osm"\nsite_origin = [95, 0, 0]\n', "agent.site_origin: must be"),
                         ('site_origin = [45, 0, 0]\n', "agent.site_origin: only with agent.site")):

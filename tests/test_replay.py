@@ -123,10 +123,10 @@ def test_outage_phases_pool_their_runs(replay_result, tmp_path, capsys) -> None:
     other.write_text("name = 'X'\n[[phase]]\nfirst_outage_s = 40.0\noutage_h_rms_m = 99.0\noutage_h_end_mean_m = 99.0"
                      "\n[[phase]]\nfirst_outage_s = 62.5\noutage_h_rms_m = 0.01\noutage_h_end_mean_m = 0.01\n")
     rc = main(["replay", "rtklib", str(SHARED_DRIVE), "--vehicle", str(DRIVE_PROFILE), "--phases", "2",
-               "--compare", str(other), "--out", str(tmp_path), "--json"])
+               "--compare", str(other), "--out", str(tmp_path / "out"), "--json"])
     assert rc == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    report = (tmp_path / "report.md").read_text()
+    report = (tmp_path / "out" / "report.md").read_text()
     for ph in out["phases_pooled"]["phases"]:  # the report's rows are the run's own figures
         assert (f"| {ph['first_outage_s']:g} | {ph['n_outages']} | {ph['outage_h_rms_m']:.2f} | "
                 f"{ph['outage_h_end_mean_m']:.2f} |") in report
@@ -144,7 +144,7 @@ def test_outage_phases_pool_their_runs(replay_result, tmp_path, capsys) -> None:
     ends = [p["n_outages"] * p["outage_h_end_mean_m"] for p in pooled["phases"]]
     assert pooled["outage_h_end_mean_m"] == pytest.approx(sum(ends) / pooled["n_outages"], rel=1e-9)
     assert pooled["outage_h_max_m"] == max(p["outage_h_max_m"] for p in pooled["phases"])
-    assert json.loads((tmp_path / "metrics.json").read_text())["phases_pooled"]["n_phases"] == 2
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["phases_pooled"]["n_phases"] == 2
     assert main(["replay", "rtklib", str(SHARED_DRIVE), "--phases", "2", "--no-outage"]) == 2
 
 
