@@ -27,10 +27,9 @@ from .sensors.gnss import GnssModel
 from .sensors.imu import ImuModel, imu_model_of
 from .sensors.radio import RadioModel
 from .sensors.uwb import UwbModel
-from .toml_checks import Ctx, ScenarioError, array_of, check_keys, model_from_table
+from .toml_checks import Ctx, ScenarioError, array_of, check_keys
+from .toml_checks import model_from_table as model_from_table  # the agent file's reader takes it from here
 from .trajectory_source import TrajectorySource, parse_trajectories
-
-__all__ = ["ScenarioError", "model_from_table"]  # re-exported: the agent file's reader takes them from here
 
 EVENT_KINDS = ("first_stopped", "stopped", "moving", "passes_stop_line", "near", "green", "time", "end")
 
@@ -162,7 +161,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     """Validate a parsed TOML document and build a :class:`Scenario`."""
     ctx = Ctx(source)
     check_keys(ctx, data, {"scenario", "lanes", "signals", "vehicles", "sensors", "radio", "uwb",
-                            "events", "windows", "paper", "trajectories"}, "")
+                           "events", "windows", "paper", "trajectories"}, "")
     sc = ctx.table(data, "scenario", "", required=True)
     head = _parse_header(ctx, sc)
     lanes = _parse_lanes(ctx, data)
@@ -190,7 +189,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
 def _parse_header(ctx: Ctx, sc: dict) -> dict:
     """The ``[scenario]`` table's name, seed, duration, IMU rate and batching, and origin."""
     check_keys(ctx, sc, {"name", "description", "seed", "duration", "imu_rate", "origin",
-                          "common_mode_sigma", "common_mode_tau", "imu_stagger", "imu_batch"}, "scenario")
+                         "common_mode_sigma", "common_mode_tau", "imu_stagger", "imu_batch"}, "scenario")
     imu_stagger = sc.get("imu_stagger", False)
     if not isinstance(imu_stagger, bool):
         raise ctx.fail("scenario.imu_stagger", f"must be true or false, got {imu_stagger!r}")
@@ -302,7 +301,7 @@ def _parse_vehicles(ctx: Ctx, data: dict, lanes: dict[str, Lane], imu_base: ImuM
     for i, v in enumerate(raw_v):
         p = f"vehicles[{i}]"
         check_keys(ctx, v, {"id", "route", "depart", "depart_pos", "desired_speed", "initial_speed", "idm",
-                             "length", "l0", "stop_gap", "lateral", "imu", "gnss", "profile"}, p)
+                            "length", "l0", "stop_gap", "lateral", "imu", "gnss", "profile"}, p)
         vid = ctx.string(v, "id", p)
         if vid in ids:
             raise ctx.fail(f"{p}.id", f"duplicate vehicle id {vid!r}")
