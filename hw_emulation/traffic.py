@@ -238,9 +238,12 @@ def _merge_leader(vid: str, veh: VehicleSpec, route: Route, sk: float, vk: float
     is continuous. (inf, 0) if none."""
     gap, dv = math.inf, 0.0
     for oid, (oseg, os_) in pos.items():
-        if oid == vid or t < specs[oid].depart or route.segment(oseg.key) is not None:
+        if oid == vid:
             continue
-        for o_start, my_start in merges(vid, oid):
+        joins = merges(vid, oid)  # most pairs never share a lane: nothing more to look at
+        if not joins or t < specs[oid].depart or route.segment(oseg.key) is not None:
+            continue
+        for o_start, my_start in joins:
             if o_start <= os_:
                 continue
             d_me, d_o = my_start - sk, o_start - os_
