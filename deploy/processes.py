@@ -129,6 +129,33 @@ async def report_reachability(bus, endpoints: tuple[str, ...], who: str, first: 
         log.warning("%s: connected", who)
 
 
+async def wait_for_agent(bus, vehicle: str, inputs: list[str], timeout: float) -> bool:
+    """Wait up to ``timeout`` [s] for the agent of ``vehicle`` (its liveliness token) and then for
+    this bus to know of subscriptions to each of the ``inputs`` keys (a publication before that
+    is lost: the first seconds of a log played fast). Whether both came in time; warns if not."""
+    from slcp.transport import keys
+
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    seen = asyncio.Event()
+
+    def on_alive(key: str, up: bool) -> None:
+        if up and key.rsplit("/", 1)[-1] == vehicle:
+            seen.set()
+
+    bus.watch_alive(keys.alive("agent", vehicle), on_alive)
+    try:
+        await asyncio.wait_for(seen.wait(), timeout)
+    except TimeoutError:
+        log.warning("no agent %s after %.0f s; publishing anyway", vehicle, timeout)
+        return False
+    if not await bus.wait_subscribed(inputs, max(0.0, end - loop.time())):
+        log.warning("agent %s is up but %s not subscribed after %.0f s; publishing anyway",
+                    vehicle, ", ".join(inputs), timeout)
+        return False
+    return True
+
+
 async def recorder_main(zcfg: ZenohConfig, path: Path | None, bag: Path | None = None,
                         view_port: int | None = None, foxglove_port: int | None = None,
                         scenario: str | None = None, bag_inputs: bool = False) -> int:

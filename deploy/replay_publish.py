@@ -159,28 +159,12 @@ def score_plan(plan: PublishPlan, by_method: dict[str, list[Estimate]],
             for m, est in sorted(by_method.items())}
 
 
-async def wait_for_agent(bus, vehicle: str, timeout: float) -> bool:
-    """Whether the agent of ``vehicle`` declared its liveliness token within ``timeout`` [s]."""
-    seen = asyncio.Event()
-
-    def on_alive(key: str, up: bool) -> None:
-        if up and key.rsplit("/", 1)[-1] == vehicle:
-            seen.set()
-
-    bus.watch_alive(keys.alive("agent", vehicle), on_alive)
-    try:
-        await asyncio.wait_for(seen.wait(), timeout)
-        return True
-    except TimeoutError:
-        return False
-
-
 async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent: float,
                               settle: float = 2.0, lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict:
     """Publish over Zenoh, collect the agent's estimates, and score them (see module doc)."""
     from slcp.transport.zenoh_bus import ZenohBus
 
-    from .processes import _install_signals
+    from .processes import _install_signals, wait_for_agent
 
     stop = asyncio.Event()
     _install_signals(stop)
@@ -191,9 +175,7 @@ async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent:
         # reach the agent after its first estimates, and the scoring would start epochs later
         collector = EstimateCollector(bus, plan.vehicle)
         if wait_agent > 0:
-            if not await wait_for_agent(bus, plan.vehicle, wait_agent):
-                log.warning("no agent %s after %.0f s; publishing anyway", plan.vehicle, wait_agent)
-            await asyncio.sleep(0.5)  # let the subscriptions propagate both ways
+            await wait_for_agent(bus, plan.vehicle, [keys.gnss(plan.vehicle), keys.imu(plan.vehicle)], wait_agent)
         wall0 = time.perf_counter()
         stats = await publish_plan(bus, plan, speed, stop)
         if not stop.is_set():

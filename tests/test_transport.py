@@ -719,3 +719,42 @@ def test_a_session_closed_right_after_publishing_delivers_its_last_message() -> 
 
     sent, got = asyncio.run(main())
     assert got == sent == 16
+
+
+@pytest.mark.parametrize("where", ["in-memory", "peers", "router"])
+def test_a_bus_learns_when_its_keys_have_subscribers(where) -> None:
+    """``wait_subscribed`` says False while nobody subscribes to one of the keys, True once every
+    key has a subscriber (by a wildcard too) and what is then published arrives: a log player
+    waits on it, since Zenoh drops at the source what is published before (the first seconds of a
+    drive played fast)."""
+    from slcp.transport.zenoh_bus import ZenohBus, ZenohConfig
+
+    async def main():
+        closers = []
+        if where == "in-memory":
+            net = InMemoryNetwork()
+            pub, sub_bus = net.bus(), net.bus()
+        else:
+            ep = f"tcp/127.0.0.1:{free_port()}"
+            if where == "peers":
+                pub = ZenohBus(ZenohConfig(listen=(ep,)))
+                sub_bus = ZenohBus(ZenohConfig(connect=(ep,)))
+            else:
+                closers.append(ZenohBus(ZenohConfig(mode="router", listen=(ep,))))
+                pub = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
+                sub_bus = ZenohBus(ZenohConfig(mode="client", connect=(ep,)))
+        closers += [pub, sub_bus]
+        try:
+            wanted = [keys.gnss("V3"), keys.imu("V3")]
+            assert not await pub.wait_subscribed(wanted, 0.3)
+            gnss = sub_bus.subscribe(keys.gnss("V3"))
+            assert not await pub.wait_subscribed(wanted, 0.3)  # the IMU has nobody yet
+            sub_bus.subscribe("slcp/v1/sensor/*/imu")
+            assert await pub.wait_subscribed(wanted, 10.0)
+            await pub.publish(keys.gnss("V3"), b"first")
+            assert (await asyncio.wait_for(gnss.get(), 5.0))[1] == b"first"
+        finally:
+            for b in reversed(closers):
+                await b.close()
+
+    asyncio.run(main())

@@ -15,7 +15,7 @@ import asyncio
 import heapq
 import itertools
 from collections import defaultdict, deque
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Protocol
 
 from . import codec
@@ -202,6 +202,10 @@ class Bus(Protocol):
 
     def declare_alive(self, key: str) -> None: ...
 
+    async def wait_subscribed(self, key_list: Sequence[str], timeout: float) -> bool:
+        """Whether every key of ``key_list`` has a subscriber on the bus within ``timeout`` [s]
+        (what this bus publishes on them from then on reaches someone)."""
+
     def withdraw_alive(self, key: str) -> None:
         """Undeclare this bus's liveliness token ``key`` (its watchers see it go)."""
 
@@ -260,6 +264,18 @@ class InMemoryBus:
 
     def tap(self, expr: str, callback: TapCallback) -> None:
         self.taps.append((expr, callback))
+
+    async def wait_subscribed(self, key_list: Sequence[str], timeout: float) -> bool:
+        def heard(key: str) -> bool:
+            return any(matches(expr, key) for bus in self.network.buses
+                       for expr in [*(s.expr for s in bus.subs if not s.closed), *(e for e, _ in bus.taps)])
+
+        end = asyncio.get_running_loop().time() + timeout
+        while not all(heard(k) for k in key_list):
+            if asyncio.get_running_loop().time() >= end:
+                return False
+            await asyncio.sleep(0.01)
+        return True
 
     def declare_alive(self, key: str) -> None:
         self.tokens.append(key)

@@ -18,7 +18,7 @@ import math
 import os
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -133,6 +133,11 @@ def _start_zenoh_log() -> None:
             os.environ["NO_COLOR"] = before
 
 
+def _matching(pub: zenoh.Publisher) -> bool:
+    status = pub.matching_status  # a MatchingStatus in zenoh-python 1.x (its stub says bool)
+    return bool(getattr(status, "matching", status))
+
+
 class ZenohBus:
     """Bus over a Zenoh session. Create inside a running event loop."""
 
@@ -177,7 +182,7 @@ class ZenohBus:
         info = self.session.info
         return any(True for _ in info.routers_zid()) or any(True for _ in info.peers_zid())
 
-    async def publish(self, key: str, payload: bytes) -> None:
+    def _publisher(self, key: str) -> zenoh.Publisher:
         pub = self._publishers.get(key)
         if pub is None:
             # BLOCK: Zenoh's default (DROP) discards a message that finds a link's queue full
@@ -185,8 +190,22 @@ class ZenohBus:
             # loss is the emulated radio's to inject
             pub = self._publishers[key] = self.session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK)
-        pub.put(payload)
+        return pub
+
+    async def publish(self, key: str, payload: bytes) -> None:
+        self._publisher(key).put(payload)
         self._last_publish = time.monotonic()
+
+    async def wait_subscribed(self, key_list: Sequence[str], timeout: float) -> bool:
+        # Zenoh's matching status: this session has heard of a subscription matching the key
+        # (a publication before that is dropped at the source)
+        pubs = [self._publisher(k) for k in key_list]
+        end = time.monotonic() + timeout
+        while not all(_matching(p) for p in pubs):
+            if time.monotonic() >= end:
+                return False
+            await asyncio.sleep(0.01)
+        return True
 
     def subscribe(self, expr: str, maxsize: int = 1024, wake: bool = True,
                   waker: Waker | None = None, maxbytes: int | None = None,

@@ -90,6 +90,9 @@ def add_sensors(sub) -> None:
     se.add_argument(
         "--speed", type=T.positive_float, default=1.0, help="pacing of log files (real-time factor, default 1)"
     )
+    se.add_argument("--wait-agent", type=T.nonnegative_float, default=30.0, metavar="S",
+                    help="log files start once the vehicle's agent subscribes to them, waiting at most S "
+                         "seconds (default 30; 0: at once). Serial devices never wait")
     se.add_argument("--connect", action="append", type=T.endpoint, default=[], help="Zenoh endpoint to connect to")
     se.add_argument("--listen", action="append", type=T.listen_endpoint, default=[], help="Zenoh endpoint to listen on")
     se.add_argument("--fleet", type=Path, default=None,
@@ -202,7 +205,8 @@ def _cmd_sensors(args: argparse.Namespace) -> int:
         from ..zenoh_security import client_config
 
         z = client_config(args.fleet, args.vehicle, tuple(args.connect))
-    counters = asyncio.run(sensors_main(z, args.vehicle, gnss, imu, adapter, units, args.uere, args.speed))
+    counters = asyncio.run(sensors_main(z, args.vehicle, gnss, imu, adapter, units, args.uere, args.speed,
+                                             args.wait_agent))
     print(json.dumps(counters))
     return 0
 

@@ -9,7 +9,8 @@ Sources are given as ``FORMAT:PATH[@BAUD]``:
 A character device is opened as a serial port with pyserial (8N1, ``BAUD`` default 115200) and
 its messages are published as they arrive. A regular file is a log: it is read to the end and
 its messages are paced on the wall clock by their own time stamps at ``speed`` × real time (one
-clock for all sources, started by the first message of any). Each message is published on the
+clock for all sources, started by the first message of any), once the vehicle's agent is up and
+subscribed to them (up to ``wait_agent`` s: what is published before that is lost). Each message is published on the
 vehicle's sensor topics; every second a :class:`Diagnostics` message on
 ``slcp/v1/diag/<vehicle>.sensors`` carries the parsers' counters (bad sentences, frames, samples,
 gaps). Bad input is counted and skipped; a serial port that fails is reopened every second.
@@ -265,11 +266,14 @@ class SensorDriver:
 
 
 async def sensors_main(zcfg, vehicle: str, gnss: SourceSpec | None, imu: SourceSpec | None,
-                       adapter: ImuAdapter, units: tuple[float, float], uere: float, speed: float) -> dict:
-    """Run a :class:`SensorDriver` over Zenoh until its log files end or SIGINT/SIGTERM."""
+                       adapter: ImuAdapter, units: tuple[float, float], uere: float, speed: float,
+                       wait_agent: float = 30.0) -> dict:
+    """Run a :class:`SensorDriver` over Zenoh until its log files end or SIGINT/SIGTERM. Log files
+    start once the agent of ``vehicle`` listens to them (at most ``wait_agent`` s; 0: at once);
+    serial devices publish what they read from the start."""
     from slcp.transport.zenoh_bus import ZenohBus
 
-    from ..processes import _install_signals, report_reachability
+    from ..processes import _install_signals, report_reachability, wait_for_agent
 
     stop = asyncio.Event()
     _install_signals(stop)
@@ -278,6 +282,14 @@ async def sensors_main(zcfg, vehicle: str, gnss: SourceSpec | None, imu: SourceS
     try:
         bus.declare_alive(keys.alive("sensors", vehicle))
         drv = SensorDriver(bus, vehicle, gnss, imu, adapter, *units, uere=uere, speed=speed)
+        logs = [s for s in (gnss, imu) if s is not None and not s.serial]
+        if logs and wait_agent > 0:
+            topics = [keys.gnss(vehicle) if s.kind == "gnss" else keys.imu(vehicle) for s in logs]
+            waiting = asyncio.ensure_future(wait_for_agent(bus, vehicle, topics, wait_agent))
+            stopper = asyncio.ensure_future(stop.wait())
+            await asyncio.wait({waiting, stopper}, return_when=asyncio.FIRST_COMPLETED)
+            for t in (waiting, stopper):
+                t.cancel()
         await drv.run(stop)
         return drv.all_counters()
     finally:
