@@ -10,6 +10,7 @@ import signal
 import sys
 
 from . import blas_threads  # noqa: F401  (first: it sets the BLAS threads before numpy loads)
+from . import cli_types as T
 from .commands import fleet, lab, replay, run, scenario
 from .datasets import DatasetError
 
@@ -26,7 +27,7 @@ def _version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="slcp", description="Stop-line-aided cooperative positioning")
+    p = T.Parser(prog="slcp", description="Stop-line-aided cooperative positioning")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
     p.add_argument("--version", action="version", version=f"%(prog)s {_version()}",
                    help="print the installed version and exit")

@@ -14,6 +14,17 @@ _PATH_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
 _ENDPOINT = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^#?]+)(?P<rest>[#?].*)?$")
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, but a token that starts with a minus and a digit is always a value:
+    argparse takes only plain negative numbers for values, so ``--imu-mount -1.5,0,90`` or
+    ``--outage -5:30`` said "expected one argument". No slcp option starts with a digit, and
+    the subcommands' parsers are of this class too."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
+
+
 def _number(text: str) -> float:
     try:
         v = float(text)

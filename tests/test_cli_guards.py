@@ -55,10 +55,21 @@ def _refused(argv: list[str], capsys) -> str:
     (["bench", "--fleet-imu-batch", "0"], "expected an integer from 1 to 100, got '0'"),
     (["bound", "paper-1", "--plot", "/nonexistent/dir/x.png"], "its folder /nonexistent/dir does not exist"),
     (["scenario", "show", "paper-1", "--plot", "x.txt"], "expected a file name ending in .png"),
+    (["replay", "rtklib", "x", "--outage", "-5:30"], "must be positive"),  # not "expected one argument"
 ])
 def test_a_wrong_number_is_one_line_and_exit_2(argv, says, capsys) -> None:
     line = _refused(argv, capsys)
     assert says in line and line.startswith("slcp ") and "error: argument" in line
+
+
+def test_a_value_starting_with_a_minus_and_a_digit_is_a_value() -> None:
+    """argparse takes a token starting with '-' for an option unless it is a plain number: a
+    negative mount angle first in a list was refused ("expected one argument")."""
+    args = build_parser().parse_args(["sensors", "--vehicle", "V0", "--imu-mount", "-1.5,0,90",
+                                      "--imu-time-offset", "-.125"])
+    assert args.imu_mount == "-1.5,0,90" and args.imu_time_offset == -0.125
+    with pytest.raises(SystemExit):  # an option that is no option is still refused
+        build_parser().parse_args(["sensors", "--vehicle", "V0", "--imu-mount", "--bogus"])
 
 
 @pytest.mark.parametrize("bad", ["127.0.0.1:7447", "tcp/127.0.0.1", "tcp/127.0.0.1:70000",
