@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -132,10 +133,13 @@ class EstimateCollector:
         self.sub = bus.subscribe(f"{keys.ROOT}/estimate/{keys.check_name(vehicle)}/*", 65536)
         self.by_method: dict[str, list[Estimate]] = {}
         self.bad = 0
+        self.last_arrival = -math.inf  #: event-loop time of the latest message [s]
         self._task = asyncio.ensure_future(self._run())
 
     async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
         async for _key, payload in self.sub:
+            self.last_arrival = loop.time()
             try:
                 m = decode(payload)
             except CodecError:
@@ -143,6 +147,18 @@ class EstimateCollector:
                 continue
             if isinstance(m, Estimate):
                 self.by_method.setdefault(m.method, []).append(m)
+
+    async def quiet(self, settle: float, most: float, stop: asyncio.Event) -> None:
+        """Return once no estimate has come for ``settle`` [s], at most ``most`` s from now or
+        when ``stop`` is set: an agent on a busy machine trails the publication by more than its
+        IMU hold."""
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        while not stop.is_set() and loop.time() - start < most:
+            wait = max(self.last_arrival, start) + settle - loop.time()
+            if wait <= 0:
+                return
+            await asyncio.sleep(min(wait, 0.5) + 1e-3)
 
     async def close(self) -> None:
         self._task.cancel()
@@ -178,8 +194,8 @@ async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent:
             await wait_for_agent(bus, plan.vehicle, [keys.gnss(plan.vehicle), keys.imu(plan.vehicle)], wait_agent)
         wall0 = time.perf_counter()
         stats = await publish_plan(bus, plan, speed, stop)
-        if not stop.is_set():
-            await asyncio.sleep(settle)  # the agent holds 0.25 s of IMU and publishes after it
+        if not stop.is_set():  # the agent holds 0.25 s of IMU, and trails on a busy machine
+            await collector.quiet(settle, max(30.0, 10.0 * settle), stop)
         await collector.close()
         stats["wall_s"] = time.perf_counter() - wall0
         return {"vehicle": plan.vehicle, "speed": speed, **plan.counts, **stats,

@@ -204,3 +204,40 @@ def test_options_the_replay_would_not_use_are_refused_before_any_work(tmp_path, 
     assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["notes.txt"]
     assert main(["replay", "csv", rec, "--out", str(tmp_path / "c")]) == 0  # a new folder, then again into it
     assert main(["replay", "csv", rec, "--out", str(tmp_path / "c")]) == 0
+
+
+def test_the_live_replay_collects_until_the_agent_falls_silent() -> None:
+    """After publishing, the estimates are collected until none has come for ``settle`` s (an
+    agent on a busy machine trails the publication), at most ``most`` s: a late agent's last
+    estimates are not cut off, and a chatty one does not hold the replay forever."""
+    import asyncio
+
+    from slcp.deploy.replay_publish import EstimateCollector
+    from slcp.transport import keys
+    from slcp.transport.bus import InMemoryNetwork
+    from slcp.transport.codec import encode
+    from slcp.transport.messages import Estimate
+
+    async def main(n: int, every: float, settle: float, most: float) -> tuple[int, float]:
+        net = InMemoryNetwork()
+        agent, here = net.bus(), net.bus()
+        col = EstimateCollector(here, "V0")
+
+        async def late_agent() -> None:
+            for i in range(n):
+                await asyncio.sleep(every)
+                await agent.publish(keys.estimate("V0", "SP"), encode(Estimate(
+                    "V0", "SP", float(i), np.zeros(3), np.zeros(3), np.zeros(3), np.eye(3))))
+
+        task = asyncio.ensure_future(late_agent())
+        t0 = asyncio.get_running_loop().time()
+        await col.quiet(settle, most, asyncio.Event())
+        took = asyncio.get_running_loop().time() - t0
+        await col.close()
+        task.cancel()
+        return len(col.by_method.get("SP", [])), took
+
+    got, took = asyncio.run(main(6, 0.2, 0.5, 30.0))  # estimates for 1.2 s, then silence
+    assert got == 6 and 1.6 <= took < 6.0
+    got, took = asyncio.run(main(1000, 0.05, 0.5, 1.0))  # never silent: bounded
+    assert 1.0 <= took < 6.0 and got < 1000
