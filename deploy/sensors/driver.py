@@ -9,7 +9,8 @@ Sources are given as ``FORMAT:PATH[@BAUD]``:
 A character device is opened as a serial port with pyserial (8N1, ``BAUD`` default 115200) and
 its messages are published as they arrive. A regular file is a log: it is read to the end and
 its messages are paced on the wall clock by their own time stamps at ``speed`` × real time (one
-clock for all sources, started by the first message of any), once the vehicle's agent is up and
+clock for all sources, started by the first message of any), the log files' messages merged in
+time order (:class:`_TimeMerge`), once the vehicle's agent is up and
 subscribed to them (up to ``wait_agent`` s: what is published before that is lost). Each message is published on the
 vehicle's sensor topics; every second a :class:`Diagnostics` message on
 ``slcp/v1/diag/<vehicle>.sensors`` carries the parsers' counters (bad sentences, frames, samples,
@@ -134,6 +135,45 @@ class _Reader(threading.Thread):
                 self.stop.wait(1.0)
 
 
+def _message_time(m: GnssFix | ImuBatch) -> float:
+    return float(m.t if isinstance(m, GnssFix) else m.t[-1])
+
+
+class _TimeMerge:
+    """The messages of several log files, handed on in time order across the files. Each
+    file's parser feeds a bounded queue of its own; a message goes out once every file still
+    being read has one waiting, the earliest first. Two independent paced streams reached the
+    agent in whatever order the driver's tasks got the CPU: on a busy machine at 8x, fixes came
+    later than the IMU by more than the agent's hold (0.25 s of sensor time, 31 ms of wall
+    time) and were dropped as late, the first ones before the filter could start."""
+
+    def __init__(self, kinds: list[str]) -> None:
+        self.queues: dict[str, asyncio.Queue] = {k: asyncio.Queue(256) for k in kinds}
+
+    async def put(self, kind: str, msgs) -> None:
+        for m in msgs:
+            await self.queues[kind].put(m)
+
+    async def end(self, kind: str) -> None:
+        await self.queues[kind].put(None)
+
+    async def run(self, send) -> None:
+        """``await send(m)`` for every message, in time order, until every file has ended."""
+        heads: dict[str, GnssFix | ImuBatch] = {}
+        reading = list(self.queues)
+        while True:
+            for kind in [k for k in reading if k not in heads]:
+                m = await self.queues[kind].get()
+                if m is None:
+                    reading.remove(kind)
+                else:
+                    heads[kind] = m
+            if not heads:
+                return
+            first = min(heads, key=lambda k: _message_time(heads[k]))
+            await send(heads.pop(first))
+
+
 class Pacer:
     """Wall-clock pacing of log files by message time at ``speed`` × real time."""
 
@@ -169,6 +209,7 @@ class SensorDriver:
         self.nmea = NmeaFixAssembler(vehicle, uere=uere)
         self.ubx = UbxFixReader(vehicle)
         self.pacer = Pacer(speed)
+        self._merge = _TimeMerge([])
         self.counters: dict[str, int] = {"published_imu": 0, "published_gnss": 0, "imu_bad_line": 0}
 
     def all_counters(self) -> dict[str, int]:
@@ -183,12 +224,15 @@ class SensorDriver:
         loop = asyncio.get_running_loop()
         halt = threading.Event()
         tasks = []
-        for spec, handler in ((self.gnss, self._gnss_chunk), (self.imu, self._imu_chunk)):
-            if spec is None:
-                continue
+        specs = [(spec, handler) for spec, handler in ((self.gnss, self._gnss_chunk), (self.imu, self._imu_chunk))
+                 if spec is not None]
+        self._merge = _TimeMerge([spec.kind for spec, _ in specs if not spec.serial])
+        for spec, handler in specs:
             q: asyncio.Queue = asyncio.Queue(64)
             _Reader(spec, q, loop, halt, self.counters).start()
             tasks.append(asyncio.ensure_future(self._consume(spec, q, handler)))
+        if self._merge.queues:
+            tasks.append(asyncio.ensure_future(self._merge.run(self._paced_send)))
         diag = asyncio.ensure_future(self._diagnostics(stop))
         done = asyncio.ensure_future(asyncio.gather(*tasks))
         stopper = asyncio.ensure_future(stop.wait())
@@ -214,6 +258,8 @@ class SensorDriver:
                     last = self.adapter.flush()
                     msgs += [last] if last is not None else []
                 await self._publish(msgs, spec)
+                if not spec.serial:
+                    await self._merge.end(spec.kind)
                 return
             if spec.kind == "gnss" and spec.fmt == "ubx":
                 await self._publish(self.ubx.feed(chunk), spec)
@@ -245,15 +291,24 @@ class SensorDriver:
         return out
 
     async def _publish(self, msgs, spec: SourceSpec) -> None:
+        """A serial device's messages go out at once; a log file's through the time merge."""
+        if not spec.serial:
+            await self._merge.put(spec.kind, msgs)
+            return
         for m in msgs:
-            if not spec.serial:
-                await self.pacer.wait(float(m.t if isinstance(m, GnssFix) else m.t[-1]))
-            if isinstance(m, GnssFix):
-                await self.bus.publish(keys.gnss(self.vehicle), encode(m))
-                self.counters["published_gnss"] += 1
-            else:
-                await self.bus.publish(keys.imu(self.vehicle), encode(m))
-                self.counters["published_imu"] += 1
+            await self._send(m)
+
+    async def _paced_send(self, m: GnssFix | ImuBatch) -> None:
+        await self.pacer.wait(_message_time(m))
+        await self._send(m)
+
+    async def _send(self, m: GnssFix | ImuBatch) -> None:
+        if isinstance(m, GnssFix):
+            await self.bus.publish(keys.gnss(self.vehicle), encode(m))
+            self.counters["published_gnss"] += 1
+        else:
+            await self.bus.publish(keys.imu(self.vehicle), encode(m))
+            self.counters["published_imu"] += 1
 
     async def _publish_diag(self) -> None:
         d = Diagnostics(f"{self.vehicle}.sensors", time.time(), self.all_counters())
