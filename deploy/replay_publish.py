@@ -192,6 +192,8 @@ async def replay_publish_main(plan: PublishPlan, zcfg, speed: float, wait_agent:
         collector = EstimateCollector(bus, plan.vehicle)
         if wait_agent > 0:
             await wait_for_agent(bus, plan.vehicle, [keys.gnss(plan.vehicle), keys.imu(plan.vehicle)], wait_agent)
+            # and the agent must know the collector's subscription, which no status here shows
+            await asyncio.sleep(0.5)
         wall0 = time.perf_counter()
         stats = await publish_plan(bus, plan, speed, stop)
         if not stop.is_set():  # the agent holds 0.25 s of IMU, and trails on a busy machine

@@ -441,8 +441,10 @@ def test_replay_publish_drives_a_live_agent_like_the_offline_filter(tmp_path) ->
     res = json.loads(out.stdout)
     sp = res["methods"]["SP"]
     assert res["gnss_withheld"] == 120  # its lateness (max_late_s) is printed on a failure
-    assert sp["epochs"] >= 460 and sp["gnss_on_h_rms_m"] < 0.5 and sp["n_outages"] == 2
     off = run_replay(load_drive(SHARED_DRIVE), drive_config())
+    print(f"\nlive agent scored {sp['epochs']} epochs, {sp['first_epoch_t'] - off.t[0]:.2f}-"
+          f"{sp['last_epoch_t'] - off.t[0]:.2f} s into the drive")
+    assert sp["epochs"] >= 460 and sp["gnss_on_h_rms_m"] < 0.5 and sp["n_outages"] == 2, (sp, res["max_late_s"])
     # the epochs the live run scored, by time (the first n epochs assumed both runs start
     # scoring at the same epoch; a live run that starts later would be compared with a window
     # that also ends earlier)
