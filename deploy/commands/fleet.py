@@ -206,7 +206,7 @@ def _cmd_sensors(args: argparse.Namespace) -> int:
 
         z = client_config(args.fleet, args.vehicle, tuple(args.connect))
     counters = asyncio.run(sensors_main(z, args.vehicle, gnss, imu, adapter, units, args.uere, args.speed,
-                                             args.wait_agent))
+                                        args.wait_agent))
     print(json.dumps(counters))
     return 0
 

@@ -10,8 +10,8 @@ A character device is opened as a serial port with pyserial (8N1, ``BAUD`` defau
 its messages are published as they arrive. A regular file is a log: it is read to the end and
 its messages are paced on the wall clock by their own time stamps at ``speed`` × real time (one
 clock for all sources, started by the first message of any), the log files' messages merged in
-time order (:class:`_TimeMerge`), once the vehicle's agent is up and
-subscribed to them (up to ``wait_agent`` s: what is published before that is lost). Each message is published on the
+time order (:class:`_TimeMerge`), once the vehicle's agent is up and subscribed to them (up to
+``wait_agent`` s: what is published before that is lost). Each message is published on the
 vehicle's sensor topics; every second a :class:`Diagnostics` message on
 ``slcp/v1/diag/<vehicle>.sensors`` carries the parsers' counters (bad sentences, frames, samples,
 gaps). Bad input is counted and skipped; a serial port that fails is reopened every second.
@@ -142,10 +142,10 @@ def _message_time(m: GnssFix | ImuBatch) -> float:
 class _TimeMerge:
     """The messages of several log files, handed on in time order across the files. Each
     file's parser feeds a bounded queue of its own; a message goes out once every file still
-    being read has one waiting, the earliest first. Two independent paced streams reached the
-    agent in whatever order the driver's tasks got the CPU: on a busy machine at 8x, fixes came
-    later than the IMU by more than the agent's hold (0.25 s of sensor time, 31 ms of wall
-    time) and were dropped as late, the first ones before the filter could start."""
+    being read has one waiting, the earliest first. Paced as two independent streams, the
+    files would reach the agent in whatever order the driver's tasks get the CPU: on a busy
+    machine at 8x a fix can come later than the IMU by more than the agent's hold (0.25 s of
+    sensor time, 31 ms of wall time), and the agent drops it as late."""
 
     def __init__(self, kinds: list[str]) -> None:
         self.queues: dict[str, asyncio.Queue] = {k: asyncio.Queue(256) for k in kinds}
