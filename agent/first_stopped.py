@@ -76,9 +76,10 @@ class DetectorSettings:
     min_stationary: float = 0.2  #: [s] at rest before a claim
     heading_tol: float = math.radians(30.0)
     k_sigma: float = 2.5
-    #: [σ] how far outside a lane (across it) my own estimate may stand and still be in it: a
-    #: GNSS estimate 3 σ to the side of a single-lane approach kept paper-1's V1 off its stop
-    #: line for 4 s; heading, the along-track gate and the neighbour rules still apply
+    #: [σ] how far outside a lane (across it) my own estimate may stand and still be in it:
+    #: wider than along it, since a GNSS estimate 3 σ to the side happens in a long run and on a
+    #: single-lane approach there is no other lane to mistake; heading, the along-track gate
+    #: and the neighbour rules still apply
     lane_k_sigma: float = 3.5
     margin: float = 2.0
     neighbour_range: float = 15.0  #: [m] plus k_sigma times my horizontal σ
