@@ -79,3 +79,44 @@ def test_the_fleet_results_page_in_the_docs_is_the_generated_one() -> None:
     text = (REPO / "docs" / "results-fleet.md").read_text()
     assert '!!! note "Generated"' in text and "python tools/fleet_results_page.py" in text
     assert text.count("\n## ") >= 3  # a section per study
+
+
+_ITEM = re.compile(r"^(\s*)(?:[-*]|\d+\.) ")
+
+
+def lists_read_as_paragraphs(text: str) -> list[int]:
+    """Line numbers of list items that Python-Markdown (mkdocs) takes for paragraph text: a new
+    list, or a nested one, right under a paragraph line without a blank line between (GitHub
+    shows them as lists all the same). Within a list, a paragraph after a blank line belongs to
+    the item only if indented by 4; a fence closed at less ends the list too."""
+    bad, fence, in_list, last_ind, after_blank = [], False, False, -1, True
+    for no, line in enumerate(text.split("\n"), 1):
+        ind = len(line) - len(line.lstrip(" "))
+        if line.lstrip().startswith("```"):
+            fence = not fence
+            if not fence and ind < 4:
+                in_list, last_ind = False, -1
+            after_blank = False
+            continue
+        if fence:
+            continue
+        if not line.strip():
+            after_blank = True
+            continue
+        if _ITEM.match(line):
+            if not after_blank and (not in_list or ind > last_ind):
+                bad.append(no)
+            in_list, last_ind = True, ind
+        elif after_blank and ind < 4:
+            in_list, last_ind = False, -1
+        after_blank = False
+    return bad
+
+
+def test_every_list_in_the_docs_renders_as_a_list() -> None:
+    assert lists_read_as_paragraphs("Leads:\n- one\n- two\n") == [2]  # the rule catches what it is for
+    assert lists_read_as_paragraphs("Leads:\n\n- one\n  more\n- two\n  - nested under its item\n") == [6]
+    assert lists_read_as_paragraphs("Leads:\n\n- one\n\n    - nested after a blank line\n- two\n") == []
+    bad = {str(p.relative_to(REPO)): lines for p in sorted((REPO / "docs").rglob("*.md"))
+           if (lines := lists_read_as_paragraphs(p.read_text()))}
+    assert bad == {}, f"add a blank line before these list items: {bad}"
