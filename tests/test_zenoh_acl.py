@@ -93,3 +93,34 @@ def test_the_router_configuration_is_printable_and_complete(router, tmp_path) ->
     bad = subprocess.run([sys.executable, "-m", "slcp.deploy.cli", "router", "--fleet", str(fleet), "--listen",
                           "tcp/127.0.0.1:7447", "--print-config"], capture_output=True, text=True)
     assert bad.returncode == 2 and "tls/<host>:<port>" in bad.stderr
+
+
+@pytest.mark.timeout(120)
+def test_a_sensor_driver_sees_its_agent_subscribe_through_the_secured_router(router) -> None:
+    """`slcp sensors` plays a log once its vehicle's agent is up and subscribed to its topics
+    (`wait_for_agent`: the agent's token, then Zenoh's matching status): both reach a vehicle's
+    client through the ACL, so a secured fleet does not wait out the timeout."""
+    from slcp.deploy.processes import wait_for_agent
+    from slcp.deploy.zenoh_security import client_config
+    from slcp.transport.zenoh_bus import ZenohBus
+
+    fleet, ep = router
+
+    async def main():
+        sensors = ZenohBus(client_config(fleet, "V1", (ep,)))
+        agent = ZenohBus(client_config(fleet, "V1", (ep,)))
+        try:
+            inputs = [keys.gnss("V1"), keys.imu("V1")]
+            before = await wait_for_agent(sensors, "V1", inputs, 1.0)
+            loop = asyncio.get_running_loop()
+            agent.subscribe(keys.ROOT + "/sensor/V1/*")
+            agent.declare_alive(keys.alive("agent", "V1"))
+            t0 = loop.time()
+            ok = await wait_for_agent(sensors, "V1", inputs, 20.0)
+            return before, ok, loop.time() - t0
+        finally:
+            for b in (sensors, agent):
+                await b.close()
+
+    before, ok, took = asyncio.run(main())
+    assert not before and ok and took < 10.0
