@@ -87,8 +87,9 @@ _ITEM = re.compile(r"^(\s*)(?:[-*]|\d+\.) ")
 def lists_read_as_paragraphs(text: str) -> list[int]:
     """Line numbers of list items that Python-Markdown (mkdocs) takes for paragraph text: a new
     list, or a nested one, right under a paragraph line without a blank line between (GitHub
-    shows them as lists all the same). Within a list, a paragraph after a blank line belongs to
-    the item only if indented by 4; a fence closed at less ends the list too."""
+    shows them as lists all the same), and nested items indented by 2 instead of 4 (shown as
+    their parent's siblings). Within a list, a paragraph after a blank line belongs to the item
+    only if indented by 4; a fence closed at less ends the list too."""
     bad, fence, in_list, last_ind, after_blank = [], False, False, -1, True
     for no, line in enumerate(text.split("\n"), 1):
         ind = len(line) - len(line.lstrip(" "))
@@ -104,7 +105,7 @@ def lists_read_as_paragraphs(text: str) -> list[int]:
             after_blank = True
             continue
         if _ITEM.match(line):
-            if not after_blank and (not in_list or ind > last_ind):
+            if not after_blank and (not in_list or ind > last_ind) or ind % 4:  # nested by 4, not 2
                 bad.append(no)
             in_list, last_ind = True, ind
         elif after_blank and ind < 4:
@@ -117,6 +118,7 @@ def test_every_list_in_the_docs_renders_as_a_list() -> None:
     assert lists_read_as_paragraphs("Leads:\n- one\n- two\n") == [2]  # the rule catches what it is for
     assert lists_read_as_paragraphs("Leads:\n\n- one\n  more\n- two\n  - nested under its item\n") == [6]
     assert lists_read_as_paragraphs("Leads:\n\n- one\n\n    - nested after a blank line\n- two\n") == []
+    assert lists_read_as_paragraphs("Leads:\n\n- one\n\n  - nested by 2\n") == [5]
     bad = {str(p.relative_to(REPO)): lines for p in sorted((REPO / "docs").rglob("*.md"))
            if (lines := lists_read_as_paragraphs(p.read_text()))}
     assert bad == {}, f"add a blank line before these list items: {bad}"
