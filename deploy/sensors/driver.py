@@ -209,7 +209,7 @@ class SensorDriver:
         self.nmea = NmeaFixAssembler(vehicle, uere=uere)
         self.ubx = UbxFixReader(vehicle)
         self.pacer = Pacer(speed)
-        self._merge = _TimeMerge([])
+        self._merge = _TimeMerge([s.kind for s in (gnss, imu) if s is not None and not s.serial])
         self.counters: dict[str, int] = {"published_imu": 0, "published_gnss": 0, "imu_bad_line": 0}
 
     def all_counters(self) -> dict[str, int]:
@@ -224,10 +224,9 @@ class SensorDriver:
         loop = asyncio.get_running_loop()
         halt = threading.Event()
         tasks = []
-        specs = [(spec, handler) for spec, handler in ((self.gnss, self._gnss_chunk), (self.imu, self._imu_chunk))
-                 if spec is not None]
-        self._merge = _TimeMerge([spec.kind for spec, _ in specs if not spec.serial])
-        for spec, handler in specs:
+        for spec, handler in ((self.gnss, self._gnss_chunk), (self.imu, self._imu_chunk)):
+            if spec is None:
+                continue
             q: asyncio.Queue = asyncio.Queue(64)
             _Reader(spec, q, loop, halt, self.counters).start()
             tasks.append(asyncio.ensure_future(self._consume(spec, q, handler)))
